@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Set up resim in a virtual environment (.venv by default).
+#   bash scripts/setup.sh          # the product (pipeline + training)
+#   bash scripts/setup.sh --dev    # plus the test tools
+# Torch: if the venv has no torch yet and no NVIDIA GPU is visible, the CPU-only
+# torch==2.13.0 is installed first (a local wheel on our dev/CI machines, seconds);
+# with a GPU visible, pip's default (CUDA) torch is used. An existing torch is kept.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras="all"
+[ "${1:-}" = "--dev" ] && extras="dev"
+venv="${RESIM_VENV:-.venv}"
+py="${PYTHON:-}"
+if [ -z "$py" ]; then
+  for c in python3.11 python3 python; do command -v "$c" >/dev/null 2>&1 && { py="$c"; break; }; done
+fi
+[ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
+pip="$venv/bin/python -m pip"
+if ! "$venv/bin/python" -c "import torch" >/dev/null 2>&1; then
+  if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
+    echo "[setup] GPU visible: installing torch (CUDA build)"
+    $pip install -q "torch>=2.2"
+  else
+    echo "[setup] no GPU visible: installing CPU torch==2.13.0"
+    $pip install -q "torch==2.13.0"
+  fi
+fi
+echo "[setup] installing resim[$extras] (editable)"
+$pip install -q -e ".[$extras]"
+echo "[setup] done: $venv/bin/resim --help"

@@ -1,0 +1,49 @@
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import pytest
+
+from resim.config import ConfigError, apply_overrides, config_hash, from_dict, load, save, to_dict
+
+
+@dataclass
+class Inner:
+    fps_hz: float = 10.0
+    name: Literal["a", "b"] = "a"
+
+
+@dataclass
+class Outer:
+    root: Optional[Path] = None
+    steps: int = 3
+    inner: Inner = field(default_factory=Inner)
+    tags: tuple[str, ...] = ()
+
+
+def test_round_trip_and_hash(tmp_path):
+    cfg = from_dict(Outer, {"steps": 5, "inner": {"fps_hz": 2}, "tags": ["x"]})
+    assert cfg.inner.fps_hz == 2.0 and cfg.tags == ("x",)
+    p = save(cfg, tmp_path / "c.yaml")
+    again = load(Outer, p)
+    assert to_dict(again) == to_dict(cfg)
+    assert config_hash(again) == config_hash(cfg)
+    assert config_hash(from_dict(Outer, {"steps": 6})) != config_hash(cfg)
+
+
+def test_unknown_key_names_full_path():
+    with pytest.raises(ConfigError, match=r"inner\.fps"):
+        from_dict(Outer, {"inner": {"fps": 3}})
+
+
+def test_wrong_type_and_literal():
+    with pytest.raises(ConfigError, match="steps"):
+        from_dict(Outer, {"steps": "many"})
+    with pytest.raises(ConfigError, match="inner.name"):
+        from_dict(Outer, {"inner": {"name": "c"}})
+
+
+def test_overrides_parse_yaml_values():
+    d = apply_overrides({}, ["inner.fps_hz=2.5", "steps=7", "tags=[a, b]"])
+    cfg = from_dict(Outer, d)
+    assert cfg.inner.fps_hz == 2.5 and cfg.steps == 7 and cfg.tags == ("a", "b")
