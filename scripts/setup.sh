@@ -16,15 +16,17 @@ if [ -z "$py" ]; then
 fi
 [ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
 pip="$venv/bin/python -m pip"
+# This machine's pip config names local index folders that may be absent; drop those warnings only.
+pip_() { "$venv/bin/python" -m pip "$@" 2> >(grep -v "is neither a file nor a directory" >&2); }
 if ! "$venv/bin/python" -c "import torch" >/dev/null 2>&1; then
   if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
     echo "[setup] GPU visible: installing torch (CUDA build)"
-    $pip install -q "torch>=2.2"
+    pip_ install -q "torch>=2.2"
   else
     echo "[setup] no GPU visible: installing CPU torch==2.13.0"
-    $pip install -q "torch==2.13.0"
+    pip_ install -q "torch==2.13.0"
   fi
 fi
 echo "[setup] installing resim[$extras] (editable)"
-$pip install -q -e ".[$extras]"
+pip_ install -q -e ".[$extras]"
 echo "[setup] done: $venv/bin/resim --help"
