@@ -15,7 +15,6 @@ if [ -z "$py" ]; then
   for c in python3.11 python3 python; do command -v "$c" >/dev/null 2>&1 && { py="$c"; break; }; done
 fi
 [ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
-pip="$venv/bin/python -m pip"
 # This machine's pip config names local index folders that may be absent; drop those warnings only.
 pip_() { "$venv/bin/python" -m pip "$@" 2> >(grep -v "is neither a file nor a directory" >&2); }
 if ! "$venv/bin/python" -c "import torch" >/dev/null 2>&1; then
