@@ -53,3 +53,20 @@ def test_lpips_layout_and_identity(net, trunk_params, tmp_path):
     y = torch.rand(2, 3, 64, 64)
     assert torch.allclose(m2(x, y), m(x, y))
     assert len(m2.weights_sha256) == 64
+
+
+def test_i3d_shapes_and_state_dict_layout(tmp_path):
+    from training.eval.i3d import I3D
+
+    torch.manual_seed(0)
+    net = I3D("logits")
+    keys = net.state_dict().keys()
+    # key names of the pytorch-i3d port, so its Kinetics weights load as they are
+    for k in ("Conv3d_1a_7x7.conv3d.weight", "Mixed_3b.b1b.bn.running_var", "Mixed_5c.b3b.conv3d.weight",
+              "logits.conv3d.bias"):
+        assert k in keys
+    clip = torch.rand(1, 9, 3, 48, 64)
+    assert net(clip).shape == (1, 400)
+    torch.save(net.state_dict(), tmp_path / "i3d.pt")
+    pool = I3D.from_file(tmp_path / "i3d.pt", feature_layer="pool")
+    assert pool(clip).shape == (1, 1024)
