@@ -44,7 +44,6 @@ class ObjectiveConfig:
     actions_from_trajectory: bool = True # derive per-frame actions from the trajectory when the batch has none
     latent_frame_dt_s: float = 0.4       # duration of one latent frame (4 pixel frames at 10 Hz)
     waypoint_dt_s: float = 0.5
-    loss_weighting: Literal["none", "snr_v"] = "none"   # "none": plain MSE on v (CogVideoX fine-tuning recipe)
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
 
     def __post_init__(self) -> None:
