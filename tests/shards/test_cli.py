@@ -88,3 +88,16 @@ def test_light_import_and_help():
     r = subprocess.run([sys.executable, "-m", "resim", "shards", "stats", "--help"], capture_output=True, text=True,
                        cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}, check=True)
     assert "bytes_per_sample" in r.stdout and "turning_share" in r.stdout
+
+
+def test_format_doc_covers_schema():
+    from shards.schema import MANIFEST_COLUMNS, MEMBERS, META_FIELDS, make_key
+
+    doc = (REPO / "docs" / "data_format.md").read_text()
+    for f in META_FIELDS:
+        assert f"`{f.name}`" in doc, f.name
+    for ext in MEMBERS:
+        assert f"`KEY.{ext}`" in doc, ext
+    for c in MANIFEST_COLUMNS:
+        assert f"`{c}`" in doc, c
+    assert make_key("opendv", "city/drive_01.mp4", 120) in doc  # the worked key example is right
