@@ -152,3 +152,15 @@ def test_bad_shapes_are_named(tiny_model):
         tiny_model(x, t, text, traj[:, :5])
     with pytest.raises(ValueError, match="x must be"):
         tiny_model(x[:, :, :4], t, text)
+
+
+def test_gradient_checkpointing_same_gradients():
+    torch.manual_seed(0)
+    a = WorldModel(preset("tiny"))
+    b = WorldModel(preset("tiny", gradient_checkpointing=True))
+    b.load_state_dict(a.state_dict())
+    x, t, text, act, traj = _inputs(t=3)
+    for m in (a, b):
+        m(x, t, text, traj, act).square().mean().backward()
+    ga = a.transformer_blocks[0].attn1.to_q.weight.grad
+    assert torch.allclose(ga, b.transformer_blocks[0].attn1.to_q.weight.grad, atol=1e-6) and ga.abs().sum() > 0
