@@ -164,3 +164,17 @@ def test_gradient_checkpointing_same_gradients():
         m(x, t, text, traj, act).square().mean().backward()
     ga = a.transformer_blocks[0].attn1.to_q.weight.grad
     assert torch.allclose(ga, b.transformer_blocks[0].attn1.to_q.weight.grad, atol=1e-6) and ga.abs().sum() > 0
+
+
+def test_block_causal_mask_layout():
+    from training.models.attention import block_causal_mask
+    m = block_causal_mask(text_len=2, tokens_per_frame=2, num_frames=2)
+    expect = torch.tensor([[1, 1, 0, 0, 0, 0],   # text sees text only
+                           [1, 1, 0, 0, 0, 0],
+                           [1, 1, 1, 1, 0, 0],   # frame 0 sees text + frame 0
+                           [1, 1, 1, 1, 0, 0],
+                           [1, 1, 1, 1, 1, 1],   # frame 1 sees text + frames 0, 1
+                           [1, 1, 1, 1, 1, 1]], dtype=torch.bool)
+    assert torch.equal(m, expect)
+    suffix = block_causal_mask(2, 2, 1, prefix_frames=1, with_text_queries=False)
+    assert torch.equal(suffix, expect[4:])
