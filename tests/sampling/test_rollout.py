@@ -132,3 +132,32 @@ def test_errors(tiny_model):
     with pytest.raises(ValueError, match="policy returned"):
         rollout(tiny_model(), _history(), _cond(), 2, RolloutConfig(num_steps=1, chunk_frames=1),
                 policy=lambda inp: torch.zeros(B, 5, 3))
+
+
+def _real_tiny_world_model(seed=0):
+    from training.models.config import preset
+    from training.models.dit import WorldModel
+    torch.manual_seed(seed)
+    m = WorldModel(preset("tiny")).eval()
+    with torch.no_grad():  # the new encoders start at zero output; make them matter for this test
+        for name, p in m.named_parameters():
+            if name.startswith(("trajectory_encoder.", "action_encoder.")):
+                p.normal_(0, 0.2)
+    return m
+
+
+@pytest.mark.parametrize("chunk,preset_name", [(10, "resim"), (1, "vid2world")])
+def test_real_world_model_cached_equals_uncached(chunk, preset_name):
+    """The same check on the real WorldModel (tiny preset, block-causal, its own KV-cache hook)."""
+    torch.set_num_threads(1)
+    m = _real_tiny_world_model()
+    g = torch.Generator().manual_seed(0)
+    hist = torch.randn(1, 3, 16, 8, 12, generator=g)
+    cond = Condition(text=torch.randn(1, 6, 64, generator=g), null_text=torch.randn(1, 6, 64, generator=g),
+                     trajectory=torch.randn(1, 8, 3, generator=g))
+    acts = torch.randn(1, 4, 3, generator=g) if preset_name == "vid2world" else None
+    outs = [rollout(m, hist, cond, 4, RolloutConfig(num_steps=3, frames_per_round=4, chunk_frames=min(chunk, 4),
+                                                       kv_cache=kv, guidance=guidance_preset(preset_name)),
+                    actions=acts).latents for kv in ("on", "off")]
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-4, atol=1e-4)
+    assert torch.isfinite(outs[0]).all()

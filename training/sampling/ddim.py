@@ -21,30 +21,25 @@ the latents (e.g. ``(B, T, 1, 1, 1)`` for per-frame levels).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from training.diffusion.config import ScheduleConfig
 
 NUM_TRAIN_TIMESTEPS = 1000
 
 
-def cogvideox_alphas_cumprod(num_train_timesteps: int = NUM_TRAIN_TIMESTEPS, beta_start: float = 0.00085,
-                             beta_end: float = 0.012, snr_shift_scale: float = 3.0,
-                             zero_terminal_snr: bool = True) -> torch.Tensor:
+def cogvideox_alphas_cumprod(schedule: "ScheduleConfig | None" = None) -> torch.Tensor:
     """ᾱ_t of CogVideoX's schedule, ``(num_train_timesteps,)`` float64, ``ᾱ_0 ≈ 0.9975``, ``ᾱ_999 = 0``.
 
-    scaled-linear betas → cumulative product → SNR shift (SNR / ``snr_shift_scale``, as diffusers'
-    ``CogVideoXDDIMScheduler``) → zero-terminal-SNR rescale of ``sqrt(ᾱ)`` (Lin et al. 2024, Alg. 1).
+    The one definition lives with the training objective (``training.diffusion.schedule.alphas_cumprod``:
+    scaled-linear betas → cumprod → SNR shift by 3 → zero-terminal-SNR rescale); sampling must use exactly
+    the schedule the model was trained with, so pass the model's ``objective.schedule`` where it has one.
     """
-    betas = torch.linspace(beta_start ** 0.5, beta_end ** 0.5, num_train_timesteps, dtype=torch.float64) ** 2
-    ac = torch.cumprod(1.0 - betas, dim=0)
-    # SNR' = SNR / s  <=>  a' = a / (s + (1 - s) a)
-    ac = ac / (snr_shift_scale + (1.0 - snr_shift_scale) * ac)
-    if zero_terminal_snr:
-        s = ac.sqrt()
-        s0, sT = s[0].clone(), s[-1].clone()
-        s = (s - sT) * (s0 / (s0 - sT))
-        ac = s ** 2
-    return ac
+    from training.diffusion.schedule import alphas_cumprod
+    return alphas_cumprod(schedule)
 
 
 def ddim_timesteps(num_steps: int, num_train_timesteps: int = NUM_TRAIN_TIMESTEPS) -> list[int]:

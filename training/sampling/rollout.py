@@ -41,7 +41,7 @@ from typing import Any, Callable, Literal, Sequence
 import torch
 
 from resim.config import ConfigError
-from training.sampling.ddim import DDIMSchedule, add_noise, ddim_step
+from training.sampling.ddim import DDIMSchedule, add_noise, cogvideox_alphas_cumprod, ddim_step
 from training.sampling.guidance import GuidanceConfig, combine_branches
 
 
@@ -137,7 +137,9 @@ class _Roller:
     def __init__(self, model, history, cfg: RolloutConfig, generator, history_actions, use_cache, progress):
         self.model, self.cfg, self.gen = model, cfg, generator
         self.device, self.mdtype = history.device, _model_dtype(model)
-        self.schedule = DDIMSchedule(cfg.num_steps)
+        objective = getattr(model, "objective", None)   # sample with the schedule the model trained with
+        sched_cfg = getattr(objective, "schedule", None)
+        self.schedule = DDIMSchedule(cfg.num_steps, cogvideox_alphas_cumprod(sched_cfg))
         self.latents = history.float()                         # (B, T, C, h, w), grows
         # the fed version of each frame (noised once to history_noise_level when it became history)
         self.fed = self._noise_history(self.latents)
