@@ -1,0 +1,156 @@
+"""training.diffusion: schedule vs diffusers, v closed forms, noise-level modes, dropout, the loss."""
+import math
+
+import pytest
+import torch
+
+from training.diffusion import ObjectiveConfig, training_losses
+from training.diffusion.noise_levels import sample_noise_levels
+from training.diffusion.schedule import add_noise, alphas_cumprod, eps_from_v, v_target, x0_from_v
+
+
+def test_schedule_equals_diffusers_cogvideox_ddim():
+    from diffusers import CogVideoXDDIMScheduler
+    ref = CogVideoXDDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
+                                 rescale_betas_zero_snr=True, snr_shift_scale=3.0, prediction_type="v_prediction",
+                                 timestep_spacing="trailing", clip_sample=False).alphas_cumprod
+    ours = alphas_cumprod()
+    assert ours.shape == (1000,)
+    assert torch.allclose(ours, ref.to(ours.dtype), rtol=0, atol=1e-12)
+    assert ours[-1] == 0 and ours[0] < 1 and bool((ours[1:] < ours[:-1]).all())
+
+
+def test_schedule_closed_form_first_step():
+    # without rescale, step 0: ᾱ0 = 1 - β_start, then SNR / 3: ᾱ0 / (3 - 2 ᾱ0)
+    from training.diffusion.config import ScheduleConfig
+    ac = alphas_cumprod(ScheduleConfig(rescale_zero_terminal_snr=False))
+    a0 = 1 - 0.00085
+    assert math.isclose(float(ac[0]), a0 / (3 - 2 * a0), rel_tol=1e-12)
+    # the rescale keeps ᾱ0
+    assert math.isclose(float(alphas_cumprod()[0]), float(ac[0]), rel_tol=1e-12)
+
+
+def test_v_closed_form_and_inverses():
+    ac = alphas_cumprod()
+    g = torch.Generator().manual_seed(0)
+    x0, eps = torch.randn(2, 3, 4, 2, 2, generator=g, dtype=torch.float64), torch.randn(2, 3, 4, 2, 2, generator=g, dtype=torch.float64)
+    t = torch.tensor([[0, 500, 999], [10, 10, 998]])
+    xt, v = add_noise(x0, eps, t, ac), v_target(x0, eps, t, ac)
+    for b in range(2):
+        for f in range(3):
+            a = ac[t[b, f]]
+            assert torch.allclose(xt[b, f], a.sqrt() * x0[b, f] + (1 - a).sqrt() * eps[b, f])
+            assert torch.allclose(v[b, f], a.sqrt() * eps[b, f] - (1 - a).sqrt() * x0[b, f])
+    assert torch.allclose(x0_from_v(xt, v, t, ac), x0) and torch.allclose(eps_from_v(xt, v, t, ac), eps)
+    assert torch.equal(v[0, 2], -x0[0, 2])  # zero terminal SNR: v = -x0 at t = 999
+    with pytest.raises(ValueError, match="noise levels"):
+        add_noise(x0, eps, t + 1, ac)
+
+
+def test_v_target_matches_diffusers_get_velocity():
+    from diffusers import CogVideoXDDIMScheduler
+    sch = CogVideoXDDIMScheduler(rescale_betas_zero_snr=True, snr_shift_scale=3.0)
+    x0, eps = torch.randn(4, 8), torch.randn(4, 8)
+    t = torch.tensor([0, 250, 700, 999])
+    ref = sch.get_velocity(x0, eps, t)
+    assert torch.allclose(v_target(x0, eps, t, alphas_cumprod()), ref, atol=1e-6)
+
+
+def test_noise_level_modes():
+    g = torch.Generator().manual_seed(0)
+    t, m = sample_noise_levels(ObjectiveConfig(noise_mode="diffusion_forcing"), 64, 6, g)
+    assert t.shape == (64, 6) and m.all() and (t.min() >= 0) and (t.max() <= 999)
+    assert (t != t[:, :1]).any(dim=1).float().mean() > 0.9  # independent per frame
+    t, m = sample_noise_levels(ObjectiveConfig(noise_mode="uniform"), 64, 6, g)
+    assert (t == t[:, :1]).all() and m.all()
+    cfg = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=2, cond_aug_max_t=100)
+    t, m = sample_noise_levels(cfg, 256, 6, g)
+    assert (t[:, :2] == t[:, :1]).all() and (t[:, 2:] == t[:, 2:3]).all() and t[:, 0].max() <= 100
+    assert not m[:, :2].any() and m[:, 2:].all()
+    assert t[:, 2].max() > 900  # the future level spans the whole range
+    with pytest.raises(ValueError, match="num_history_frames"):
+        sample_noise_levels(ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=6), 2, 6, g)
+
+
+class _Spy(torch.nn.Module):
+    """Records what the objective passes to the model; predicts zeros via a trainable scalar."""
+
+    def __init__(self, cfg=None):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.zeros(()))
+        self.cfg = cfg
+        self.calls = []
+
+    def forward(self, x, t, text, trajectory=None, actions=None, trajectory_keep=None, action_keep=None):
+        self.calls.append(dict(t=t, text=text, traj=trajectory, actions=actions, keep_traj=trajectory_keep,
+                               keep_act=action_keep))
+        return x * self.w
+
+
+def _batch(b=400, nf=4, sources=None):
+    g = torch.Generator().manual_seed(3)
+    return {"latents": torch.randn(b, nf, 2, 2, 2, generator=g), "text": torch.ones(b, 3, 5),
+            "null_text": torch.zeros(b, 3, 5), "trajectory": torch.randn(b, 8, 3, generator=g),
+            "source": sources or (["carla", "navsim"] * (b // 2))}
+
+
+def test_condition_dropout_rates_and_carla():
+    from training.models.config import preset
+    spy = _Spy(preset("tiny"))
+    training_losses(spy, _batch(), ObjectiveConfig(), torch.Generator().manual_seed(0))
+    c = spy.calls[-1]
+    kept_text = (c["text"][:, 0, 0] == 1).float()
+    assert 0.4 < kept_text.mean() < 0.6                         # p = 0.5, prefix (null_text) otherwise
+    keep = c["keep_traj"]
+    assert keep[0::2].all()                                      # CARLA always keeps its trajectory
+    assert 0.38 < keep[1::2].float().mean() < 0.62               # NAVSIM: p = 0.5
+    assert c["actions"].shape == (400, 4, 3)                     # derived from the trajectory
+    ka = c["keep_act"]
+    assert not ka[:, 0].any()                                    # history frame: no action
+    assert not ka[1::2][~keep[1::2]].any()                       # dropped trajectory → dropped actions
+    assert 0.7 < ka[0::2, 1:].float().mean() < 0.9               # p = 0.2 per frame otherwise
+
+
+def test_loss_masks_history_in_cond_aug():
+    spy = _Spy()
+    batch = _batch(8, 4)
+    cfg = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=2, text_drop_prob=0.0)
+    loss, logs = training_losses(spy, batch, cfg, torch.Generator().manual_seed(0))
+    # with a zero prediction the per-frame loss is E|v|^2; recompute on the future frames only
+    t = spy.calls[-1]["t"]
+    ac = alphas_cumprod()
+    g = torch.Generator().manual_seed(0)
+    sample_noise_levels(cfg, 8, 4, g)
+    noise = torch.randn(batch["latents"].shape, generator=g)
+    v = v_target(batch["latents"], noise, t, ac)
+    assert torch.allclose(loss, (v[:, 2:] ** 2).mean(), atol=1e-6)
+    assert logs["loss"] == pytest.approx(float(loss.detach()))
+
+
+def test_missing_null_text_is_named():
+    b = _batch(4)
+    del b["null_text"]
+    with pytest.raises(ValueError, match="null_text"):
+        training_losses(_Spy(), b, ObjectiveConfig())
+
+
+def test_world_model_loss_trains(tiny_model):
+    """WorldModel.loss(batch) → finite loss with logs; a few Adam steps on one batch lower it."""
+    torch.manual_seed(0)
+    model = tiny_model.train()
+    model.objective = ObjectiveConfig(noise_mode="diffusion_forcing", num_history_frames=1)
+    batch = {"latents": torch.randn(2, 3, 16, 8, 12), "text": torch.randn(2, 16, 64),
+             "null_text": torch.randn(2, 16, 64), "trajectory": torch.randn(2, 8, 3), "source": ["carla", "opendv"]}
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    first = None
+    for _ in range(25):
+        g = torch.Generator().manual_seed(1)  # same draws each step: the loss must go down
+        loss, logs = training_losses(model, batch, model.objective, g)
+        first = first if first is not None else float(loss)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert torch.isfinite(loss) and {"loss", "t_mean", "text_kept", "trajectory_kept", "actions_kept"} <= set(logs)
+    assert float(loss) < 0.8 * first
+    loss2, _ = model.loss(batch)  # the Trainer's entry point
+    assert torch.isfinite(loss2)

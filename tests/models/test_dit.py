@@ -1,0 +1,154 @@
+"""WorldModel: parity with diffusers CogVideoX, block causality, per-frame levels, KV cache, conditioning."""
+import pytest
+import torch
+
+from training.models.config import preset
+from training.models.dit import WorldModel
+
+
+def _inputs(b=2, t=4, h=8, w=12, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(b, t, 16, h, w, generator=g), torch.randint(0, 1000, (b, t), generator=g),
+            torch.randn(b, 16, 64, generator=g), torch.randn(b, t, 3, generator=g), torch.randn(b, 8, 3, generator=g))
+
+
+@pytest.mark.parametrize("size", [(4, 8, 12), (3, 6, 10)])
+def test_matches_diffusers_cogvideox(cogvideox, size):
+    """causal off, one shared level, no trajectory/actions → the diffusers model's output (≤ 1e-5, fp32)."""
+    model = WorldModel.from_cogvideox(cogvideox, causal=False).eval()
+    t_lat, h, w = size
+    x, _, text, _, _ = _inputs(2, t_lat, h, w)
+    levels = torch.tensor([731, 12])
+    with torch.no_grad():
+        ref = cogvideox(x, text, levels).sample
+        out = model(x, levels[:, None].expand(2, t_lat), text)
+    assert out.shape == x.shape
+    assert (out - ref).abs().max().item() <= 1e-5
+    assert ref.abs().max().item() > 0.1  # not a trivial comparison
+
+
+def test_from_saved_folder(cogvideox, tmp_path):
+    cogvideox.save_pretrained(tmp_path / "transformer")
+    a = WorldModel.from_cogvideox(tmp_path, causal=False).eval()  # pipeline-style folder
+    b = WorldModel.from_cogvideox(cogvideox, causal=False).eval()
+    x, t, text, _, _ = _inputs()
+    with torch.no_grad():
+        assert torch.equal(a(x, t, text), b(x, t, text))
+
+
+def test_refuses_unsupported_variant(cogvideox):
+    from resim.config import ConfigError
+    from training.models.config import config_from_cogvideox
+    with pytest.raises(ConfigError, match="use_rotary_positional_embeddings"):
+        config_from_cogvideox({**dict(cogvideox.config), "use_rotary_positional_embeddings": True})
+
+
+def test_new_modules_start_neutral(cogvideox):
+    """Freshly loaded: trajectory and actions change nothing (zero-initialised outputs and nulls)."""
+    model = WorldModel.from_cogvideox(cogvideox, causal=True).eval()
+    x, t, text, a, traj = _inputs()
+    with torch.no_grad():
+        assert torch.equal(model(x, t, text), model(x, t, text, traj, a))
+
+
+def test_block_causal(tiny_model):
+    """Perturbing frames > f (latents, levels, actions) leaves every output at frames ≤ f unchanged."""
+    x, t, text, a, traj = _inputs(t=5)
+    with torch.no_grad():
+        out = tiny_model(x, t, text, traj, a)
+        for f in range(4):
+            x2, t2, a2 = x.clone(), t.clone(), a.clone()
+            x2[:, f + 1:] += torch.randn_like(x2[:, f + 1:])
+            t2[:, f + 1:] = 999 - t2[:, f + 1:]
+            a2[:, f + 1:] += 1.0
+            out2 = tiny_model(x2, t2, text, traj, a2)
+            assert (out2[:, :f + 1] - out[:, :f + 1]).abs().max().item() <= 1e-6
+            assert (out2[:, f + 1:] - out[:, f + 1:]).abs().max().item() > 1e-3
+
+
+def test_non_causal_sees_future(cogvideox):
+    model = WorldModel.from_cogvideox(cogvideox, causal=False).eval()
+    x, t, text, _, _ = _inputs()
+    with torch.no_grad():
+        out = model(x, t, text)
+        x2 = x.clone()
+        x2[:, -1] += 1.0
+        assert (model(x2, t, text)[:, 0] - out[:, 0]).abs().max() > 1e-4
+
+
+def test_per_frame_levels(tiny_model):
+    """Changing frame f's level changes frame f's output and, causal, no earlier frame's."""
+    x, t, text, a, traj = _inputs(t=4)
+    with torch.no_grad():
+        out = tiny_model(x, t, text, traj, a)
+        for f in range(4):
+            t2 = t.clone()
+            t2[:, f] = (t2[:, f] + 500) % 1000
+            out2 = tiny_model(x, t2, text, traj, a)
+            assert (out2[:, f] - out[:, f]).abs().max().item() > 1e-3
+            if f:
+                assert (out2[:, :f] - out[:, :f]).abs().max().item() <= 1e-6
+
+
+def test_kv_cache_matches_uncached(tiny_model):
+    x, t, text, a, traj = _inputs(t=5)
+    with torch.no_grad():
+        full = tiny_model(x, t, text, traj, a)
+        _, cache = tiny_model(x[:, :2], t[:, :2], text, traj, a[:, :2], return_kv_cache=True)
+        assert cache.num_frames == 2 and len(cache.keys) == 2
+        out, cache = tiny_model(x[:, 2:4], t[:, 2:4], None, traj, a[:, 2:4], kv_cache=cache, return_kv_cache=True)
+        assert (out - full[:, 2:4]).abs().max().item() <= 1e-5
+        last = tiny_model(x[:, 4:], t[:, 4:], None, traj, a[:, 4:], kv_cache=cache)
+        assert (last - full[:, 4:]).abs().max().item() <= 1e-5
+        again = tiny_model(x[:, 2:3], t[:, 2:3], None, traj, a[:, 2:3], kv_cache=cache.crop(2))
+        assert (again - full[:, 2:3]).abs().max().item() <= 1e-5
+
+
+def test_kv_cache_needs_causal(cogvideox):
+    model = WorldModel.from_cogvideox(cogvideox, causal=False)
+    x, t, text, _, _ = _inputs()
+    _, cache = WorldModel.from_cogvideox(cogvideox, causal=True)(x[:, :1], t[:, :1], text, return_kv_cache=True)
+    with pytest.raises(ValueError, match="causal"):
+        model(x[:, 1:], t[:, 1:], None, kv_cache=cache)
+
+
+def test_conditions_and_nulls(tiny_model):
+    x, t, text, a, traj = _inputs()
+    with torch.no_grad():
+        base = tiny_model(x, t, text, traj, a)
+        assert (tiny_model(x, t, text, traj + 1.0, a) - base).abs().max() > 1e-4
+        assert (tiny_model(x, t, text, traj, a + 1.0) - base).abs().max() > 1e-4
+        # keep=False equals passing no condition (the null embedding)
+        no_traj = tiny_model(x, t, text, None, a)
+        dropped = tiny_model(x, t, text, traj, a, trajectory_keep=torch.tensor([False, False]))
+        assert torch.equal(no_traj, dropped)
+        no_act = tiny_model(x, t, text, traj, None)
+        dropped = tiny_model(x, t, text, traj, a, action_keep=torch.zeros(2, 4, dtype=torch.bool))
+        assert torch.allclose(no_act, dropped, atol=1e-6)
+
+
+def test_discrete_actions():
+    torch.manual_seed(0)
+    model = WorldModel(preset("tiny", actions=dict(kind="discrete", num_actions=5))).eval()
+    with torch.no_grad():
+        model.action_encoder.proj_out.weight.normal_()
+    x, t, text, _, _ = _inputs()
+    ids = torch.randint(0, 5, (2, 4))
+    with torch.no_grad():
+        out = model(x, t, text, actions=ids)
+        ids2 = ids.clone()
+        ids2[:, 3] = (ids2[:, 3] + 1) % 5
+        out2 = model(x, t, text, actions=ids2)
+    assert (out2[:, :3] - out[:, :3]).abs().max() <= 1e-6 and (out2[:, 3] - out[:, 3]).abs().max() > 1e-4
+    with pytest.raises(ValueError, match="ids"):
+        model(x, t, text, actions=torch.full((2, 4), 7))
+
+
+def test_bad_shapes_are_named(tiny_model):
+    x, t, text, a, traj = _inputs()
+    with pytest.raises(ValueError, match="t must be"):
+        tiny_model(x, t[:, :2], text)
+    with pytest.raises(ValueError, match="trajectory must be"):
+        tiny_model(x, t, text, traj[:, :5])
+    with pytest.raises(ValueError, match="x must be"):
+        tiny_model(x[:, :, :4], t, text)

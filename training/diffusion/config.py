@@ -1,0 +1,57 @@
+"""Typed config of the diffusion objective (issue 6). Torch-free."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from resim.config import ConfigError
+
+
+@dataclass
+class ScheduleConfig:
+    """CogVideoX's training schedule (``CogVideoXDDIMScheduler`` of THUDM/CogVideoX-2b)."""
+    num_train_timesteps: int = 1000
+    beta_start: float = 0.00085
+    beta_end: float = 0.012
+    snr_shift_scale: float = 3.0
+    rescale_zero_terminal_snr: bool = True
+
+    def __post_init__(self) -> None:
+        if not 0 < self.beta_start < self.beta_end < 1:
+            raise ConfigError("schedule: need 0 < beta_start < beta_end < 1")
+        if self.num_train_timesteps < 2 or self.snr_shift_scale <= 0:
+            raise ConfigError("schedule: num_train_timesteps >= 2 and snr_shift_scale > 0")
+
+
+@dataclass
+class ObjectiveConfig:
+    """How ``training_losses`` noises a clip, which conditions it drops, and where the loss counts.
+
+    noise_mode:
+      * ``diffusion_forcing`` – an independent uniform level per latent frame (Vid2World Sec. 4.1);
+        loss on every frame.
+      * ``resim_cond_aug`` – one level ``t_aug`` for the ``num_history_frames`` history frames (sampled in
+        ``[0, cond_aug_max_t]``) and one ``t`` for the future frames (ReSim App. B.2); loss on the future only.
+      * ``uniform`` – one level for all frames (full-sequence, as CogVideoX was trained); loss on every frame.
+    """
+    noise_mode: Literal["diffusion_forcing", "resim_cond_aug", "uniform"] = "diffusion_forcing"
+    num_history_frames: int = 1          # latent frames of context (resim_cond_aug; also the loss mask there)
+    cond_aug_max_t: int = 999            # t_aug ~ U{0, …, cond_aug_max_t}
+    text_drop_prob: float = 0.5          # command dropped → the prefix-only prompt (null_text) is used
+    trajectory_drop_prob: float = 0.5    # trajectory → null embedding ...
+    trajectory_keep_sources: tuple[str, ...] = ("carla",)   # ... except for these sources (always kept)
+    action_drop_prob: float = 0.2        # each frame's action independently → null action
+    actions_from_trajectory: bool = True # derive per-frame actions from the trajectory when the batch has none
+    latent_frame_dt_s: float = 0.4       # duration of one latent frame (4 pixel frames at 10 Hz)
+    waypoint_dt_s: float = 0.5
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("text_drop_prob", "trajectory_drop_prob", "action_drop_prob"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ConfigError(f"objective.{name}={v} not in [0, 1]")
+        if self.num_history_frames < 0:
+            raise ConfigError("objective.num_history_frames must be >= 0")
+        if not 0 <= self.cond_aug_max_t < self.schedule.num_train_timesteps:
+            raise ConfigError("objective.cond_aug_max_t must be in [0, num_train_timesteps)")

@@ -1,0 +1,40 @@
+"""Per-frame noise-level sampling for training (issue 6).
+
+``sample_noise_levels(cfg, B, T) -> (t (B, T) int64, loss_mask (B, T) bool)``:
+
+* ``diffusion_forcing``: ``t[b, f] ~ U{0..N-1}`` independently per frame (Chen et al. 2024; Vid2World 4.1),
+  exposing the model to every mix of history/future levels it meets in causal rollouts; loss everywhere.
+* ``resim_cond_aug``: history frames ``f < H`` share ``t_aug ~ U{0..cond_aug_max_t}``, the future shares
+  ``t ~ U{0..N-1}`` (ReSim App. B.2, conditioning augmentation; t_aug = 0 at inference); loss on the future.
+* ``uniform``: one ``t ~ U{0..N-1}`` for all frames (CogVideoX's full-sequence training); loss everywhere.
+"""
+from __future__ import annotations
+
+import torch
+
+from training.diffusion.config import ObjectiveConfig
+
+
+def sample_noise_levels(cfg: ObjectiveConfig, batch_size: int, num_frames: int,
+                        generator: torch.Generator | None = None,
+                        device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    n = cfg.schedule.num_train_timesteps
+    b, f = batch_size, num_frames
+    if cfg.noise_mode == "diffusion_forcing":
+        t = torch.randint(0, n, (b, f), generator=generator)
+        mask = torch.ones(b, f, dtype=torch.bool)
+    elif cfg.noise_mode == "uniform":
+        t = torch.randint(0, n, (b, 1), generator=generator).expand(b, f).clone()
+        mask = torch.ones(b, f, dtype=torch.bool)
+    elif cfg.noise_mode == "resim_cond_aug":
+        h = cfg.num_history_frames
+        if not 0 < h < f:
+            raise ValueError(f"resim_cond_aug needs 0 < num_history_frames ({h}) < latent frames ({f})")
+        t_aug = torch.randint(0, cfg.cond_aug_max_t + 1, (b, 1), generator=generator)
+        t_fut = torch.randint(0, n, (b, 1), generator=generator)
+        hist = torch.arange(f)[None] < h
+        t = torch.where(hist, t_aug, t_fut)
+        mask = ~hist.expand(b, f)
+    else:  # validated by the config; reaching here is our bug
+        raise AssertionError(cfg.noise_mode)
+    return t.to(device), mask.to(device)

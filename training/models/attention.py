@@ -1,0 +1,118 @@
+"""Joint text+video self-attention with qk-norm, a block-causal mask and a prefix KV cache.
+
+Sequence layout (as CogVideoX): ``[text (L) | frame 0 (n) | frame 1 (n) | …]`` with ``n = (h/p)(w/p)``.
+
+Block-causal mask (Vid2World Sec. 4.1: a causal temporal mask needs no new weights, attention adapts to
+the shorter context): a video token of frame ``f`` sees the text and every token of frames ``≤ f``; a text
+token sees only the text. The latter keeps the text stream a function of the prompt alone, so it never
+depends on (a) frames, (b) their noise levels – which is what lets the sampler compute text and history
+keys/values once and reuse them (KV cache) and what makes "perturb frame > f, nothing at ≤ f changes" hold
+for the text-mediated paths too (text attending to all frames would leak future frames into every frame
+through the next layer's text keys).
+
+Kernel note (PyTorch SDPA): with ``attn_mask`` set, the FlashAttention-2 backend is never eligible (it takes no
+arbitrary mask), so on CUDA the dispatcher picks the memory-efficient (xFormers-style) kernel, which supports
+an additive/boolean mask (or cuDNN attention on recent PyTorch/GPUs); the math fallback is used only if those
+are unavailable (e.g. unsupported dtype/head_dim). We pass the mask as a *boolean* ``(S_q, S_k)`` tensor shared
+across batch and heads (broadcast, not materialised per head). Not measured on a GPU in this session (none was
+lent); CPU runs the fused flash-attention-for-CPU kernel with the mask. Cheaper alternative, not done here:
+``torch.nn.attention.flex_attention`` with a block mask (skips fully masked tiles: ~2x fewer FLOPs for long
+clips).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@lru_cache(maxsize=32)
+def _block_causal_mask_cpu(text_len: int, tokens_per_frame: int, num_frames: int,
+                           prefix_frames: int, with_text_queries: bool) -> torch.Tensor:
+    n = tokens_per_frame
+    # key frame ids: text = -1, then prefix frames and the new frames
+    k_frame = torch.cat([torch.full((text_len,), -1), torch.arange(prefix_frames + num_frames).repeat_interleave(n)])
+    q_frame = torch.arange(prefix_frames, prefix_frames + num_frames).repeat_interleave(n)
+    mask = k_frame[None, :] <= q_frame[:, None]                                  # video queries
+    if with_text_queries:
+        text_rows = (k_frame < 0)[None, :].expand(text_len, -1)                  # text sees only text
+        mask = torch.cat([text_rows, mask], dim=0)
+    return mask
+
+
+def block_causal_mask(text_len: int, tokens_per_frame: int, num_frames: int, prefix_frames: int = 0,
+                      with_text_queries: bool = True, device: torch.device | str | None = None) -> torch.Tensor:
+    """Boolean mask ``(S_q, S_k)``, True = may attend.
+
+    Keys: ``text_len`` text tokens, then ``prefix_frames + num_frames`` frames of ``tokens_per_frame`` tokens.
+    Queries: the text tokens (if ``with_text_queries``) and the ``num_frames`` new frames (absolute indices
+    ``prefix_frames …``). Cached per shape on CPU, moved to ``device``.
+    """
+    m = _block_causal_mask_cpu(text_len, tokens_per_frame, num_frames, prefix_frames, with_text_queries)
+    return m.to(device) if device is not None else m
+
+
+@dataclass
+class KVCache:
+    """Per-layer keys/values of a prefix: the text tokens and ``num_frames`` clean history frames.
+
+    ``keys[i]``/``values[i]``: ``(B, heads, L + num_frames * tokens_per_frame, head_dim)``. Built by
+    ``WorldModel.forward(..., return_kv_cache=True)`` and consumed by ``forward(..., kv_cache=cache)`` (causal
+    models only: with the block-causal mask a prefix's keys/values do not depend on anything after it).
+    """
+    keys: list[torch.Tensor] = field(default_factory=list)
+    values: list[torch.Tensor] = field(default_factory=list)
+    text_len: int = 0
+    tokens_per_frame: int = 0
+    num_frames: int = 0
+
+    def crop(self, num_frames: int) -> "KVCache":
+        """The cache of the first ``num_frames`` frames (e.g. a sliding window start or a rollback)."""
+        if not 0 <= num_frames <= self.num_frames:
+            raise ValueError(f"cannot crop a {self.num_frames}-frame cache to {num_frames} frames")
+        s = self.text_len + num_frames * self.tokens_per_frame
+        return KVCache([k[:, :, :s] for k in self.keys], [v[:, :, :s] for v in self.values],
+                       self.text_len, self.tokens_per_frame, num_frames)
+
+
+class Attention(nn.Module):
+    """Multi-head self-attention over ``[text | video]`` with LayerNorm qk-norm (CogVideoX's ``attn1``).
+
+    Submodule names (``to_q``, ``to_k``, ``to_v``, ``to_out.0``, ``norm_q``, ``norm_k``) equal diffusers' so
+    checkpoints and LoRA target names carry over.
+    """
+
+    def __init__(self, dim: int, heads: int, head_dim: int, bias: bool = True, out_bias: bool = True,
+                 qk_norm_eps: float = 1e-6):
+        super().__init__()
+        self.heads, self.head_dim = heads, head_dim
+        inner = heads * head_dim
+        self.norm_q = nn.LayerNorm(head_dim, eps=qk_norm_eps)
+        self.norm_k = nn.LayerNorm(head_dim, eps=qk_norm_eps)
+        self.to_q = nn.Linear(dim, inner, bias=bias)
+        self.to_k = nn.Linear(dim, inner, bias=bias)
+        self.to_v = nn.Linear(dim, inner, bias=bias)
+        self.to_out = nn.ModuleList([nn.Linear(inner, dim, bias=out_bias), nn.Dropout(0.0)])
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                past_kv: tuple[torch.Tensor, torch.Tensor] | None = None,
+                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """``x`` (B, S, dim) → (out (B, S, dim), (k, v) of the full key sequence).
+
+        ``past_kv``: keys/values (B, heads, S_past, head_dim) prepended to this call's keys/values (a
+        prefix's cache); ``mask`` (S, S_past + S) bool, True = attend.
+        """
+        b, s, _ = x.shape
+        q = self.to_q(x).view(b, s, self.heads, self.head_dim).transpose(1, 2)
+        k = self.to_k(x).view(b, s, self.heads, self.head_dim).transpose(1, 2)
+        v = self.to_v(x).view(b, s, self.heads, self.head_dim).transpose(1, 2)
+        q, k = self.norm_q(q), self.norm_k(k)
+        if past_kv is not None:
+            k = torch.cat([past_kv[0], k], dim=2)
+            v = torch.cat([past_kv[1], v], dim=2)
+        o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        o = o.transpose(1, 2).reshape(b, s, self.heads * self.head_dim)
+        return self.to_out[1](self.to_out[0](o)), (k, v)

@@ -1,0 +1,186 @@
+"""Typed config of the world model (issue 6), with named presets from ``tiny`` to ``cogvideox-2b``.
+
+The DiT fields mirror diffusers' ``CogVideoXTransformer3DModel`` config (same names where they exist) so a
+CogVideoX checkpoint's ``config.json`` maps onto them one to one (:func:`config_from_cogvideox`). The new
+fields configure what ReSim (arXiv 2506.09981, App. B.2) and Vid2World (arXiv 2505.14357, Sec. 4) add:
+causality, the text noise-level rule, the trajectory encoder and per-frame actions.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal, Mapping
+
+from resim.config import ConfigError, from_dict
+
+# diffusers config keys we accept and copy; keys we must refuse when set to anything but the default
+_COGVIDEOX_KEYS = (
+    "num_attention_heads", "attention_head_dim", "in_channels", "out_channels", "flip_sin_to_cos",
+    "freq_shift", "time_embed_dim", "text_embed_dim", "num_layers", "attention_bias", "sample_width",
+    "sample_height", "sample_frames", "patch_size", "temporal_compression_ratio", "max_text_seq_length",
+    "activation_fn", "timestep_activation_fn", "norm_elementwise_affine", "norm_eps",
+    "spatial_interpolation_scale", "temporal_interpolation_scale", "patch_bias",
+)
+_UNSUPPORTED = {  # key: the only value we support (CogVideoX-2B's); others would load wrongly
+    "ofs_embed_dim": None,
+    "patch_size_t": None,
+    "use_rotary_positional_embeddings": False,
+    "use_learned_positional_embeddings": False,
+}
+
+
+@dataclass
+class TrajectoryEncoderConfig:
+    """ReSim's trajectory encoder: waypoints → 2 attention blocks → linear head (App. B.2)."""
+    enabled: bool = True
+    num_waypoints: int = 8
+    waypoint_dim: int = 3              # x m, y m, yaw rad (ego frame: x fwd, y left, yaw left +)
+    hidden_dim: int = 64
+    num_heads: int = 4
+    num_layers: int = 2
+    # divide waypoints by this before the encoder so typical values are O(1): (x m, y m, yaw rad)
+    input_scale: tuple[float, float, float] = (20.0, 5.0, 0.5)
+
+    def __post_init__(self) -> None:
+        if self.hidden_dim % self.num_heads:
+            raise ConfigError(f"trajectory.hidden_dim={self.hidden_dim} must be divisible by num_heads={self.num_heads}")
+        if len(self.input_scale) != self.waypoint_dim or any(s <= 0 for s in self.input_scale):
+            raise ConfigError(f"trajectory.input_scale must be {self.waypoint_dim} positive numbers")
+
+
+@dataclass
+class ActionConfig:
+    """Vid2World's per-frame actions, added to each frame's noise-level embedding (Sec. 4.2)."""
+    kind: Literal["none", "continuous", "discrete"] = "continuous"
+    action_dim: int = 3                # continuous: (dx m, dy m, dyaw rad) ego motion over the latent frame
+    num_actions: int = 0               # discrete: size of the embedding table
+    hidden_dim: int = 64
+    input_scale: tuple[float, ...] = (2.0, 0.5, 0.1)  # continuous: divide actions by this (per component)
+
+    def __post_init__(self) -> None:
+        if self.kind == "discrete" and self.num_actions < 1:
+            raise ConfigError("actions.num_actions must be >= 1 for discrete actions")
+        if self.kind == "continuous" and len(self.input_scale) != self.action_dim:
+            raise ConfigError(f"actions.input_scale must have action_dim={self.action_dim} entries")
+
+
+@dataclass
+class WorldModelConfig:
+    """The causal, action-conditioned DiT. Shapes: latents (B, T_lat, in_channels, h, w)."""
+    # --- CogVideoX layout (names as in diffusers) ---
+    num_attention_heads: int = 30
+    attention_head_dim: int = 64
+    in_channels: int = 16
+    out_channels: int = 16
+    flip_sin_to_cos: bool = True
+    freq_shift: int = 0
+    time_embed_dim: int = 512
+    text_embed_dim: int = 4096
+    num_layers: int = 30
+    attention_bias: bool = True
+    sample_width: int = 90             # latent width the checkpoint was trained at (positions are recomputed)
+    sample_height: int = 60
+    sample_frames: int = 49            # in *pixel* frames, as diffusers counts them
+    patch_size: int = 2
+    temporal_compression_ratio: int = 4
+    max_text_seq_length: int = 226     # text length L the sin-cos layout reserves (text gets no position)
+    activation_fn: str = "gelu-approximate"
+    timestep_activation_fn: str = "silu"
+    norm_elementwise_affine: bool = True
+    norm_eps: float = 1e-5
+    spatial_interpolation_scale: float = 1.875
+    temporal_interpolation_scale: float = 1.0
+    patch_bias: bool = True
+    # --- world model ---
+    causal: bool = True                # block-causal mask over latent frames (Vid2World Sec. 4.1)
+    # noise level whose embedding modulates the text tokens: "fixed" uses text_timestep_value for every
+    # sample (required with causal=True, see dit.py), "max" the largest frame level (== the shared level when
+    # all frames share one, i.e. the pretrained model's behaviour); "auto": fixed if causal else max.
+    text_timestep: Literal["auto", "fixed", "max"] = "auto"
+    text_timestep_value: int = 0
+    trajectory: TrajectoryEncoderConfig = field(default_factory=TrajectoryEncoderConfig)
+    actions: ActionConfig = field(default_factory=ActionConfig)
+    gradient_checkpointing: bool = False
+
+    def __post_init__(self) -> None:
+        if self.activation_fn != "gelu-approximate" or self.timestep_activation_fn != "silu":
+            raise ConfigError("only activation_fn='gelu-approximate' and timestep_activation_fn='silu' "
+                              "(CogVideoX's) are implemented")
+        if (self.num_attention_heads * self.attention_head_dim) % 16:
+            raise ConfigError("hidden size (heads * head_dim) must be divisible by 16 for 3D sin-cos positions")
+        if not 0 <= self.text_timestep_value <= 999:
+            raise ConfigError(f"text_timestep_value={self.text_timestep_value} not in [0, 999]")
+        if self.causal and self.text_timestep == "max":
+            raise ConfigError("text_timestep='max' with causal=True would make every frame depend on the "
+                              "noise level of later frames; use 'fixed' (or 'auto')")
+
+    @property
+    def hidden_dim(self) -> int:
+        return self.num_attention_heads * self.attention_head_dim
+
+    @property
+    def resolved_text_timestep(self) -> str:
+        if self.text_timestep == "auto":
+            return "fixed" if self.causal else "max"
+        return self.text_timestep
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # trains in seconds on CPU; the same layout as the tiny diffusers config in shared/ENVIRONMENT.md
+    "tiny": dict(
+        num_attention_heads=2, attention_head_dim=16, in_channels=16, out_channels=16, time_embed_dim=32,
+        text_embed_dim=64, num_layers=2, sample_width=12, sample_height=8, sample_frames=49,
+        max_text_seq_length=16,
+        trajectory=dict(hidden_dim=32, num_heads=2), actions=dict(hidden_dim=32),
+    ),
+    "small": dict(
+        num_attention_heads=8, attention_head_dim=32, time_embed_dim=128, text_embed_dim=512, num_layers=8,
+        sample_width=56, sample_height=32, trajectory=dict(hidden_dim=128), actions=dict(hidden_dim=128),
+    ),
+    # THUDM/CogVideoX-2b transformer/config.json
+    "cogvideox-2b": dict(
+        num_attention_heads=30, attention_head_dim=64, time_embed_dim=512, text_embed_dim=4096, num_layers=30,
+        sample_width=90, sample_height=60, sample_frames=49, max_text_seq_length=226,
+        trajectory=dict(hidden_dim=512, num_heads=8), actions=dict(hidden_dim=512),
+    ),
+}
+
+
+def preset(name: str, **overrides: Any) -> WorldModelConfig:
+    """A named preset with (nested-dict) overrides, validated."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown world-model preset {name!r}; known: {sorted(PRESETS)}")
+    data = _merge(PRESETS[name], overrides)
+    return from_dict(WorldModelConfig, data)
+
+
+def _merge(base: Mapping[str, Any], upd: Mapping[str, Any]) -> dict[str, Any]:
+    out = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in base.items()}
+    for k, v in upd.items():
+        if dataclasses.is_dataclass(v):
+            v = dataclasses.asdict(v)
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def config_from_cogvideox(diffusers_config: Mapping[str, Any], **overrides: Any) -> WorldModelConfig:
+    """Map a diffusers ``CogVideoXTransformer3DModel`` config (dict) onto :class:`WorldModelConfig`.
+
+    Raises ``ConfigError`` for variants whose weights would not load faithfully (rotary positions as in
+    CogVideoX-5B, temporal patching as in 1.5, the ``ofs`` embedding of 5B-I2V).
+    """
+    for key, ok in _UNSUPPORTED.items():
+        if diffusers_config.get(key, ok) != ok:
+            raise ConfigError(f"CogVideoX config {key}={diffusers_config[key]!r} is not supported "
+                              f"(only {ok!r}, as in CogVideoX-2B)")
+    data: dict[str, Any] = {k: diffusers_config[k] for k in _COGVIDEOX_KEYS if k in diffusers_config}
+    if data.get("out_channels") is None:
+        data["out_channels"] = data.get("in_channels", 16)
+    hidden = data.get("num_attention_heads", 30) * data.get("attention_head_dim", 64)
+    # new modules sized to the DiT unless overridden
+    data["trajectory"] = {"hidden_dim": min(512, hidden), "num_heads": 8 if min(512, hidden) % 8 == 0 else 2}
+    data["actions"] = {"hidden_dim": min(512, hidden)}
+    return from_dict(WorldModelConfig, _merge(data, overrides))
