@@ -1,0 +1,143 @@
+"""Training and held-out evaluation of Video2Reward.
+
+``run_training`` = split by episode -> (optionally) stored features -> fit -> predict held-out
+-> metrics (MAE, Spearman, hazard AUC) -> checkpoint + predictions + plot.
+
+``fit`` is a minimal AdamW loop over ``model.loss(batch)`` (ReSim B.2: AdamW, lr 1e-3).
+It exists because the common ``training.trainer.Trainer`` (issue 7) is not on this branch
+yet; it is meant to be replaced by ``Trainer(model, cfg).fit(batches)`` once that lands,
+which takes the same ``loss(batch) -> (loss, logs)`` contract.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from training.reward.config import RewardTrainConfig
+from training.reward.data import RewardClip, iter_batches, split_by_episode
+from training.reward.features import add_clip_features
+from training.reward.metrics import reward_metrics
+from training.reward.model import Video2Reward
+
+
+def can_use_features(model: Video2Reward, clips: Sequence[RewardClip]) -> bool:
+    return model.cfg.freeze_backbone and bool(clips) and all(
+        c.dino is not None and c.dino_id == model.feature_id for c in clips)
+
+
+def fit(model: Video2Reward, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool,
+        log: Callable[[dict], None] | None = None) -> list[dict]:
+    """Train ``model`` in place; returns one log dict per epoch (mean loss/mae, samples/s)."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    model.train()
+    history = []
+    for epoch in range(cfg.epochs):
+        t0, n, sums = time.perf_counter(), 0, {"loss": 0.0, "mae": 0.0}
+        for batch in iter_batches(clips, cfg.batch_size_per_gpu, model.cfg, use_features,
+                                  shuffle_seed=cfg.seed * 1000 + epoch, where=cfg.data.clip_window):
+            loss, logs = model.loss(batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            b = len(batch["keys"])
+            n += b
+            for k in sums:
+                sums[k] += logs[k] * b
+        rec = {"epoch": epoch, **{k: v / max(n, 1) for k, v in sums.items()},
+               "samples_per_s": n / max(time.perf_counter() - t0, 1e-9)}
+        history.append(rec)
+        if log:
+            log(rec)
+    model.eval()
+    return history
+
+
+@torch.no_grad()
+def predict(model: Video2Reward, clips: Sequence[RewardClip], use_features: bool, batch_size: int = 32,
+            where: str = "end") -> np.ndarray:
+    model.eval()
+    out = []
+    for batch in iter_batches(clips, batch_size, model.cfg, use_features, where=where):
+        if use_features:
+            out.append(model(features=batch["dino"]))
+        else:
+            out.append(model(video=batch["video"]))
+    return torch.cat(out).numpy() if out else np.zeros(0, np.float32)
+
+
+def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
+                 log: Callable[[dict], None] | None = None) -> dict:
+    """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
+
+    Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
+    "n_heldout", "heldout_items", "model"}.
+    """
+    clips = [c for c in clips if c.infraction_score is not None]
+    train, held = split_by_episode(clips, cfg.data.heldout_fraction, cfg.data.split_seed)
+    if not train or not held:
+        raise ValueError(f"cannot split {len(clips)} labelled clips of {len({c.item_id for c in clips})} episodes "
+                         "into train and held-out: need at least 2 episodes")
+    torch.manual_seed(cfg.seed)
+    model = Video2Reward(cfg.model)
+    use_features = False
+    if cfg.use_stored_features and cfg.model.freeze_backbone:
+        if not can_use_features(model, train + held):
+            train, held = add_clip_features(model, train, cfg.data.clip_window), \
+                add_clip_features(model, held, cfg.data.clip_window)
+        use_features = True
+    history = fit(model, train, cfg, use_features, log)
+    pred_h = predict(model, held, use_features, where=cfg.data.clip_window)
+    pred_t = predict(model, train, use_features, where=cfg.data.clip_window)
+    true_h = np.array([c.infraction_score for c in held])
+    haz_h = np.array([c.hazard for c in held])
+    metrics = reward_metrics(pred_h, true_h, haz_h)
+    train_metrics = reward_metrics(pred_t, np.array([c.infraction_score for c in train]),
+                                   np.array([c.hazard for c in train]))
+    result = {"metrics": metrics, "train_metrics": train_metrics, "history": history,
+              "used_features": use_features, "n_train": len(train), "n_heldout": len(held),
+              "heldout_items": sorted({c.item_id for c in held}), "model": model,
+              "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h}
+    if out_dir is not None:
+        from training.reward.checkpoint import save_checkpoint
+
+        out = Path(out_dir)
+        save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
+                                          "heldout_items": result["heldout_items"],
+                                          "used_stored_features": use_features})
+        (out / "heldout_predictions.json").write_text(json.dumps(
+            [{"key": c.key, "item_id": c.item_id, "true": float(t), "pred": float(p), "hazard": bool(c.hazard)}
+             for c, t, p in zip(held, true_h, pred_h)], indent=1))
+        (out / "history.json").write_text(json.dumps(history, indent=1))
+        plot_predictions(pred_h, true_h, haz_h, out / "heldout_pred_vs_true.png", metrics)
+    return result
+
+
+def plot_predictions(pred, true, hazard, path: str | Path, metrics: dict | None = None) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pred, true, hazard = np.asarray(pred), np.asarray(true), np.asarray(hazard, bool)
+    fig, ax = plt.subplots(figsize=(4.5, 4.2), dpi=110)
+    ax.scatter(true[~hazard], pred[~hazard], s=14, alpha=0.7, label="clean episodes")
+    ax.scatter(true[hazard], pred[hazard], s=14, alpha=0.7, c="tab:red", label="hazardous episodes")
+    lo = min(true.min(), pred.min()) - 0.05
+    hi = max(true.max(), pred.max()) + 0.05
+    ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
+    ax.set_xlabel("true infraction score")
+    ax.set_ylabel("predicted")
+    if metrics:
+        ax.set_title(f"held-out: MAE {metrics['mae']:.3f}  Spearman {metrics['spearman']:.3f}\n"
+                     f"hazard AUC {metrics['hazard_auc']:.3f}  (n={metrics['n']})", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
