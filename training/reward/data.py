@@ -77,7 +77,7 @@ def split_by_episode(clips: Sequence[RewardClip], heldout_fraction: float, seed:
         eps = sorted((e for e, h in ep_hazard.items() if h == flag),
                      key=lambda e: hashlib.sha256(f"{seed}\0{e}".encode()).hexdigest())
         if len(eps) >= 2:
-            k = min(len(eps) - 1, max(1, int(round(heldout_fraction * len(eps)))))
+            k = min(len(eps) - 1, max(1, int(np.floor(heldout_fraction * len(eps) + 0.5))))  # round half up
             held.update(eps[:k])
     train = [c for c in clips if c.item_id not in held]
     heldout = [c for c in clips if c.item_id in held]
