@@ -36,6 +36,20 @@ class RewardClip:
     frames: np.ndarray | None = None     # (T, H, W, 3) uint8 RGB, the whole clip
     dino: np.ndarray | None = None       # (T_dino, N, D) float16, the model's window only
     dino_id: str | None = None
+    mp4: bytes | None = None             # encoded frames (frames.mp4), decoded on demand by clip_frames
+
+    def clip_frames(self) -> np.ndarray:
+        """(T, H, W, 3) uint8 RGB frames of the clip (decodes ``mp4`` on first use, then keeps them)."""
+        if self.frames is None:
+            if self.mp4 is None:
+                raise ClipError(f"clip {self.key} has no frames")
+            from shards.video import VideoError, decode_mp4
+
+            try:
+                self.frames = decode_mp4(self.mp4)
+            except VideoError as e:
+                raise ClipError(f"clip {self.key}: frames.mp4 is unreadable: {e}") from e
+        return self.frames
 
 
 def window_indices(num_clip_frames: int, cfg: RewardModelConfig, where: str = "end", start: int | None = None) -> np.ndarray:
@@ -103,9 +117,12 @@ def collate(clips: Sequence[RewardClip], cfg: RewardModelConfig, use_features: b
     else:
         vids = []
         for c in clips:
-            if c.frames is None:
-                raise ClipError(f"clip {c.key} has no frames")
-            vids.append(frames_to_tensor(c.frames[window_indices(len(c.frames), cfg, where)]))
+            f = c.clip_frames()
+            try:
+                idx = window_indices(len(f), cfg, where)
+            except ClipError as e:
+                raise ClipError(f"clip {c.key}: {e}") from None
+            vids.append(frames_to_tensor(f[idx]))
         shapes = {tuple(v.shape) for v in vids}
         if len(shapes) > 1:  # frames are resized by the model, but a batch must stack
             size = vids[0].shape[-2:]
@@ -125,10 +142,10 @@ def iter_batches(clips: Sequence[RewardClip], batch_size: int, cfg: RewardModelC
 
 # ---- sources of clips ---------------------------------------------------------------------------
 
-def clips_from_samples(samples: Iterable[dict], load_frames: bool = True) -> Iterator[RewardClip]:
+def clips_from_samples(samples: Iterable[dict]) -> Iterator[RewardClip]:
     """Labelled clips from decoded shard samples (``shards.reader.decode_sample`` output:
-    ``meta.json`` dict, ``frames.mp4`` (T, H, W, 3) uint8 or raw bytes, optional ``dino.npy``).
-    Samples without an infraction score are skipped (they carry no reward label).
+    ``meta.json`` dict, ``frames.mp4`` bytes (decoded only when needed) or (T, H, W, 3) uint8,
+    optional ``dino.npy``). Samples without an infraction score are skipped (no reward label).
     """
     for s in samples:
         meta = s.get("meta.json") or s.get("meta") or {}
@@ -137,15 +154,15 @@ def clips_from_samples(samples: Iterable[dict], load_frames: bool = True) -> Ite
         if meta.get("infraction_score") is None:
             continue
         key = meta.get("key") or s.get("__key__")
-        frames = s.get("frames.mp4") if load_frames else None
-        if isinstance(frames, (bytes, bytearray)):
-            from shards.video import decode_mp4
-            frames = decode_mp4(bytes(frames))
+        frames = s.get("frames", s.get("frames.mp4"))
+        mp4 = bytes(frames) if isinstance(frames, (bytes, bytearray)) else None
+        frames = None if mp4 is not None else frames
         dino = s.get("dino.npy")
         if dino is not None and not meta.get("dino_id"):
             raise ClipError(f"sample {key}: dino.npy present but meta.dino_id is empty")
         yield RewardClip(key=key, item_id=meta["item_id"], infraction_score=float(meta["infraction_score"]),
-                         hazard=bool(meta.get("hazard")), frames=frames, dino=dino, dino_id=meta.get("dino_id"))
+                         hazard=bool(meta.get("hazard")), frames=frames, dino=dino, dino_id=meta.get("dino_id"),
+                         mp4=mp4)
 
 
 def clips_from_episode(ep: Any, clip_frames: int, stride_frames: int, size_hw: tuple[int, int] | None = None

@@ -16,7 +16,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 import torch
 
-from training.reward.data import RewardClip, frames_to_tensor, window_indices
+from training.reward.data import ClipError, RewardClip, frames_to_tensor, window_indices
 from training.reward.model import Video2Reward
 
 
@@ -38,11 +38,12 @@ def add_clip_features(model: Video2Reward, clips: Iterable[RewardClip], where: s
     """Copies of ``clips`` with ``dino``/``dino_id`` filled from their frames."""
     out = []
     for c in clips:
-        if c.frames is None:
-            raise ValueError(f"clip {c.key} has no frames to compute features from")
-        (d,) = features_for_frames(model, [c.frames], where)
+        try:
+            (d,) = features_for_frames(model, [c.clip_frames()], where)
+        except ClipError as e:
+            raise ClipError(f"clip {c.key}: {e}") from None
         out.append(RewardClip(key=c.key, item_id=c.item_id, infraction_score=c.infraction_score, hazard=c.hazard,
-                              frames=c.frames, dino=d, dino_id=model.feature_id))
+                              frames=c.frames, dino=d, dino_id=model.feature_id, mp4=c.mp4))
     return out
 
 
@@ -65,3 +66,72 @@ def add_sample_features(model: Video2Reward, sample: dict, where: str = "end") -
 def iter_samples_with_features(model: Video2Reward, samples: Iterable[dict], where: str = "end") -> Iterator[dict]:
     for s in samples:
         yield add_sample_features(model, s, where)
+
+
+def add_features_to_dataset(src_root, dst_root, model: Video2Reward, where: str = "end",
+                            max_samples_per_shard: int = 1000, progress: bool = False) -> dict:
+    """Copy the shard dataset ``src_root`` to ``dst_root`` with ``dino.npy`` + ``meta.dino_id`` added
+    to every labelled sample (one with an infraction score; others are copied unchanged).
+
+    Each source shard ``S.tar`` becomes ``dst/shards/S-00000.tar`` (its writer's prefix is the source
+    shard's stem, so names never collide and a rerun reproduces the same bytes). The prompt table and
+    config are copied. A labelled sample whose clip cannot be featurised (e.g. shorter than the model's
+    window, unreadable frames.mp4) is copied without features and recorded in
+    ``dst/quarantine/reward-features.parquet`` (item, source, stage, reason, attempts); the job goes on.
+    Returns {"samples", "with_features", "quarantined", "shards", "dino_id", "dino_bytes_per_sample"}.
+    """
+    import shutil
+    from pathlib import Path
+
+    from shards import layout
+    from shards.reader import iter_raw_shard, decode_sample
+    from shards.video import VideoError
+    from shards.writer import ShardWriter
+
+    src, dst = Path(src_root), Path(dst_root)
+    if src.resolve() == dst.resolve():
+        raise ValueError("add_features_to_dataset writes a new dataset: dst_root must differ from src_root")
+    shards = layout.committed_shards(src)
+    if not shards:
+        raise ValueError(f"{src}: no committed shards (expected DIR/shards/*.tar with DIR/index/*.json)")
+    if layout.prompts_dir(src).is_dir():
+        shutil.copytree(layout.prompts_dir(src), layout.prompts_dir(dst), dirs_exist_ok=True)
+    if (src / "config.yaml").is_file():
+        dst.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(src / "config.yaml", dst / "config.yaml")
+    n = n_feat = 0
+    dino_bytes = 0
+    quarantine: list[dict] = []
+    infos = []
+    it = shards
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(shards, desc="dino features", unit="shard")
+    for shard in it:
+        with ShardWriter(dst, layout.stem(shard.name), max_samples_per_shard=max_samples_per_shard,
+                         overwrite=True) as w:
+            for raw in iter_raw_shard(shard):
+                s = decode_sample(raw, latent_as="stored")
+                s = {k: v for k, v in s.items() if k == "__key__" or not k.startswith("__")}
+                n += 1
+                meta = s["meta.json"]
+                if meta.get("infraction_score") is not None:
+                    try:
+                        s = add_sample_features(model, s, where)
+                        n_feat += 1
+                        dino_bytes += s["dino.npy"].nbytes
+                    except (ClipError, VideoError) as e:
+                        quarantine.append({"item": s["__key__"], "source": meta.get("source", ""),
+                                           "stage": "reward-features", "reason": str(e), "attempts": 1})
+                w.write(s)
+            infos.extend(w.close())
+    if quarantine:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        layout.quarantine_dir(dst).mkdir(parents=True, exist_ok=True)
+        tmp = layout.quarantine_dir(dst) / ".reward-features.parquet.tmp"
+        pq.write_table(pa.Table.from_pylist(quarantine), tmp)
+        tmp.replace(layout.quarantine_dir(dst) / "reward-features.parquet")
+    return {"samples": n, "with_features": n_feat, "quarantined": len(quarantine), "shards": len(infos),
+            "dino_id": model.feature_id, "dino_bytes_per_sample": dino_bytes / max(n_feat, 1)}

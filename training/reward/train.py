@@ -30,6 +30,24 @@ def can_use_features(model: Video2Reward, clips: Sequence[RewardClip]) -> bool:
         c.dino is not None and c.dino_id == model.feature_id for c in clips)
 
 
+def usable_clips(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> tuple[list[RewardClip], list[dict]]:
+    """(clips the model can use, [{"key", "reason"}] of the others): bad clips (shorter than the window,
+    unreadable frames) are reported and left out, the run goes on (issue 8 / brief: bad input is named)."""
+    from training.reward.data import ClipError, window_indices
+
+    ok, skipped = [], []
+    for c in clips:
+        if c.dino is not None and c.dino_id:  # featurised from its window already; no need to decode frames
+            ok.append(c)
+            continue
+        try:
+            window_indices(len(c.clip_frames()), cfg.model, cfg.data.clip_window)
+            ok.append(c)
+        except ClipError as e:
+            skipped.append({"key": c.key, "reason": str(e)})
+    return ok, skipped
+
+
 def fit(model: Video2Reward, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool,
         log: Callable[[dict], None] | None = None) -> list[dict]:
     """Train ``model`` in place; returns one log dict per epoch (mean loss/mae, samples/s)."""
@@ -78,7 +96,7 @@ def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
     Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
     "n_heldout", "heldout_items", "model"}.
     """
-    clips = [c for c in clips if c.infraction_score is not None]
+    clips, skipped = usable_clips([c for c in clips if c.infraction_score is not None], cfg)
     train, held = split_by_episode(clips, cfg.data.heldout_fraction, cfg.data.split_seed)
     if not train or not held:
         raise ValueError(f"cannot split {len(clips)} labelled clips of {len({c.item_id for c in clips})} episodes "
@@ -102,14 +120,14 @@ def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
     result = {"metrics": metrics, "train_metrics": train_metrics, "history": history,
               "used_features": use_features, "n_train": len(train), "n_heldout": len(held),
               "heldout_items": sorted({c.item_id for c in held}), "model": model,
-              "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h}
+              "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h}
     if out_dir is not None:
         from training.reward.checkpoint import save_checkpoint
 
         out = Path(out_dir)
         save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
                                           "heldout_items": result["heldout_items"],
-                                          "used_stored_features": use_features})
+                                          "used_stored_features": use_features, "skipped_clips": skipped})
         (out / "heldout_predictions.json").write_text(json.dumps(
             [{"key": c.key, "item_id": c.item_id, "true": float(t), "pred": float(p), "hazard": bool(c.hazard)}
              for c, t, p in zip(held, true_h, pred_h)], indent=1))
