@@ -87,16 +87,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rconfig.save(cfg, out / "config.yaml")
-    from tqdm import tqdm
-
-    bar = tqdm(total=cfg.epochs, desc="reward epochs", unit="epoch")
-
-    def log(rec):
-        bar.update(1)
-        bar.set_postfix(loss=f"{rec['loss']:.4f}", mae=f"{rec['mae']:.3f}")
-
-    r = run_training(clips, cfg, out, log=log)
-    bar.close()
+    r = run_training(clips, cfg, out, progress=not args.no_progress)
     m = r["metrics"]
     print(f"trained on {r['n_train']} clips, held out {r['n_heldout']} clips of {len(r['heldout_items'])} episodes "
           f"({'stored features' if r['used_features'] else 'backbone on pixels'})")
@@ -134,7 +125,8 @@ def register(subparsers) -> None:
         "episode (item_id). Uses stored dino.npy features when present and matching the backbone, else "
         "computes them once (frozen backbone). Writes checkpoint, config, held-out predictions and a plot.")
     t.add_argument("--shards", required=True, help="shard dataset folder")
-    t.add_argument("--out", required=True, help="output folder")
+    t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer)")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_cfg_args(t)
     t.set_defaults(func=_cmd_train)
 

@@ -78,6 +78,7 @@ class RewardTrainConfig:
     # ReSim B.2: AdamW, learning rate 1e-3, 20 epochs.
     lr: float = 1e-3
     weight_decay: float = 0.01
+    grad_clip_norm: float = 0.0  # 0: no clipping (ReSim states none)
     epochs: int = 20
     batch_size_per_gpu: int = 16
     seed: int = 0

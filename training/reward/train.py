@@ -3,17 +3,15 @@
 ``run_training`` = split by episode -> (optionally) stored features -> fit -> predict held-out
 -> metrics (MAE, Spearman, hazard AUC) -> checkpoint + predictions + plot.
 
-``fit`` is a minimal AdamW loop over ``model.loss(batch)`` (ReSim B.2: AdamW, lr 1e-3).
-It exists because the common ``training.trainer.Trainer`` (issue 7) is not on this branch
-yet; it is meant to be replaced by ``Trainer(model, cfg).fit(batches)`` once that lands,
-which takes the same ``loss(batch) -> (loss, logs)`` contract.
+``fit`` runs the common ``training.trainer.Trainer`` (issue 7) over ``model.loss(batch)``
+(ReSim B.2: AdamW, lr 1e-3), one pass over the training clips per epoch.
 """
 from __future__ import annotations
 
 import json
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -48,32 +46,62 @@ def usable_clips(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> tuple[l
     return ok, skipped
 
 
+def build_reward(model_cfg: dict, *, device="cpu") -> Video2Reward:
+    """Registry builder (``training.registry``: "reward"): a Video2Reward from its config mapping."""
+    from resim.config import from_dict
+    from training.reward.config import RewardModelConfig
+
+    return Video2Reward(from_dict(RewardModelConfig, model_cfg, prefix="model")).to(device)
+
+
+class EpochBatches:
+    """Re-iterable batches over fixed clips for ``Trainer.fit``: each ``iter()`` is one epoch,
+    shuffled with seed ``seed * 1000 + epoch`` (the epoch counts calls to ``iter``)."""
+
+    def __init__(self, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool):
+        self.clips, self.cfg, self.use_features = list(clips), cfg, use_features
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return -(-len(self.clips) // self.cfg.batch_size_per_gpu)
+
+    def __iter__(self):
+        e = self.epoch
+        self.epoch += 1
+        return iter_batches(self.clips, self.cfg.batch_size_per_gpu, self.cfg.model, self.use_features,
+                            shuffle_seed=self.cfg.seed * 1000 + e, where=self.cfg.data.clip_window)
+
+
+def run_config(cfg: RewardTrainConfig, steps: int, progress: bool = False):
+    """The common trainer's RunConfig for a reward run (AdamW at cfg.lr, constant LR, fp32)."""
+    from resim.config import to_dict
+    from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
+
+    return RunConfig(
+        model_name="reward", model=to_dict(cfg.model),
+        data=DataConfig(batch_size_per_gpu=cfg.batch_size_per_gpu, load_frames=True, load_dino=True, seed=cfg.seed),
+        optim=OptimConfig(lr=cfg.lr, weight_decay=cfg.weight_decay, grad_clip_norm=cfg.grad_clip_norm),
+        trainer=TrainerConfig(steps=steps, seed=cfg.seed, parallel="none", tensorboard=False,
+                              progress_bar=progress, loss_curve_png=True, save_final_weights=False),
+        preset="reward", reference={"resim_b2": "AdamW, lr 1e-3, 20 epochs, 35K CARLA samples, 224x224"})
+
+
 def fit(model: Video2Reward, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool,
-        log: Callable[[dict], None] | None = None) -> list[dict]:
-    """Train ``model`` in place; returns one log dict per epoch (mean loss/mae, samples/s)."""
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    model.train()
-    history = []
-    for epoch in range(cfg.epochs):
-        t0, n, sums = time.perf_counter(), 0, {"loss": 0.0, "mae": 0.0}
-        for batch in iter_batches(clips, cfg.batch_size_per_gpu, model.cfg, use_features,
-                                  shuffle_seed=cfg.seed * 1000 + epoch, where=cfg.data.clip_window):
-            loss, logs = model.loss(batch)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            b = len(batch["keys"])
-            n += b
-            for k in sums:
-                sums[k] += logs[k] * b
-        rec = {"epoch": epoch, **{k: v / max(n, 1) for k, v in sums.items()},
-               "samples_per_s": n / max(time.perf_counter() - t0, 1e-9)}
-        history.append(rec)
-        if log:
-            log(rec)
+        run_dir: str | Path, progress: bool = False) -> dict:
+    """Train ``model`` in place through the common ``training.trainer.Trainer`` for ``cfg.epochs``
+    epochs over ``clips``; returns the trainer's summary plus "samples_per_s" and "history"
+    (the per-step rows of RUN_DIR/metrics.jsonl)."""
+    from training.trainer import Trainer
+
+    data = EpochBatches(clips, cfg, use_features)
+    steps = cfg.epochs * len(data)
+    t0 = time.perf_counter()
+    summary = Trainer(model, run_config(cfg, steps, progress), run_dir).fit(data)
+    dt = time.perf_counter() - t0
     model.eval()
-    return history
+    mpath = Path(run_dir) / "metrics.jsonl"
+    history = [json.loads(line) for line in mpath.read_text().splitlines() if line.strip()] if mpath.is_file() else []
+    return {**summary, "steps": steps, "samples_per_s": cfg.epochs * len(data.clips) / dt, "history": history}
 
 
 @torch.no_grad()
@@ -90,7 +118,7 @@ def predict(model: Video2Reward, clips: Sequence[RewardClip], use_features: bool
 
 
 def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
-                 log: Callable[[dict], None] | None = None) -> dict:
+                 progress: bool = False) -> dict:
     """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
 
     Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
@@ -109,7 +137,12 @@ def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
             train, held = add_clip_features(model, train, cfg.data.clip_window), \
                 add_clip_features(model, held, cfg.data.clip_window)
         use_features = True
-    history = fit(model, train, cfg, use_features, log)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="resim-reward-") as tmp:
+        run_dir = Path(out_dir) / "trainer" if out_dir is not None else Path(tmp)
+        fitted = fit(model, train, cfg, use_features, run_dir, progress)
+    history = fitted["history"]
     pred_h = predict(model, held, use_features, where=cfg.data.clip_window)
     pred_t = predict(model, train, use_features, where=cfg.data.clip_window)
     true_h = np.array([c.infraction_score for c in held])
@@ -117,7 +150,7 @@ def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
     metrics = reward_metrics(pred_h, true_h, haz_h)
     train_metrics = reward_metrics(pred_t, np.array([c.infraction_score for c in train]),
                                    np.array([c.hazard for c in train]))
-    result = {"metrics": metrics, "train_metrics": train_metrics, "history": history,
+    result = {"metrics": metrics, "train_metrics": train_metrics, "history": history, "samples_per_s": fitted["samples_per_s"],
               "used_features": use_features, "n_train": len(train), "n_heldout": len(held),
               "heldout_items": sorted({c.item_id for c in held}), "model": model,
               "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h}
