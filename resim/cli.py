@@ -15,6 +15,7 @@ import sys
 COMMANDS: list[str] = [
     "shards.cli",
     "training.reward.cli",
+    "training.sampling.cli",
 ]
 
 EPILOG = """\

@@ -124,6 +124,16 @@ def _model_dtype(model: Any) -> torch.dtype:
     return torch.float32
 
 
+def rollout_num_steps_total(cfg: RolloutConfig, num_future_frames: int) -> int:
+    """DDIM steps a rollout takes (for a progress bar): steps × number of chunks over all rounds."""
+    chunks, left = 0, num_future_frames
+    while left > 0:
+        in_round = min(cfg.frames_per_round, left)
+        chunks += math.ceil(in_round / cfg.chunk_frames)
+        left -= in_round
+    return chunks * cfg.num_steps
+
+
 def rollout_num_future_frames(seconds: float, fps_hz: float = 10.0, temporal_compression: int = 4) -> int:
     """Latent frames needed for ``seconds`` of future video: ``ceil(seconds * fps / 4)`` (4 s → 10)."""
     if seconds <= 0:
@@ -134,8 +144,10 @@ def rollout_num_future_frames(seconds: float, fps_hz: float = 10.0, temporal_com
 class _Roller:
     """State of one rollout; see :func:`rollout` (split out to keep each method about one thing)."""
 
-    def __init__(self, model, history, cfg: RolloutConfig, generator, history_actions, use_cache, progress):
+    def __init__(self, model, history, cfg: RolloutConfig, generator, history_actions, use_cache, progress,
+                 same_noise: bool = False):
         self.model, self.cfg, self.gen = model, cfg, generator
+        self.same_noise = same_noise
         self.device, self.mdtype = history.device, _model_dtype(model)
         objective = getattr(model, "objective", None)   # sample with the schedule the model trained with
         sched_cfg = getattr(objective, "schedule", None)
@@ -177,7 +189,11 @@ class _Roller:
 
     # -- helpers -------------------------------------------------------------------------------------------
     def _randn(self, shape) -> torch.Tensor:
-        # drawn on CPU so a seed gives the same noise on every device
+        # drawn on CPU so a seed gives the same noise on every device; with same_noise the batch shares one
+        # draw (common random numbers: planning compares candidates that differ only in their condition)
+        if self.same_noise:
+            one = torch.randn((1,) + tuple(shape[1:]), generator=self.gen, dtype=torch.float32)
+            return one.expand(tuple(shape)).contiguous().to(self.device)
         return torch.randn(shape, generator=self.gen, dtype=torch.float32).to(self.device)
 
     def _noise_history(self, x: torch.Tensor) -> torch.Tensor:
@@ -290,7 +306,7 @@ class _Roller:
 def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[Condition] | Callable[[int], Condition],
             num_future_frames: int, cfg: RolloutConfig | None = None, *, seed: int = 0,
             actions: torch.Tensor | None = None, history_actions: torch.Tensor | None = None,
-            policy: Policy | None = None, progress: Any = None) -> RolloutResult:
+            policy: Policy | None = None, progress: Any = None, same_noise: bool = False) -> RolloutResult:
     """Roll the world model out for ``num_future_frames`` latent frames after ``history``.
 
     Args:
@@ -303,6 +319,7 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
         history_actions: ``(B, H0, A)`` actions of the history frames (None: null action there);
         policy: callback returning the actions of each chunk ``(B, c, A)`` (closed loop); excludes ``actions``.
         progress: an object with ``update(n)`` (e.g. tqdm), advanced once per DDIM step.
+        same_noise: every batch element gets the same noise draws (compare conditions, not noise).
     Returns:
         :class:`RolloutResult` with all latents (history + generated), float32.
     """
@@ -325,7 +342,7 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
         raise ValueError(f"actions must be (B, num_future_frames, A) = ({b}, {num_future_frames}, A), "
                          f"got {tuple(actions.shape)}")
     gen = torch.Generator().manual_seed(seed)
-    r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress)
+    r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress, same_noise)
     acting = actions is not None or policy is not None
     h0 = history.shape[1]
     labels: list[str] = []
