@@ -7,13 +7,15 @@
 * **Guidance rescale** (:func:`rescale_guidance`, Lin et al. 2024 "Common diffusion noise schedules and sample
   steps are flawed", Sec. 3.4): match the per-sample std of the guided prediction to the conditional one,
   ``v_r = v_cfg · std(v_c) / std(v_cfg)``, then ``v = φ v_r + (1 - φ) v_cfg`` (Vid2World: φ = 0.7).
-* **Branches** (:func:`split_branches`/:func:`guided_prediction`): the conditional and the unconditional
-  inputs are concatenated along the batch and go through the model in ONE forward (2B samples), never two.
+* **Branches** (:func:`combine_branches`): the conditional and the unconditional inputs are concatenated
+  along the batch and go through the model in ONE forward (2B samples), never two (the rollout builds the
+  batch, ``rollout._Roller._branch_inputs``); ``combine_branches`` splits and guides the output.
 
 What the unconditional branch drops is a :class:`GuidanceConfig` choice: the text command (the prompt becomes
 the fixed prefix alone, ReSim), the trajectory (ReSim trains with both dropped at p = 0.5), and/or the actions of
 the frames being generated — Vid2World's *causal action guidance*: "conditional" vs. "the most recent action
-masked". How a dropped trajectory/action is fed to the model is the model's business (its ``drop`` masks).
+masked". A dropped trajectory/action is fed as the model's ``trajectory_keep``/``action_keep`` = False (its
+null embedding), as in training's condition dropout.
 """
 from __future__ import annotations
 
