@@ -92,3 +92,22 @@ def test_plan_cli(setup, capsys):
     assert (out / "plan_grid.png").stat().st_size > 0
     assert np.load(out / "plan_latents.npy").shape == (5, 3 + 2, 16, 4, 6)
     assert "| rank | candidate |" in capsys.readouterr().out
+
+
+def test_sample_cli_video_history_vid2world(setup):
+    """A video file as history (encoded by the VAE), prompts from the T5 placeholder, frame by frame with
+    actions derived from the trajectory and causal action guidance."""
+    from shards.testing import dummy_frames
+    from shards.video import encode_mp4
+
+    video = setup["root"] / "clip.mp4"
+    video.write_bytes(encode_mp4(dummy_frames(12, 48, 64, yaw_deg=10.0), 10.0))
+    out = setup["root"] / "v"
+    assert main(["sample", "--checkpoint", str(setup["run"]), "--history", str(video), "--size", "32x48",
+                 "--trajectory", "swerve", "--command", "Moving forward", "--preset", "vid2world",
+                 "--actions-from-trajectory", "--max-text-tokens", "8", "--seconds", "0.8", "--steps", "2",
+                 "--device", "cpu", "--out", str(out)]) == 0
+    assert np.load(out / "sample_latents.npy").shape == (5, 16, 4, 6)
+    run = json.loads((out / "run.json").read_text())
+    assert run["history"] == "video:clip.mp4" and all(v.startswith("t5:") for v in run["prompts"].values())
+    assert run["rollout"]["chunk_frames"] == 1 and run["rollout"]["guidance"]["drop_recent_actions"]
