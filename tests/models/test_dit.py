@@ -152,3 +152,29 @@ def test_bad_shapes_are_named(tiny_model):
         tiny_model(x, t, text, traj[:, :5])
     with pytest.raises(ValueError, match="x must be"):
         tiny_model(x[:, :, :4], t, text)
+
+
+def test_gradient_checkpointing_same_gradients():
+    torch.manual_seed(0)
+    a = WorldModel(preset("tiny"))
+    b = WorldModel(preset("tiny", gradient_checkpointing=True))
+    b.load_state_dict(a.state_dict())
+    x, t, text, act, traj = _inputs(t=3)
+    for m in (a, b):
+        m(x, t, text, traj, act).square().mean().backward()
+    ga = a.transformer_blocks[0].attn1.to_q.weight.grad
+    assert torch.allclose(ga, b.transformer_blocks[0].attn1.to_q.weight.grad, atol=1e-6) and ga.abs().sum() > 0
+
+
+def test_block_causal_mask_layout():
+    from training.models.attention import block_causal_mask
+    m = block_causal_mask(text_len=2, tokens_per_frame=2, num_frames=2)
+    expect = torch.tensor([[1, 1, 0, 0, 0, 0],   # text sees text only
+                           [1, 1, 0, 0, 0, 0],
+                           [1, 1, 1, 1, 0, 0],   # frame 0 sees text + frame 0
+                           [1, 1, 1, 1, 0, 0],
+                           [1, 1, 1, 1, 1, 1],   # frame 1 sees text + frames 0, 1
+                           [1, 1, 1, 1, 1, 1]], dtype=torch.bool)
+    assert torch.equal(m, expect)
+    suffix = block_causal_mask(2, 2, 1, prefix_frames=1, with_text_queries=False)
+    assert torch.equal(suffix, expect[4:])

@@ -22,25 +22,10 @@ clips).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
 from torch import nn
-
-
-@lru_cache(maxsize=32)
-def _block_causal_mask_cpu(text_len: int, tokens_per_frame: int, num_frames: int,
-                           prefix_frames: int, with_text_queries: bool) -> torch.Tensor:
-    n = tokens_per_frame
-    # key frame ids: text = -1, then prefix frames and the new frames
-    k_frame = torch.cat([torch.full((text_len,), -1), torch.arange(prefix_frames + num_frames).repeat_interleave(n)])
-    q_frame = torch.arange(prefix_frames, prefix_frames + num_frames).repeat_interleave(n)
-    mask = k_frame[None, :] <= q_frame[:, None]                                  # video queries
-    if with_text_queries:
-        text_rows = (k_frame < 0)[None, :].expand(text_len, -1)                  # text sees only text
-        mask = torch.cat([text_rows, mask], dim=0)
-    return mask
 
 
 def block_causal_mask(text_len: int, tokens_per_frame: int, num_frames: int, prefix_frames: int = 0,
@@ -49,10 +34,18 @@ def block_causal_mask(text_len: int, tokens_per_frame: int, num_frames: int, pre
 
     Keys: ``text_len`` text tokens, then ``prefix_frames + num_frames`` frames of ``tokens_per_frame`` tokens.
     Queries: the text tokens (if ``with_text_queries``) and the ``num_frames`` new frames (absolute indices
-    ``prefix_frames …``). Cached per shape on CPU, moved to ``device``.
+    ``prefix_frames …``). Built directly on ``device`` from two frame-id vectors (one comparison kernel) rather
+    than cached: for CogVideoX-2B at 13 frames the mask is 17,776² ≈ 316 MB, too big to keep copies of or to copy
+    host→device every step.
     """
-    m = _block_causal_mask_cpu(text_len, tokens_per_frame, num_frames, prefix_frames, with_text_queries)
-    return m.to(device) if device is not None else m
+    n = tokens_per_frame
+    k_frame = torch.cat([torch.full((text_len,), -1, device=device),
+                         torch.arange(prefix_frames + num_frames, device=device).repeat_interleave(n)])
+    q_frame = torch.arange(prefix_frames, prefix_frames + num_frames, device=device).repeat_interleave(n)
+    if with_text_queries:
+        q_frame = torch.cat([torch.full((text_len,), -1, device=device), q_frame])
+    # video query of frame f: keys with frame id <= f (text has id -1); text query (id -1): text keys only
+    return k_frame[None, :] <= q_frame[:, None]
 
 
 @dataclass
