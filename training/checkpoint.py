@@ -29,6 +29,7 @@ import random
 import shutil
 import signal
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -176,7 +177,9 @@ def save(run_dir: str | Path, step: int, state: dict[str, Any], *, rank_state: d
             shutil.rmtree(tmp)  # left by a crash during an earlier save
         tmp.mkdir(parents=True)
     barrier()
-    dcp.save(state, storage_writer=FileSystemWriter(tmp))
+    with warnings.catch_warnings():  # single-process runs: DCP warns that it saves without a process group
+        warnings.filterwarnings("ignore", message="torch.distributed is disabled")
+        dcp.save(state, storage_writer=FileSystemWriter(tmp))
     _write_json(tmp / f"rank_{rank}.json", rank_state)
     barrier()
     if rank == 0:
@@ -216,7 +219,9 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int) -> tuple[dict, d
     p = Path(path)
     if not (p / "meta.json").is_file():
         raise CheckpointError(f"{p} is not a complete checkpoint (no meta.json)")
-    dcp.load(state, storage_reader=SafeFileSystemReader(p), planner=SafeLoadPlanner())
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="torch.distributed is disabled")
+        dcp.load(state, storage_reader=SafeFileSystemReader(p), planner=SafeLoadPlanner())
     meta = json.loads((p / "meta.json").read_text())
     rs_path = p / f"rank_{rank}.json"
     rank_state = json.loads(rs_path.read_text()) if rs_path.is_file() else None
