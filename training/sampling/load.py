@@ -3,8 +3,8 @@
 World-model checkpoint (the trainer's export, issue 7): ``RUN_DIR/final/`` (or ``RUN_DIR`` itself, or the
 ``final`` folder) holding ``config.yaml`` (the resolved ``RunConfig``: ``model_name`` + ``model`` dict) and
 ``model.safetensors`` (+ ``ema.safetensors``, preferred for sampling when present). The model is built through
-``training.registry`` by ``model_name``. Until a world-model builder is registered there, ``model_name`` "world"
-falls back to :func:`build_world_model` here (``model`` = ``{"preset": NAME, **WorldModelConfig overrides}``).
+``training.registry`` by ``model_name`` ("world": ``training.world.build_world``, the same builder training used,
+so LoRA layers and overrides match the saved tensors), then the saved weights are loaded strictly.
 
 History: a video file (its last ``1 + 4 (H - 1)`` frames, resized, encoded with the VAE) or a shard sample key
 (its stored latents' first ``H`` latent frames, i.e. the clip's history, and its pixel frames for outputs).
@@ -23,18 +23,6 @@ import yaml
 
 class SamplingInputError(ValueError):
     """A checkpoint, history or prompt given to the sampler is missing or unusable (names it and why)."""
-
-
-def build_world_model(model_cfg: dict, device: str | torch.device = "cpu"):
-    """``{"preset": "tiny", **overrides}`` or full ``WorldModelConfig`` fields → ``WorldModel``."""
-    from resim.config import from_dict
-    from training.models.config import WorldModelConfig, preset
-    from training.models.dit import WorldModel
-
-    cfg_dict = dict(model_cfg)
-    name = cfg_dict.pop("preset", None)
-    cfg = preset(name, **cfg_dict) if name else from_dict(WorldModelConfig, cfg_dict)
-    return WorldModel(cfg).to(device)
 
 
 def _checkpoint_dir(ckpt: str | Path) -> Path:
@@ -56,15 +44,16 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
     d = _checkpoint_dir(ckpt)
     run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
     name = run_cfg.get("model_name", "world")
-    model_cfg = run_cfg.get("model") or {}
+    model_cfg = dict(run_cfg.get("model") or {})
+    if "init_weights" in model_cfg:
+        # the previous stage's weights are replaced by this checkpoint's anyway; don't require that file here
+        model_cfg["init_weights"] = None
     try:
         model = registry.build(name, model_cfg, device="cpu")
-        builder = f"registry:{name}"
-    except KeyError:
-        if name != "world":
-            raise SamplingInputError(f"checkpoint {d}: model_name {name!r} has no builder in training.registry")
-        model = build_world_model(model_cfg)
-        builder = "training.sampling.load.build_world_model"
+    except KeyError as e:
+        raise SamplingInputError(f"checkpoint {d}: model_name {name!r} has no builder in training.registry "
+                                 f"({e})") from e
+    builder = f"registry:{name}"
     weights = d / "ema.safetensors" if prefer_ema and (d / "ema.safetensors").is_file() else d / "model.safetensors"
     state = load_file(str(weights))
     missing, unexpected = model.load_state_dict(state, strict=False)
