@@ -15,6 +15,9 @@ import sys
 COMMANDS: list[str] = [
     "shards.cli",
     "pipelines.sources.cli",
+    "training.cli",
+    "training.reward.cli",
+    "training.sampling.cli",
 ]
 
 EPILOG = """\
