@@ -24,8 +24,8 @@ class FlowConfig:
 
     sample_hz: float = 10.0          # frames are sampled at this rate before flow (ReSim: 10 Hz)
     work_width_px: int = 256         # frames are resized to this width (display aspect kept) before flow
-    hfov_deg: float = 70.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
-    #                                  ~ with tan(hfov/2): 60 deg reads 0.82x, 90 deg 1.43x of 70 deg
+    hfov_deg: float = 80.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
+    #                                  ~ with tan(hfov/2): reads tan(true/2)/tan(80/2) x the truth
     flow_preset: Literal["ultrafast", "fast", "medium"] = "ultrafast"   # cv2.DISOpticalFlow preset
     grid_step_px: int = 6            # flow is read on a grid with this spacing (working-resolution pixels)
     mask_top_frac: float = 0.0       # rows ignored at the top (overlays)

@@ -51,11 +51,13 @@ _PRESETS = {
 }
 
 
-def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1.0) -> np.ndarray:
-    """RGB/BGR uint8 (H, W, 3) or grey (H, W) -> grey uint8 at ``work_width_px`` wide, display aspect.
+def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1.0, bgr: bool = False) -> np.ndarray:
+    """RGB (or BGR with ``bgr=True``) uint8 (H, W, 3), or grey (H, W) -> grey uint8, ``work_width_px`` wide.
 
     ``pixel_aspect`` is the sample aspect ratio (width/height of one stored pixel), e.g. 64/45
     for anamorphic PAL; the output has square pixels so that one focal length fits both axes.
+    Large reductions go linear to twice the target, then area-average (cheaper than one area
+    resize of a 720p frame, and still averages 2x2 at the end).
     """
     if frame.ndim == 3:
         h, w = frame.shape[:2]
@@ -64,10 +66,11 @@ def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1
     else:
         raise ValueError(f"frame must be (H, W, 3) or (H, W), got shape {frame.shape}")
     out_h = max(8, int(round(work_width_px * h / (w * pixel_aspect))))
+    if w > 3 * work_width_px:
+        frame = cv2.resize(frame, (2 * work_width_px, 2 * out_h), interpolation=cv2.INTER_LINEAR)
     small = cv2.resize(frame, (work_width_px, out_h), interpolation=cv2.INTER_AREA)
     if small.ndim == 3:
-        # channel order does not matter much for flow; RGB->grey weights are used
-        small = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+        small = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY if bgr else cv2.COLOR_RGB2GRAY)
     return small
 
 
