@@ -39,6 +39,7 @@ class FlowConfig:
     robust_scale_px: float = 0.3     # lower bound on the Cauchy scale of the IRLS fit (pixels of flow)
     irls_iters: int = 4
     foe_iters: int = 2               # alternations between rotation fit and focus-of-expansion fit
+    foe_x_prior: float = 0.05        # relative weight pulling the FOE's x to its previous value (see flow.py)
     chunk_pairs: int = 60            # the focus of expansion is re-estimated per chunk of this many pairs
 
     def __post_init__(self):

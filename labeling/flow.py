@@ -203,12 +203,15 @@ class FlowLabeler:
         M = np.stack([-tv / n, tu / n], axis=1)       # coefficients of (ex, ey)
         b = (tu * y - tv * x) / n
         w0 = w_rot[ok] * np.minimum(n / 2.0, 1.0)
-        prior = 1e-3 * max(w0.sum(), 1.0)     # weak pull to the previous estimate (stationary car)
+        # Pull towards the previous estimate (a stationary car says nothing about e). The pull is
+        # stronger on ex: on ground points a lateral FOE shift and yaw make the same flow (both
+        # horizontal and proportional to the row), so ex is only weakly identified within a chunk.
+        prior = np.diag([self.flow_cfg.foe_x_prior, 1e-3]) * max(w0.sum(), 1.0)
         e = np.asarray(e0, dtype=np.float64)
         w = w0
         for _ in range(3):
-            H = (M * w[:, None]).T @ M + prior * np.eye(2)
-            e = np.linalg.solve(H, (M * w[:, None]).T @ b + prior * np.asarray(e0))
+            H = (M * w[:, None]).T @ M + prior
+            e = np.linalg.solve(H, (M * w[:, None]).T @ b + prior @ np.asarray(e0))
             res = b - M @ e
             scale = max(1.4826 * np.median(np.abs(res)), 1.0)
             w = w0 / (1.0 + (res / (2.0 * scale)) ** 2)
