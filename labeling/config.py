@@ -37,8 +37,8 @@ class FlowConfig:
     max_flow_frac: float = 0.08      # points moving more than this share of the width per pair are dropped
     max_photo_err: int = 24          # grey-level difference after following the flow (occlusion/bad flow)
     robust_scale_px: float = 0.3     # lower bound on the Cauchy scale of the IRLS fit (pixels of flow)
-    irls_iters: int = 4
-    foe_iters: int = 2               # alternations between rotation fit and focus-of-expansion fit
+    irls_iters: int = 3
+    foe_iters: int = 1               # alternations between rotation fit and focus-of-expansion fit
     foe_x_prior: float = 0.05        # relative weight pulling the FOE's x to its previous value (see flow.py)
     chunk_pairs: int = 60            # the focus of expansion is re-estimated per chunk of this many pairs
 

@@ -169,14 +169,17 @@ class FlowLabeler:
         M = np.stack([(F[0] * dy - F[1] * dx) / r for F in (A, B, C)], axis=-1)      # (P, N, 3)
         b = (U * dy - V * dx) / r
         reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2]) * f * f
+        pad = np.where(np.arange(X.shape[1]) % 2 == 0, 0.0, np.inf)[None, :]
         w = W0
         for _ in range(fc.irls_iters):
-            Mw = M * w[..., None]
-            H = np.einsum("pni,pnj->pij", Mw, M) + reg * np.maximum(w.sum(1), 1.0)[:, None, None]
-            theta = np.linalg.solve(H, np.einsum("pni,pn->pi", Mw, b)[..., None])[..., 0]
-            res = b - np.einsum("pni,pi->pn", M, theta)
-            med = np.nanmedian(np.where(valid, np.abs(res), np.nan), axis=1)
-            scale = np.maximum(1.4826 * np.nan_to_num(med, nan=0.0), fc.robust_scale_px)[:, None]
+            MwT = (M * w[..., None]).transpose(0, 2, 1)                      # (P, 3, N)
+            H = MwT @ M + reg * np.maximum(w.sum(1), 1.0)[:, None, None]
+            theta = np.linalg.solve(H, MwT @ b[..., None])[..., 0]
+            res = b - (M @ theta[..., None])[..., 0]
+            # median |res| over the valid points of each pair: padding alternates 0 and +inf, which
+            # leaves the median in place (to within one pad) and keeps np.median's fast partition
+            med = np.median(np.where(valid, np.abs(res), pad), axis=1)
+            scale = np.maximum(1.4826 * np.where(np.isfinite(med), med, 0.0), fc.robust_scale_px)[:, None]
             w = W0 / (1.0 + (res / (2.0 * scale)) ** 2)    # Cauchy
         few = valid.sum(1) < 8
         theta[few] = 0.0
