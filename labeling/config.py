@@ -62,7 +62,7 @@ class CommandConfig:
     """Heading change / trajectory -> command."""
 
     window_s: float = 4.0                  # future window a command describes (ReSim: 40 frames at 10 Hz)
-    turn_threshold_deg: float = 12.0       # calibrated: |heading change| >= this over the window is a turn
+    turn_threshold_deg: float = 18.0       # calibrated (bench/calibrate_labeler.py, 24 synthetic episodes): |heading change| >= this over the window is a turn
     confidence_scale_deg: float = 4.0      # distance from the threshold at which confidence reaches ~0.88
     # trajectory rule (common practice of nuScenes/NAVSIM planners: ST-P3, UniAD, VAD): the lateral
     # offset of the last waypoint in the ego frame; >= +2 m left, <= -2 m right. "heading" uses the
