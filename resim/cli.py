@@ -18,6 +18,7 @@ COMMANDS: list[str] = [
     "training.cli",
     "training.reward.cli",
     "training.sampling.cli",
+    "labeling.cli",
 ]
 
 EPILOG = """\
