@@ -209,7 +209,10 @@ class StreamLoader:
         ds = _EpochStream(self.plan, self.epoch, self.rank, self.batches_in_epoch % W, dict(self.cursors))
         nw = self.cfg.num_workers
         dl = DataLoader(ds, batch_size=None, num_workers=nw, pin_memory=self.pin_memory,
-                        prefetch_factor=self.cfg.prefetch_factor if nw else None, persistent_workers=False)
+                        prefetch_factor=self.cfg.prefetch_factor if nw else None, persistent_workers=False,
+                        # its own generator: a DataLoader iterator otherwise draws its base seed from the global
+                        # torch RNG, so a resumed run (a new iterator mid-epoch) would shift the model's noise
+                        generator=torch.Generator().manual_seed(self.cfg.seed))
         for d in dl:
             self.cursors[int(d.pop("_worker"))] = {k: (v.tolist() if isinstance(v, torch.Tensor) else v)
                                                    for k, v in d.pop("_cursor").items()}
