@@ -28,13 +28,19 @@ def _keys(loader, epochs=1):
 def test_batch_is_typed_and_moves(world_dataset):
     b = next(iter(StreamLoader(_cfg(world_dataset), verbose=False)))
     assert isinstance(b, Batch) and len(b) == 2
-    assert b.latents.shape == (2, 13, 16, 8, 12) and b.latents.dtype == torch.float32
-    assert b.text.shape == b.null_text.shape == (2, 16, 64)
+    assert b.latents.shape == (2, 13, 16, 8, 12) and b.latents.dtype == torch.float16  # as stored
+    assert b.text.shape == b.null_text.shape == (2, 16, 64) and b.text.dtype == torch.float32
+    from shards.prompts import PromptTable
+    table = PromptTable(world_dataset)
+    for i, m in enumerate(b.meta):
+        torch.testing.assert_close(b.text[i], torch.from_numpy(table.get(m["prompt_id"], as_float32=True)))
+        torch.testing.assert_close(b.null_text[i], torch.from_numpy(table.get(m["null_prompt_id"], as_float32=True)))
     assert b.trajectory.shape == (2, 8, 3) and b.has_trajectory.all()
     assert b.command.dtype == torch.long and len(b.source) == len(b.keys) == 2
     assert not torch.equal(b.text[0], b.null_text[0])  # command prompt vs the prefix alone
     moved = b.to("cpu")
     assert isinstance(moved, Batch) and moved.keys == b.keys
+    assert moved.latents.dtype == torch.float32 and torch.equal(moved.latents, b.latents.float())
 
 
 def test_equal_batches_per_rank_with_fewer_shards_than_workers(tmp_path):

@@ -10,6 +10,7 @@ import torch
 
 from resim.cli import main
 from training import checkpoint as ckpt
+from training.testing import write_world_dataset
 
 
 @pytest.fixture(autouse=True)
@@ -38,11 +39,24 @@ def _killed_run(ds, out, env, var, step):
     assert p.returncode == -signal.SIGKILL, p.stderr[-2000:]
 
 
-def test_sigkill_between_checkpoints_then_resume_is_bitwise_equal(world_dataset, tmp_path, subprocess_env):
-    ref = tmp_path / "ref"
-    assert main(_args(world_dataset, ref)) == 0
-    expected = _losses(ref)
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The dataset and the uninterrupted run's (step, loss, grad_norm) records."""
+    root = tmp_path_factory.mktemp("resume")
+    ds = write_world_dataset(root / "ds")
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert main(_args(ds, root / "ref")) == 0
+    finally:
+        torch.set_num_threads(n)
+    expected = _losses(root / "ref")
     assert [s for s, _, _ in expected] == list(range(1, 9))
+    return ds, expected
+
+
+def test_sigkill_between_checkpoints_then_resume_is_bitwise_equal(reference, tmp_path, subprocess_env):
+    world_dataset, expected = reference
 
     run = tmp_path / "killed"
     _killed_run(world_dataset, run, subprocess_env, "RESIM_FAULT_KILL_AT_STEP", 5)
@@ -52,14 +66,13 @@ def test_sigkill_between_checkpoints_then_resume_is_bitwise_equal(world_dataset,
     assert _losses(run) == expected  # bitwise: JSON floats round-trip exactly
 
 
-def test_sigkill_during_save_leaves_previous_checkpoint_usable(world_dataset, tmp_path, subprocess_env):
-    ref = tmp_path / "ref"
-    assert main(_args(world_dataset, ref)) == 0
+def test_sigkill_during_save_leaves_previous_checkpoint_usable(reference, tmp_path, subprocess_env):
+    world_dataset, expected = reference
     run = tmp_path / "killed_in_save"
     _killed_run(world_dataset, run, subprocess_env, "RESIM_FAULT_KILL_IN_SAVE", 6)
     half = ckpt.checkpoint_path(run, 6).with_name("step_00000006.tmp")
     assert half.is_dir() and not (half / "meta.json").exists()   # the interrupted save
     assert ckpt.latest_complete(run) == ckpt.checkpoint_path(run, 3)
     assert main(_args(world_dataset, run) + ["--resume"]) == 0
-    assert _losses(run) == _losses(ref)
+    assert _losses(run) == expected
     assert not half.exists() and ckpt.latest_complete(run) == ckpt.checkpoint_path(run, 8)
