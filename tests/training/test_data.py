@@ -33,8 +33,8 @@ def test_batch_is_typed_and_moves(world_dataset):
     from shards.prompts import PromptTable
     table = PromptTable(world_dataset)
     for i, m in enumerate(b.meta):
-        torch.testing.assert_close(b.text[i], torch.from_numpy(table.get(m["prompt_id"], as_float32=True)))
-        torch.testing.assert_close(b.null_text[i], torch.from_numpy(table.get(m["null_prompt_id"], as_float32=True)))
+        torch.testing.assert_close(b.text[i], torch.tensor(table.get(m["prompt_id"], as_float32=True)))
+        torch.testing.assert_close(b.null_text[i], torch.tensor(table.get(m["null_prompt_id"], as_float32=True)))
     assert b.trajectory.shape == (2, 8, 3) and b.has_trajectory.all()
     assert b.command.dtype == torch.long and len(b.source) == len(b.keys) == 2
     assert not torch.equal(b.text[0], b.null_text[0])  # command prompt vs the prefix alone
