@@ -219,9 +219,11 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int) -> tuple[dict, d
     p = Path(path)
     if not (p / "meta.json").is_file():
         raise CheckpointError(f"{p} is not a complete checkpoint (no meta.json)")
+    reader = SafeFileSystemReader(p)
+    reader.read_metadata()  # refuse foreign pickles here, with our message (DCP would wrap the error)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="torch.distributed is disabled")
-        dcp.load(state, storage_reader=SafeFileSystemReader(p), planner=SafeLoadPlanner())
+        dcp.load(state, storage_reader=reader, planner=SafeLoadPlanner())
     meta = json.loads((p / "meta.json").read_text())
     rs_path = p / f"rank_{rank}.json"
     rank_state = json.loads(rs_path.read_text()) if rs_path.is_file() else None

@@ -34,25 +34,33 @@ _COMMAND_INDEX = {c: i for i, c in enumerate(COMMANDS)}
 
 @dataclass
 class Batch:
-    """One batch of clips, ``B`` samples. Tensors are float32 unless said otherwise.
+    """One batch of clips, ``B`` samples.
 
-    latents:        (B, T_lat, C, h, w) VAE latents x scaling factor (as stored, widened to float32)
-    text:           (B, L, D) prompt embedding (prefix + command), padded as the encoder produced it
-    null_text:      (B, L, D) embedding of the prefix alone (the CFG / command-drop null prompt)
-    trajectory:     (B, N, 3) future waypoints (x m fwd, y m left, yaw rad left +); zeros where absent
+    latents:        (B, T_lat, C, h, w) VAE latents x scaling factor. From the loader as stored
+                    (float16 or bfloat16); ``.to(device)`` widens them to float32 *on the device*
+                    (exact for both), so host memory and worker queues carry half the bytes.
+    text:           (B, L, D) float32 prompt embedding (prefix + command), padded as the encoder produced it;
+                    a property gathering ``prompt_table[prompt_index]`` (on the table's device)
+    null_text:      (B, L, D) float32 embedding of the prefix alone (CFG / command-drop null prompt);
+                    a property, a broadcast view when the batch shares one null prompt (always, in ReSim)
+    prompt_table:   (K, L, D) float32 the K distinct embeddings the batch uses (K <= 4 in ReSim data)
+    prompt_index / null_index: (B,) int64 rows of ``prompt_table``
+    trajectory:     (B, N, 3) float32 future waypoints (x m fwd, y m left, yaw rad left +); zeros where absent
     has_trajectory: (B,) bool, whether ``trajectory`` is real for the sample
     command:        (B,) int64 index into ``shards.schema.COMMANDS``
     source:         B strings (``opendv`` | ``navsim`` | ``carla`` | ``synthetic``)
     keys:           B sample keys; ``meta``: B metadata dicts (``meta.json``)
     frames:         (B, T, 3, H, W) uint8 RGB 0..255 from frames.mp4, when ``data.load_frames``
-    dino:           (B, T_dino, N_tok, D) DINOv2 features, when ``data.load_dino``
-    actions:        (B, T_lat, A) per-frame actions, when a data source provides them (None here:
+    dino:           (B, T_dino, N_tok, D) DINOv2 features (float16 as stored; float32 after ``.to``), when
+                    ``data.load_dino``
+    actions:        (B, T_lat, A) per-frame actions, when a data source provides them (None from shards:
                     the world model's objective derives them from the trajectory)
     """
 
     latents: torch.Tensor
-    text: torch.Tensor
-    null_text: torch.Tensor
+    prompt_table: torch.Tensor
+    prompt_index: torch.Tensor
+    null_index: torch.Tensor
     trajectory: torch.Tensor
     has_trajectory: torch.Tensor
     command: torch.Tensor
@@ -67,14 +75,32 @@ class Batch:
         return int(self.latents.shape[0])
 
     @property
+    def text(self) -> torch.Tensor:
+        return self.prompt_table[self.prompt_index.to(self.prompt_table.device)]
+
+    @property
+    def null_text(self) -> torch.Tensor:
+        idx = self.null_index
+        if len(idx) and bool((idx == idx[0]).all()):
+            return self.prompt_table[int(idx[0])].expand(len(idx), *self.prompt_table.shape[1:])
+        return self.prompt_table[idx.to(self.prompt_table.device)]
+
+    @property
     def num_history_frames(self) -> int:
         """History (conditioning) pixel frames of the clips (from the metadata; equal across the batch)."""
         return int(self.meta[0]["num_history_frames"]) if self.meta else 0
 
     def to(self, device: torch.device | str, non_blocking: bool = True) -> "Batch":
-        def mv(v):
-            return v.to(device, non_blocking=non_blocking) if isinstance(v, torch.Tensor) else v
-        return dataclasses.replace(self, **{f.name: mv(getattr(self, f.name)) for f in dataclasses.fields(self)})
+        """Move tensors to ``device``; float16/bfloat16 latents and features become float32 there."""
+        def mv(name, v):
+            if not isinstance(v, torch.Tensor):
+                return v
+            v = v.to(device, non_blocking=non_blocking)
+            if name in ("latents", "dino") and v.dtype in (torch.float16, torch.bfloat16):
+                v = v.float()
+            return v
+        return dataclasses.replace(self, **{f.name: mv(f.name, getattr(self, f.name))
+                                            for f in dataclasses.fields(self)})
 
     def pin_memory(self) -> "Batch":
         def pin(v):
@@ -91,11 +117,28 @@ def _stack(arrays: list[np.ndarray], name: str, keys: list[str]) -> torch.Tensor
     return torch.from_numpy(np.stack(arrays))
 
 
+def _stack_latents(samples: list[dict], keys: list[str]) -> torch.Tensor:
+    """Stored latents -> one tensor: float16 stays float16, bfloat16 bits become torch.bfloat16 (zero-copy
+    view), float32 stays; a batch mixing dtypes is widened to float32 (exact)."""
+    dtypes = {s["meta.json"]["latent_dtype"] for s in samples}
+    if len(dtypes) == 1:
+        dt = dtypes.pop()
+        arr = _stack([s["latent.npy"] for s in samples], "latents", keys)
+        return arr.view(torch.int16).view(torch.bfloat16) if dt == "bfloat16" else arr
+    from shards.npy import stored_to_float32
+    return _stack([stored_to_float32(s["latent.npy"], s["meta.json"]["latent_dtype"]) for s in samples],
+                  "latents", keys)
+
+
+def _identity(x):
+    return x
+
+
 def collate_samples(samples: list[dict], num_waypoints: int | None = None) -> dict[str, Any]:
     """Decoded shard samples -> a dict of stacked tensors (no prompt embeddings yet). Runs in workers."""
     keys = [s["__key__"] for s in samples]
     metas = [s["meta.json"] for s in samples]
-    lat = _stack([np.asarray(s["latent.npy"], dtype=np.float32) for s in samples], "latents", keys)
+    lat = _stack_latents(samples, keys)
     trajs = [s.get("traj.npy") for s in samples]
     n = num_waypoints or next((t.shape[0] for t in trajs if t is not None), 8)
     traj = np.zeros((len(samples), n, 3), np.float32)
@@ -114,7 +157,7 @@ def collate_samples(samples: list[dict], num_waypoints: int | None = None) -> di
     if "frames" in samples[0]:
         out["frames"] = _stack([s["frames"] for s in samples], "frames", keys).permute(0, 1, 4, 2, 3).contiguous()
     if "dino.npy" in samples[0]:
-        out["dino"] = _stack([np.asarray(s["dino.npy"], np.float32) for s in samples], "dino", keys)
+        out["dino"] = _stack([s["dino.npy"] for s in samples], "dino", keys)
     return out
 
 
@@ -176,6 +219,7 @@ class StreamLoader:
         self.cursors: dict[int, dict] = {}
         self.skipped_before = 0  # skipped samples + bad shard draws of finished epochs
         self._emb: dict[str, torch.Tensor] = {}
+        self._tables: dict[tuple, torch.Tensor] = {}
         if verbose and rank == 0:
             mix = ", ".join(f"{s} {v:.0%}" for s, v in sorted(share.items()))
             print(f"[resim data] {len(urls)} shards, {total} samples ({mix}); {self.plan.batches_per_rank} batches "
@@ -195,11 +239,18 @@ class StreamLoader:
         return self._emb[pid]
 
     def _batch(self, d: dict) -> Batch:
-        texts = [self._embedding(p) for p in d["prompt_id"]]
-        nulls = [self._embedding(p) for p in d["null_prompt_id"]]
-        if len({t.shape for t in texts + nulls}) > 1:
-            raise DataError(f"prompt embeddings differ in shape within a batch ({d['keys']})")
-        return Batch(latents=d["latents"], text=torch.stack(texts), null_text=torch.stack(nulls),
+        ids = tuple(sorted(set(d["prompt_id"] + d["null_prompt_id"])))
+        if ids not in self._tables:  # a handful of combinations per dataset: stack each once, reuse
+            embs = [self._embedding(p) for p in ids]
+            if len({t.shape for t in embs}) > 1:
+                raise DataError(f"prompt embeddings differ in shape within a batch ({d['keys']})")
+            if len(self._tables) > 256:
+                self._tables.clear()
+            self._tables[ids] = torch.stack(embs)
+        row = {p: i for i, p in enumerate(ids)}
+        return Batch(latents=d["latents"], prompt_table=self._tables[ids],
+                     prompt_index=torch.tensor([row[p] for p in d["prompt_id"]], dtype=torch.long),
+                     null_index=torch.tensor([row[p] for p in d["null_prompt_id"]], dtype=torch.long),
                      trajectory=d["trajectory"], has_trajectory=d["has_trajectory"], command=d["command"],
                      source=list(d["source"]), keys=list(d["keys"]), meta=list(d["meta"]),
                      frames=d.get("frames"), dino=d.get("dino"))
@@ -209,7 +260,11 @@ class StreamLoader:
         ds = _EpochStream(self.plan, self.epoch, self.rank, self.batches_in_epoch % W, dict(self.cursors))
         nw = self.cfg.num_workers
         dl = DataLoader(ds, batch_size=None, num_workers=nw, pin_memory=self.pin_memory,
-                        prefetch_factor=self.cfg.prefetch_factor if nw else None, persistent_workers=False)
+                        prefetch_factor=self.cfg.prefetch_factor if nw else None, persistent_workers=False,
+                        # its own generator: a DataLoader iterator otherwise draws its base seed from the global
+                        # torch RNG, so a resumed run (a new iterator mid-epoch) would shift the model's noise
+                        generator=torch.Generator().manual_seed(self.cfg.seed),
+                        collate_fn=_identity)  # workers already yield tensors; skip the recursive default_convert
         for d in dl:
             self.cursors[int(d.pop("_worker"))] = {k: (v.tolist() if isinstance(v, torch.Tensor) else v)
                                                    for k, v in d.pop("_cursor").items()}

@@ -177,7 +177,9 @@ class WorkerStream:
     def _decode(self, raw: dict) -> dict:
         from shards.reader import decode_sample
 
-        s = decode_sample(raw, decode_video=self.plan.load_frames)
+        # latents stay as stored (float16, or bfloat16 bits): Batch.to() widens them on the device, which
+        # moves half the bytes through worker queues and host memory (bench/loader_overhead.py)
+        s = decode_sample(raw, decode_video=self.plan.load_frames, latent_as="stored")
         meta = s.get("meta.json")
         lat = s.get("latent.npy")
         if not isinstance(meta, dict):
@@ -186,8 +188,25 @@ class WorkerStream:
             raise ValueError(f"latent.npy missing or not 4-D (T, C, h, w): {getattr(lat, 'shape', None)}")
         if list(lat.shape) != list(meta.get("latent_shape", lat.shape)):
             raise ValueError(f"latent shape {lat.shape} != meta.latent_shape {meta.get('latent_shape')}")
-        if not np.isfinite(lat).all():
-            raise ValueError("latent.npy holds NaN/inf")
+        ldt = meta.get("latent_dtype")
+        if ldt == "bfloat16":
+            if lat.dtype != np.uint16:
+                raise ValueError(f"meta.latent_dtype=bfloat16 but latent.npy is {lat.dtype} (expected uint16 bits)")
+            # bf16 is NaN/inf iff its exponent bits are all ones
+            if ((lat & 0x7F80) == 0x7F80).any():
+                raise ValueError("latent.npy holds NaN/inf")
+        elif ldt == "float16":
+            if lat.dtype != np.float16:
+                raise ValueError(f"meta.latent_dtype=float16 but latent.npy is {lat.dtype}")
+            if ((lat.view(np.uint16) & 0x7C00) == 0x7C00).any():  # exponent all ones: NaN/inf (integer
+                raise ValueError("latent.npy holds NaN/inf")          # test: np.isfinite on fp16 is slow)
+        elif ldt == "float32":
+            if lat.dtype != np.float32:
+                raise ValueError(f"meta.latent_dtype=float32 but latent.npy is {lat.dtype}")
+            if not np.isfinite(lat).all():
+                raise ValueError("latent.npy holds NaN/inf")
+        else:
+            raise ValueError(f"meta.latent_dtype={ldt!r} is not float16/bfloat16/float32")
         for pid in ("prompt_id", "null_prompt_id"):
             if meta.get(pid) not in self._known_prompts:
                 raise ValueError(f"meta.{pid}={meta.get(pid)!r} is not in the prompt table")

@@ -1,0 +1,107 @@
+"""GPU step time and MFU of the CogVideoX-2B-size world model (random weights), FSDP2 on one GPU, bf16.
+
+For each resolution (256x448 and 512x896 pixels -> 32x56 and 64x112 latents, 49 frames -> 13 latent
+frames) and activation checkpointing off/on: builds the DiT (preset ``cogvideox-2b``), wraps it the
+way the trainer does (``training.distributed.wrap_model``: AC, then ``fully_shard`` per block + root
+with bf16 params / fp32 reduction, in a one-rank process group), and times full optimizer steps of
+``model.loss(batch)`` (the real diffusion objective) on an in-memory batch. MFU = model training FLOPs
+(``flops_per_sample``: 6 x block params x tokens + attention; recompute not counted) / step time /
+peak bf16 FLOP/s. An out-of-memory configuration is reported as such, not skipped silently.
+
+    PYTHONPATH=. python bench/train_mfu.py [--batch 1] [--steps 6] [--peak-tflops 989]
+
+Peak dense bf16: H100 SXM 989 TFLOP/s, H200 989 TFLOP/s (same compute), A100 312.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+
+
+def synthetic_batch(b: int, hw: tuple[int, int], device, seq: int = 226, dim: int = 4096):
+    from training.data import Batch
+
+    g = torch.Generator().manual_seed(0)
+    return Batch(
+        latents=torch.randn(b, 13, 16, *hw, generator=g).to(device),
+        prompt_table=torch.randn(2, seq, dim, generator=g).to(device),
+        prompt_index=torch.zeros(b, dtype=torch.long, device=device),
+        null_index=torch.ones(b, dtype=torch.long, device=device),
+        trajectory=torch.randn(b, 8, 3, generator=g).to(device),
+        has_trajectory=torch.ones(b, dtype=torch.bool, device=device),
+        command=torch.zeros(b, dtype=torch.long, device=device),
+        source=["navsim"] * b, keys=[f"k{i}" for i in range(b)], meta=[{"num_history_frames": 9}] * b)
+
+
+def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env) -> dict:
+    from training.distributed import wrap_model
+    from training.world import build_world
+
+    torch.manual_seed(0)
+    model = build_world({"preset": "cogvideox-2b", "objective": {"noise_mode": "resim_cond_aug",
+                                                                 "num_history_frames": 3}})
+    lm, layout = wrap_model(model, env, parallel="fsdp", activation_checkpointing=ac, bf16_params=True)
+    opt = torch.optim.AdamW([p for p in lm.parameters() if p.requires_grad], lr=1e-5, foreach=True)
+    data = synthetic_batch(batch, hw, env.device)
+    flops = model.flops_per_sample(data) * batch
+    times = []
+    torch.cuda.reset_peak_memory_stats()
+    for i in range(steps + 2):  # 2 warm-up steps
+        torch.cuda.synchronize()
+        t = time.perf_counter()
+        with torch.autocast("cuda", dtype=torch.bfloat16):
+            loss, _ = lm(data)
+        loss.float().backward()
+        torch.nn.utils.clip_grad_norm_(lm.parameters(), 1.0)
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        torch.cuda.synchronize()
+        if i >= 2:
+            times.append(time.perf_counter() - t)
+    step = sorted(times)[len(times) // 2]
+    return {"latent_hw": hw, "activation_checkpointing": ac, "batch": batch, "step_s": step,
+            "samples_per_s": batch / step, "tokens_per_s": model.tokens_per_sample(data) * batch / step,
+            "tflops_per_s": flops / step / 1e12, "mfu": flops / step / (peak * 1e12),
+            "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30, "layout": layout}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", type=int, default=1)
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--peak-tflops", type=float, default=989.0)
+    ap.add_argument("--json", help="also write the results here")
+    args = ap.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("bench/train_mfu.py needs a CUDA GPU")
+    from training.distributed import init_distributed
+
+    env = init_distributed(force_group=True)
+    torch.backends.cuda.matmul.allow_tf32 = True
+    print(f"device: {torch.cuda.get_device_name()} ; torch {torch.__version__}; peak {args.peak_tflops} TFLOP/s bf16")
+    results = []
+    for hw in ((32, 56), (64, 112)):
+        for ac in (False, True):
+            try:
+                r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env)
+            except torch.OutOfMemoryError:
+                r = {"latent_hw": hw, "activation_checkpointing": ac, "batch": args.batch, "oom": True}
+            torch.cuda.empty_cache()
+            results.append(r)
+            px = f"{hw[0] * 8}x{hw[1] * 8}"
+            if r.get("oom"):
+                print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: out of memory")
+            else:
+                print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: step {r['step_s']:.3f} s, "
+                      f"{r['tokens_per_s']:,.0f} tokens/s, {r['tflops_per_s']:.0f} TFLOP/s, MFU {r['mfu']:.1%}, "
+                      f"max mem {r['max_mem_gib']:.1f} GiB")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,131 @@
+"""The shard stream: typed batches, equal batch counts per rank, exact positions, mixing, bad data."""
+import io
+import json
+import tarfile
+
+import pytest
+import torch
+
+from resim.config import from_dict
+from training.config import DataConfig
+from training.data import Batch, StreamLoader
+from training.stream import DataError, shard_mixing
+
+from training.testing import write_world_dataset
+
+
+def _cfg(root, **kw):
+    return from_dict(DataConfig, {"shards": str(root), "batch_size_per_gpu": 2, **kw})
+
+
+def _keys(loader, epochs=1):
+    out = []
+    for _ in range(epochs):
+        out += [tuple(b.keys) for b in loader]
+    return out
+
+
+def test_batch_is_typed_and_moves(world_dataset):
+    b = next(iter(StreamLoader(_cfg(world_dataset), verbose=False)))
+    assert isinstance(b, Batch) and len(b) == 2
+    assert b.latents.shape == (2, 13, 16, 8, 12) and b.latents.dtype == torch.float16  # as stored
+    assert b.text.shape == b.null_text.shape == (2, 16, 64) and b.text.dtype == torch.float32
+    from shards.prompts import PromptTable
+    table = PromptTable(world_dataset)
+    for i, m in enumerate(b.meta):
+        torch.testing.assert_close(b.text[i], torch.tensor(table.get(m["prompt_id"], as_float32=True)))
+        torch.testing.assert_close(b.null_text[i], torch.tensor(table.get(m["null_prompt_id"], as_float32=True)))
+    assert b.trajectory.shape == (2, 8, 3) and b.has_trajectory.all()
+    assert b.command.dtype == torch.long and len(b.source) == len(b.keys) == 2
+    assert not torch.equal(b.text[0], b.null_text[0])  # command prompt vs the prefix alone
+    moved = b.to("cpu")
+    assert isinstance(moved, Batch) and moved.keys == b.keys
+    assert moved.latents.dtype == torch.float32 and torch.equal(moved.latents, b.latents.float())
+
+
+def test_equal_batches_per_rank_with_fewer_shards_than_workers(tmp_path):
+    root = write_world_dataset(tmp_path / "one", num_samples=3, per_shard=3)  # 1 shard < 2 ranks x 2 workers
+    counts = []
+    for rank in (0, 1):
+        loader = StreamLoader(_cfg(root, num_workers=2, samples_per_epoch=10), rank=rank, world_size=2, verbose=False)
+        batches = list(loader)
+        counts.append(len(batches))
+        assert all(len(b) == 2 for b in batches)
+        assert len(batches) == len(loader) == 4  # ceil(10 / (2 x 2 ranks x 2 workers)) x 2 workers
+    assert counts[0] == counts[1]
+
+
+def test_position_round_trip_with_workers(world_dataset):
+    cfg = _cfg(world_dataset, num_workers=2, samples_per_epoch=16)
+    full = _keys(StreamLoader(cfg, verbose=False), epochs=2)
+    for cut in (1, 3, 4):  # inside the epoch (odd and even: the worker rotation) and at its end
+        a = StreamLoader(cfg, verbose=False)
+        it = iter(a)
+        head = [tuple(next(it).keys) for _ in range(cut)]
+        state = json.loads(json.dumps(a.state_dict()))
+        b = StreamLoader(cfg, verbose=False)
+        b.load_state_dict(state)
+        tail = _keys(b, epochs=2)
+        assert head + tail[: len(full) - cut] == full
+
+
+def test_source_mixing_weights(tmp_path):
+    probs, share = shard_mixing([{"opendv": 10}, {"opendv": 10}, {"navsim": 5}, {"carla": 1}],
+                                {"opendv": 1, "navsim": 1, "carla": 2})
+    assert share == pytest.approx({"opendv": 0.25, "navsim": 0.25, "carla": 0.5})
+    assert probs[0] == probs[1] == pytest.approx(0.125)
+    root = write_world_dataset(tmp_path / "mix", num_samples=16, per_shard=4, sources=("opendv", "opendv", "opendv", "carla"))
+    loader = StreamLoader(_cfg(root, samples_per_epoch=400, source_weights={"opendv": 1.0, "carla": 1.0},
+                               open_shards_per_worker=1), verbose=False)
+    src = [s for b in loader for s in b.source]
+    assert 0.4 < src.count("carla") / len(src) < 0.6  # 1:1 although carla has 1/4 of the samples
+    with pytest.raises(DataError, match="no weight"):
+        StreamLoader(_cfg(root, source_weights={"navsim": 1.0}), verbose=False)
+
+
+def _corrupt(root):
+    """Shard 0: one sample's latent replaced by garbage; shard 1: truncated mid-way. Shard 2 stays good."""
+    shards = sorted((root / "shards").glob("*.tar"))
+    src = shards[0]
+    members = []
+    with tarfile.open(src) as t:
+        for m in t.getmembers():
+            members.append((m, t.extractfile(m).read()))
+    bad_key = None
+    with tarfile.open(src, "w") as t:
+        for m, data in members:
+            if m.name.endswith("latent.npy") and bad_key is None:
+                bad_key = m.name.split(".")[0]
+                data = b"\x93NUMPY garbage" + b"\0" * (len(data) - 14)
+            m.size = len(data)
+            t.addfile(m, io.BytesIO(data))
+    raw = shards[1].read_bytes()
+    shards[1].write_bytes(raw[: len(raw) // 2 + 100])
+    return src.name, shards[1].name, bad_key
+
+
+def test_corrupt_sample_and_truncated_shard_are_skipped_and_counted(world_dataset, capfd):
+    bad_shard, cut_shard, bad_key = _corrupt(world_dataset)
+    loader = StreamLoader(_cfg(world_dataset, samples_per_epoch=40), verbose=False)
+    keys = [k for b in loader for k in b.keys]
+    assert len(keys) == 40 and bad_key not in keys  # full batches, the bad sample never served
+    err = capfd.readouterr().err
+    assert loader.skipped > 0
+    assert f"skipping corrupt sample {bad_key!r}" in err and bad_shard in err
+    assert "skipping unreadable shard" in err and cut_shard in err
+
+
+def test_strict_mode_names_the_shard(world_dataset):
+    bad_shard, cut_shard, _ = _corrupt(world_dataset)
+    with pytest.raises(DataError) as ei:
+        for _ in StreamLoader(_cfg(world_dataset, samples_per_epoch=40, strict=True), verbose=False):
+            pass
+    assert bad_shard in str(ei.value) or cut_shard in str(ei.value)
+
+
+def test_every_shard_bad_is_an_error_not_a_hang(tmp_path):
+    root = write_world_dataset(tmp_path / "bad", num_samples=4, per_shard=2)
+    for p in (root / "shards").glob("*.tar"):
+        p.write_bytes(b"not a tar at all" * 10)
+    with pytest.raises(DataError, match="in a row failed"):
+        next(iter(StreamLoader(_cfg(root, max_consecutive_failures=5), verbose=False)))

@@ -1,0 +1,45 @@
+"""`resim train launch`: dry run at CogVideoX-2B size for the stage presets, SLURM script, config errors."""
+import re
+
+import pytest
+
+from resim.cli import main
+
+
+@pytest.mark.parametrize("stage,gbs,trainable_frac", [("stage1", 80, (0.99, 1.0)), ("stage2", 160, (0.005, 0.05)),
+                                                      ("stage3", 80, (0.999, 1.0))])
+def test_dry_run_stage_presets(stage, gbs, trainable_frac, capsys, tmp_path):
+    rc = main(["train", "launch", "--nnodes", "5", "--nproc-per-node", "8", "--dry-run", "--",
+               "world", "--preset", stage, "--shards", str(tmp_path), "--out", str(tmp_path / "run")])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    m = re.search(r"parameters: ([\d,]+) total \(([\d.]+) B\), ([\d,]+) trainable", out)
+    total, trainable = int(m[1].replace(",", "")), int(m[3].replace(",", ""))
+    assert 1.6e9 < total < 1.8e9  # CogVideoX-2B's DiT (1.69 B) + trajectory/action encoders (+ LoRA)
+    assert trainable_frac[0] <= trainable / total <= trainable_frac[1]
+    assert f"global batch: {gbs} = " in out and "40 ranks" in out and "FSDP" in out
+    gib = {k.strip(): float(v) for k, v in re.findall(r"^\s{4}(\S.*?)\s+([\d.]+) GiB", out, re.M)}
+    assert gib["total"] > 0 and any(k.startswith("activations") for k in gib)
+    assert gib["optimizer (AdamW m, v fp32)"] == pytest.approx(8 * trainable / 40 / 2**30, abs=0.01)
+
+
+def test_dry_run_one_gpu_needs_accumulation(capsys, tmp_path):
+    assert main(["train", "launch", "--nproc-per-node", "8", "--dry-run", "--", "world", "--preset", "stage1",
+                 "--out", str(tmp_path)]) == 0
+    assert "global batch: 80 = 2/gpu x 8 ranks x 5 accumulation" in capsys.readouterr().out
+
+
+def test_slurm_script(capsys, tmp_path):
+    assert main(["train", "launch", "--nnodes", "5", "--nproc-per-node", "8", "--slurm", "--",
+                 "world", "--preset", "stage2", "--shards", "/data/x", "--out", "runs/s2"]) == 0
+    s = capsys.readouterr().out
+    assert "#SBATCH --nodes=5" in s and "#SBATCH --gpus-per-node=8" in s
+    assert "--rdzv-backend c10d" in s and "-m resim train world --preset stage2 --shards /data/x" in s
+
+
+def test_bad_override_is_a_clear_config_error(capsys, tmp_path):
+    rc = main(["train", "world", "--preset", "tiny", "--out", str(tmp_path), "--set", "optim.lrr=1"])
+    assert rc == 2 and "unknown config key optim.lrr" in capsys.readouterr().err
+    rc = main(["train", "world", "--preset", "tiny", "--out", str(tmp_path), "--set", "optim.lr=1e-4",
+               "--print-config"])
+    assert rc == 0 and "lr: 0.0001" in capsys.readouterr().out

@@ -1,0 +1,116 @@
+"""The generic loop on a toy model (in process): schedule, accumulation, EMA, non-finite stop, safe loading."""
+import json
+import math
+import pickle
+
+import pytest
+import torch
+
+from resim.config import from_dict
+from training import checkpoint as ckpt
+from training.config import RunConfig
+from training.registry import build
+from training.schedule import lr_at
+from training.trainer import NonFiniteLossError, Trainer
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _cfg(**trainer):
+    t = {"steps": 6, "progress_bar": False, "tensorboard": False, "loss_curve_png": False, **trainer}
+    return from_dict(RunConfig, {"model_name": "toy", "trainer": t, "optim": {"lr": 1e-2}})
+
+
+def _data(n=6, bs=4, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return [{"x": torch.randn(bs, 16, generator=g)} for _ in range(n)]
+
+
+def test_lr_schedule_closed_form():
+    kw = dict(base_lr=1.0, warmup_steps=4, total_steps=14)
+    assert [lr_at(s, **kw) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
+    assert lr_at(9, **kw) == 1.0
+    cos = [lr_at(s, schedule="cosine", min_lr_ratio=0.1, **kw) for s in range(4, 14)]
+    assert cos[0] == pytest.approx(1.0) and cos[-1] == pytest.approx(0.1)
+    mid = 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 5 / 9))
+    assert cos[5] == pytest.approx(mid)
+
+
+def test_grad_accumulation_matches_big_batch(tmp_path):
+    """accum 2 x batch 2 == accum 1 x batch 4 for a model whose loss is a per-sample mean (noise off)."""
+    data4 = _data(3, 4)
+    data2 = [{"x": d["x"][i:i + 2]} for d in data4 for i in (0, 2)]
+    out = []
+    for name, data, acc in (("a", data4, 1), ("b", data2, 2)):
+        torch.manual_seed(0)
+        m = build("toy", {"noise_std": 0.0})
+        Trainer(m, _cfg(steps=3, grad_accum_steps=acc, save_final_weights=False), tmp_path / name).fit(data)
+        out.append([json.loads(line)["loss"] for line in open(tmp_path / name / "metrics.jsonl")])
+        out.append(torch.cat([p.detach().flatten() for p in m.parameters()]))
+    assert out[0] == pytest.approx(out[2], rel=1e-5)
+    torch.testing.assert_close(out[1], out[3], rtol=1e-5, atol=1e-6)
+
+
+def test_ema_and_final_weights(tmp_path):
+    torch.manual_seed(0)
+    m = build("toy", {})
+    init = {n: p.detach().clone() for n, p in m.named_parameters()}
+    Trainer(m, _cfg(steps=4, ema_decay=0.5), tmp_path).fit(_data())
+    from safetensors.torch import load_file
+    w = load_file(str(tmp_path / "final" / "model.safetensors"))
+    e = load_file(str(tmp_path / "final" / "ema.safetensors"))
+    assert set(w) == set(init) == set(e)
+    for n, p in m.named_parameters():
+        torch.testing.assert_close(w[n], p.detach())
+        assert not torch.equal(e[n], w[n]) and not torch.equal(e[n], init[n])  # in between
+
+
+class _Exploding(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.ones(3))
+        self.calls = 0
+
+    def loss(self, batch):
+        self.calls += 1
+        out = (self.w * batch["x"][:, :3]).pow(2).mean()
+        return (out * float("nan") if self.calls == 5 else out), {}
+
+
+def test_nonfinite_loss_stops_naming_last_checkpoint(tmp_path):
+    cfg = _cfg(steps=8, checkpoint_every_steps=2)
+    with pytest.raises(NonFiniteLossError) as ei:
+        Trainer(_Exploding(), cfg, tmp_path).fit(_data(8))
+    msg = str(ei.value)
+    assert "step 5" in msg and str(ckpt.checkpoint_path(tmp_path, 4)) in msg and "precision fp32" in msg
+    assert ckpt.latest_complete(tmp_path) == ckpt.checkpoint_path(tmp_path, 4)
+
+
+def test_checkpoint_refuses_foreign_pickles(tmp_path):
+    torch.manual_seed(0)
+    Trainer(build("toy", {}), _cfg(steps=2), tmp_path).fit(_data())
+    path = ckpt.latest_complete(tmp_path)
+    md = path / ".metadata"
+    assert md.is_file()
+
+    class Evil:
+        def __reduce__(self):
+            return (print, ("owned",))
+
+    md.write_bytes(pickle.dumps(Evil()))
+    m = build("toy", {})
+    t = Trainer(m, _cfg(steps=4), tmp_path, resume=True)
+    with pytest.raises(ckpt.CheckpointError, match="builtins.print"):
+        t.fit(_data())
+
+
+def test_resume_with_no_checkpoint_starts_fresh(tmp_path, capsys):
+    torch.manual_seed(0)
+    s = Trainer(build("toy", {}), _cfg(steps=2), tmp_path, resume=True).fit(_data())
+    assert s["start_step"] == 0 and s["final_step"] == 2
