@@ -23,7 +23,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from shards import layout
-from shards.npy import decode_npy, stored_to_float32
+from shards.npy import decode_npy, decode_npy_view, stored_to_float32
 from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS
 from shards.validate import is_forbidden_ext
 
@@ -56,11 +56,13 @@ def check_members(raw: dict, shard: str | None = None) -> None:
                 f"(forbidden: {', '.join(FORBIDDEN_EXTENSIONS)}); refusing this shard")
 
 
-def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "float32") -> dict:
+def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "float32",
+                  npy_view: bool = False) -> dict:
     """Decode one raw WebDataset sample (``{"__key__", "meta.json": bytes, ...}``) with the schema's decoders.
 
     Returns the same keys with decoded values (``frames.mp4`` stays bytes); with
-    ``decode_video`` also ``"frames"``: (T, H, W, 3) uint8 RGB.
+    ``decode_video`` also ``"frames"``: (T, H, W, 3) uint8 RGB. ``npy_view``: npy members become
+    read-only zero-copy views of the member bytes (``shards.npy.decode_npy_view``) instead of copies.
     """
     if latent_as not in LATENT_AS:
         raise ValueError(f"latent_as must be one of {LATENT_AS}, got {latent_as!r}")
@@ -79,7 +81,7 @@ def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "fl
             if m.encoding == "json":
                 out[ext] = json.loads(bytes(value).decode("utf-8"))
             elif m.encoding == "npy":
-                out[ext] = decode_npy(value)
+                out[ext] = decode_npy_view(value) if npy_view else decode_npy(value)
             else:
                 out[ext] = bytes(value)
         except (ValueError, UnicodeDecodeError) as e:

@@ -26,8 +26,8 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from shards.schema import COMMANDS
 from training.config import DataConfig
-from training.stream import (Cursor, DataError, StreamPlan, WorkerStream, batches_per_worker, dataset_counts,
-                             shard_mixing)
+from training.stream import (SAMPLE_ORDER, Cursor, DataError, StreamPlan, WorkerStream, batches_per_worker,
+                             dataset_counts, shard_mixing)
 
 _COMMAND_INDEX = {c: i for i, c in enumerate(COMMANDS)}
 
@@ -279,7 +279,8 @@ class StreamLoader:
         return {"epoch": self.epoch, "batches_in_epoch": self.batches_in_epoch, "skipped_before": self.skipped_before,
                 "cursors": {str(k): v for k, v in self.cursors.items()}, "plan": {
                     "num_workers": self.plan.num_workers, "batch_size": self.plan.batch_size,
-                    "batches_per_worker": self.plan.batches_per_worker, "num_shards": len(self.plan.urls)}}
+                    "batches_per_worker": self.plan.batches_per_worker, "num_shards": len(self.plan.urls),
+                    "sample_order": SAMPLE_ORDER}}
 
     def load_state_dict(self, d: dict) -> None:
         want = self.state_dict()["plan"]

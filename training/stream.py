@@ -4,20 +4,23 @@ Why not a plain ``wds.WebDataset(resampled=True).shuffle(n)``: exact resume need
 in the stream to be small, saveable state, and the WebDataset maintainers' recipe for equal
 batch counts under DDP (resampled shards + a fixed epoch length) leaves the shard RNG and the
 shuffle buffer inside worker processes. Here every choice is a pure function of
-``(seed, epoch, rank, worker, index)``:
+``(seed, epoch, rank, worker, index)``, through a counter-based hash (``_hash``: splitmix64 folded
+over the integers; no RNG object is built per sample, which cost ~0.1-0.3 ms each with
+``np.random.default_rng``):
 
-* shard draw ``k`` of a worker: ``default_rng([seed, epoch, rank, worker, k, 1]).choice(shards, p=mix)``
-  (with replacement, so any number of shards serves any number of ranks x workers: no hang,
-  no idle worker, equal batch counts);
-* raw sample ``i`` of a worker is taken from slot ``default_rng([seed, epoch, rank, worker, i, 2])
-  .integers(S)``: each worker interleaves ``S`` open shards (``data.open_shards_per_worker``),
-  which shuffles across shards without a buffer;
+* shard draw ``k`` of a worker: ``u = uniform(hash(seed, epoch, rank, worker, k, 1))`` inverted through
+  the cumulative mixing probabilities (with replacement, so any number of shards serves any number
+  of ranks x workers: no hang, no idle worker, equal batch counts);
+* raw sample ``i`` of a worker is taken from slot ``hash(seed, epoch, rank, worker, i, 2) mod S``:
+  each worker interleaves ``S`` open shards (``data.open_shards_per_worker``), which shuffles across
+  shards without a buffer;
 * a slot's shard is read front to back; when it ends the slot takes the next draw.
 
 The position of a worker (``Cursor``) is: draws made, raw samples taken, and per slot (draw
-index, shard index, samples read). Resuming reopens each slot's shard and skips the samples read
-(raw tar records, not decoded). Reading uses WebDataset's ``gopen`` (local paths and any URL it
-opens) and its tar iterator / key grouping; decoding uses ``shards.reader.decode_sample``.
+index, shard index, samples read). Resuming reopens each slot's shard and seeks over the samples
+read (tar headers only, nothing decoded). Reading uses ``shards.tario.open_records`` (a lean tar
+reader for local shards that seeks over members the model does not use; WebDataset's ``gopen`` +
+tar iterator for other URLs), decoding ``shards.reader.decode_sample`` with zero-copy npy views.
 
 Bad data: a sample that fails to decode or validate is skipped and counted; a shard that cannot
 be opened or read (or holds a forbidden member) is dropped for that draw and counted; both are
@@ -25,6 +28,7 @@ reported on stderr. ``strict`` turns either into a ``DataError`` naming the shar
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 import sys
@@ -36,6 +40,8 @@ from typing import Iterator
 import numpy as np
 
 _DRAW, _SLOT = 1, 2
+SAMPLE_ORDER = "splitmix64-v2"  # recorded in the data position: positions of another order are refused
+_M64 = (1 << 64) - 1
 
 
 class DataError(RuntimeError):
@@ -60,6 +66,7 @@ class StreamPlan:
     load_frames: bool = False
     load_dino: bool = False
     mixing: dict = field(default_factory=dict)  # source -> effective share of draws (for the log)
+    read_unused_members: bool = False      # read frames.mp4/dino.npy bytes even when not loaded (benchmarks)
 
     @property
     def batches_per_rank(self) -> int:
@@ -82,26 +89,29 @@ class Cursor:
         return cls(**d) if d else cls()
 
 
-def _rng(*ints: int) -> np.random.Generator:
-    return np.random.default_rng([int(i) & 0xFFFFFFFF for i in ints])
+def _mix64(z: int) -> int:
+    """splitmix64's finaliser (Steele et al. 2014): a bijection on 64-bit ints with full avalanche."""
+    z = (z + 0x9E3779B97F4A7C15) & _M64
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _M64
+    return z ^ (z >> 31)
+
+
+def _hash(*ints: int) -> int:
+    """64-bit hash of a tuple of integers (each folded in with ``_mix64``): the stream's counter-based RNG."""
+    h = 0
+    for i in ints:
+        h = _mix64(h ^ (int(i) & _M64))
+    return h
+
+
+def _uniform(h: int) -> float:
+    """A 64-bit hash -> float in [0, 1) with 53 random bits."""
+    return (h >> 11) * (1.0 / (1 << 53))
 
 
 def _warn(msg: str) -> None:
     print(f"[resim data] warning: {msg}", file=sys.stderr, flush=True)
-
-
-def iter_raw_records(url: str) -> Iterator[dict]:
-    """Raw samples ``{"__key__", "__url__", ext: bytes}`` of one tar via WebDataset's reader (any URL
-    ``gopen`` opens). Raises on unreadable / truncated tars (never yields a partial sample)."""
-    from webdataset.gopen import gopen
-    from webdataset.tariterators import group_by_keys, tar_file_iterator
-
-    stream = gopen(url)
-    try:
-        files = ({**f, "__url__": url} for f in tar_file_iterator(stream))
-        yield from group_by_keys(files)
-    finally:
-        stream.close()
 
 
 class WorkerStream:
@@ -119,14 +129,23 @@ class WorkerStream:
         self._iters: list[Iterator[dict] | None] = [None] * plan.open_shards
         self._known_prompts = set(plan.prompt_ids)
         self._failures = 0
+        self._h = _hash(*self.key)  # hash prefix: per-sample choices fold in only (index, kind)
+        p = np.asarray(plan.probs, dtype=np.float64)
+        if p.ndim != 1 or not len(p) or (p < 0).any() or not p.sum() > 0:
+            raise DataError(f"shard probabilities must be >= 0 with a positive sum, got {plan.probs}")
+        cum = np.cumsum(p / p.sum())
+        cum[int(np.flatnonzero(p > 0)[-1]):] = 2.0  # u in [0, 1) always lands on a shard with p > 0
+        self._cum = cum.tolist()
+        # members the batch does not use: their bytes are seeked over, not read
+        self._skip_exts = () if plan.read_unused_members else tuple(
+            e for e, used in (("frames.mp4", plan.load_frames), ("dino.npy", plan.load_dino)) if not used)
 
     # -------------------------------------------------------------- shards
     def _draw(self) -> tuple[int, int]:
         k = self.cur.draws
         self.cur.draws += 1
-        p = np.asarray(self.plan.probs, dtype=np.float64)
-        shard = int(_rng(*self.key, k, _DRAW).choice(len(p), p=p / p.sum()))
-        return k, shard
+        u = _uniform(_mix64(_mix64(self._h ^ k) ^ _DRAW))  # = _uniform(_hash(*self.key, k, _DRAW))
+        return k, bisect.bisect_right(self._cum, u)
 
     def _bad_shard(self, shard: int, err: Exception) -> None:
         url = self.plan.urls[shard]
@@ -140,12 +159,11 @@ class WorkerStream:
                             f"bad? ({len(self.plan.urls)} shards)")
 
     def _open(self, slot: int) -> None:
-        """(Re)open the shard of ``slot`` at its recorded offset, skipping raw records."""
+        """(Re)open the shard of ``slot`` at its recorded offset (seeking over the records already read)."""
+        from shards.tario import open_records
+
         k, shard, offset = self.cur.slots[slot]
-        it = iter_raw_records(self.plan.urls[shard])
-        for _ in range(offset):
-            next(it)
-        self._iters[slot] = it
+        self._iters[slot] = open_records(self.plan.urls[shard], start=offset, skip_exts=self._skip_exts)
 
     def _next_raw(self, slot: int) -> tuple[dict, int]:
         """Next raw record from ``slot``; refill the slot with new draws when its shard ends or fails."""
@@ -179,7 +197,8 @@ class WorkerStream:
 
         # latents stay as stored (float16, or bfloat16 bits): Batch.to() widens them on the device, which
         # moves half the bytes through worker queues and host memory (bench/loader_overhead.py)
-        s = decode_sample(raw, decode_video=self.plan.load_frames, latent_as="stored")
+        # npy members as zero-copy read-only views of the member bytes (collation copies them once)
+        s = decode_sample(raw, decode_video=self.plan.load_frames, latent_as="stored", npy_view=True)
         meta = s.get("meta.json")
         lat = s.get("latent.npy")
         if not isinstance(meta, dict):
@@ -193,13 +212,15 @@ class WorkerStream:
             if lat.dtype != np.uint16:
                 raise ValueError(f"meta.latent_dtype=bfloat16 but latent.npy is {lat.dtype} (expected uint16 bits)")
             # bf16 is NaN/inf iff its exponent bits are all ones
-            if ((lat & 0x7F80) == 0x7F80).any():
+            if lat.size and int((lat & 0x7FFF).max()) >= 0x7F80:
                 raise ValueError("latent.npy holds NaN/inf")
         elif ldt == "float16":
             if lat.dtype != np.float16:
                 raise ValueError(f"meta.latent_dtype=float16 but latent.npy is {lat.dtype}")
-            if ((lat.view(np.uint16) & 0x7C00) == 0x7C00).any():  # exponent all ones: NaN/inf (integer
-                raise ValueError("latent.npy holds NaN/inf")          # test: np.isfinite on fp16 is slow)
+            # NaN/inf iff the exponent bits are all ones, i.e. |bits| >= 0x7C00: one mask + max (integer
+            # test: np.isfinite on float16 is ~50x slower)
+            if lat.size and int((lat.view(np.uint16) & 0x7FFF).max()) >= 0x7C00:
+                raise ValueError("latent.npy holds NaN/inf")
         elif ldt == "float32":
             if lat.dtype != np.float32:
                 raise ValueError(f"meta.latent_dtype=float32 but latent.npy is {lat.dtype}")
@@ -223,7 +244,7 @@ class WorkerStream:
         S = self.plan.open_shards
         while True:
             i = self.cur.index
-            slot = int(_rng(*self.key, i, _SLOT).integers(S)) if S > 1 else 0
+            slot = _mix64(_mix64(self._h ^ i) ^ _SLOT) % S if S > 1 else 0  # = _hash(*self.key, i, _SLOT) % S
             raw, shard = self._next_raw(slot)
             self.cur.index += 1
             try:

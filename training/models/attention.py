@@ -91,9 +91,13 @@ class Attention(nn.Module):
         self.to_out = nn.ModuleList([nn.Linear(inner, dim, bias=out_bias), nn.Dropout(0.0)])
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                past_kv: tuple[torch.Tensor, torch.Tensor] | None = None,
-                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """``x`` (B, S, dim) → (out (B, S, dim), (k, v) of the full key sequence).
+                past_kv: tuple[torch.Tensor, torch.Tensor] | None = None, return_kv: bool = False,
+                ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
+        """``x`` (B, S, dim) → (out (B, S, dim), (k, v) of the full key sequence, or None).
+
+        ``return_kv``: return the keys/values (B, heads, S_past + S, head_dim), contiguous, for a KV cache.
+        Training leaves it off: ``v`` is a transposed *view* of ``to_v``'s output, and a view returned
+        from an FSDP2 unit (a block) triggers FSDP2's in-place-on-view warning.
 
         ``past_kv``: keys/values (B, heads, S_past, head_dim) prepended to this call's keys/values (a
         prefix's cache); ``mask`` (S, S_past + S) bool, True = attend.
@@ -108,4 +112,7 @@ class Attention(nn.Module):
             v = torch.cat([past_kv[1], v], dim=2)
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
         o = o.transpose(1, 2).reshape(b, s, self.heads * self.head_dim)
-        return self.to_out[1](self.to_out[0](o)), (k, v)
+        out = self.to_out[1](self.to_out[0](o))
+        if not return_kv:
+            return out, None
+        return out, (k.contiguous(), v.contiguous())  # own storage, not views (no-ops after a cat)

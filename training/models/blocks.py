@@ -78,14 +78,16 @@ class DiTBlock(nn.Module):
 
     def forward(self, video: torch.Tensor, text: torch.Tensor | None, temb_frames: torch.Tensor,
                 temb_text: torch.Tensor | None, mask: torch.Tensor | None,
-                past_kv: tuple[torch.Tensor, torch.Tensor] | None = None):
+                past_kv: tuple[torch.Tensor, torch.Tensor] | None = None, return_kv: bool = False):
         """video (B, T*n, D); text (B, L, D), or None when the text lives in ``past_kv`` (cached sampling).
 
-        Returns (video, text or None, (k, v) over [past | text | video]).
+        Returns (video, text or None, (k, v) over [past | text | video] if ``return_kv`` else None). Every
+        returned tensor has its own storage (no views): blocks are FSDP2 units, and FSDP2 warns that an
+        in-place op on a view returned by a unit can corrupt gradients.
         """
         nv, ne, gv, ge = self.norm1(video, text, temb_frames, temb_text)
         x = nv if ne is None else torch.cat([ne, nv], dim=1)
-        a, kv = self.attn1(x, mask=mask, past_kv=past_kv)
+        a, kv = self.attn1(x, mask=mask, past_kv=past_kv, return_kv=return_kv)
         L = 0 if ne is None else ne.shape[1]
         video = video + gv * a[:, L:]
         if text is not None:

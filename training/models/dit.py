@@ -198,9 +198,10 @@ class WorldModel(nn.Module):
         for i, blk in enumerate(self.transformer_blocks):
             past = (kv_cache.keys[i], kv_cache.values[i]) if kv_cache is not None else None
             if cfg.gradient_checkpointing and torch.is_grad_enabled():
-                video, txt, kv = checkpoint(blk, video, txt, temb, temb_text, mask, past, use_reentrant=False)
+                video, txt, kv = checkpoint(blk, video, txt, temb, temb_text, mask, past, return_kv_cache,
+                                             use_reentrant=False)
             else:
-                video, txt, kv = blk(video, txt, temb, temb_text, mask, past)
+                video, txt, kv = blk(video, txt, temb, temb_text, mask, past, return_kv_cache)
             if return_kv_cache:
                 keys.append(kv[0])
                 values.append(kv[1])
