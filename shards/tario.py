@@ -110,10 +110,11 @@ class _Source:
             self.pos += n - need
 
 
-def iter_members(src: _Source, skip_data=None) -> Iterator[tuple[str, int, bytes | None]]:
-    """``(name, size, data)`` of every regular member in order; ``data`` is None where
-    ``skip_data(name)`` is true (seeked over). Handles ustar prefixes, pax ``path``/``size`` and GNU
-    long names; stops at the first zero block or at EOF on a block boundary."""
+def iter_members(src: _Source, select) -> Iterator[tuple[str, str, bytes | None]]:
+    """``(key, ext, data)`` of the regular members in order, for which ``select(name)`` returns
+    ``(key, ext, read)`` (None: member ignored, data seeked over); ``data`` is None where ``read`` is
+    false (seeked over). Handles ustar prefixes, pax ``path``/``size`` and GNU long names; stops at the
+    first zero block or at EOF on a block boundary."""
     long_name: str | None = None
     pax: dict[str, str] = {}
     while True:
@@ -166,17 +167,16 @@ def iter_members(src: _Source, skip_data=None) -> Iterator[tuple[str, int, bytes
         if typ == b"S":
             raise ShardReadError(f"{where}: member {name!r} is a GNU sparse file (not a shard member type)")
         padded = size + (-size % BLOCK)
-        if typ not in _REGULAR:  # unknown type: tarfile skips its data too
+        sel = select(name) if typ in _REGULAR else None  # unknown types: tarfile skips their data too
+        if sel is None or not sel[2]:
             src.skip(padded, f"data of {name!r}", size)
-            continue
-        if skip_data is not None and skip_data(name):
-            src.skip(padded, f"data of {name!r}", size)
-            yield name, size, None
+            if sel is not None:
+                yield sel[0], sel[1], None
             continue
         data = src.read(size, f"data of {name!r}")
         if padded != size:
             src.skip(padded - size, "padding", 0)
-        yield name, size, data
+        yield sel[0], sel[1], data
 
 
 def _split(name: str) -> tuple[str | None, str | None]:
@@ -196,25 +196,21 @@ def _forbidden(url: str, key: str, name: str) -> ForbiddenMemberError:
         f"(forbidden: {', '.join(FORBIDDEN_EXTENSIONS)}); refusing this shard")
 
 
-def _group(members: Iterator[tuple[str, int, bytes | None]], url: str, start: int,
-           skip_exts: frozenset) -> Iterator[dict]:
-    """Members -> samples ``{"__key__", "__url__", ext: bytes}``; the first ``start`` samples are not yielded
-    (their data was not read either: see ``open_records``). Members in ``skip_exts`` are left out."""
+def _group(members: Iterator[tuple[str, str, bytes | None]], url: str, start: int) -> Iterator[dict]:
+    """Members -> samples ``{"__key__", "__url__", ext: bytes}`` from sample ``start`` on; members whose
+    data is None (not read) are left out of the sample."""
     cur: dict | None = None
     seen: set = set()
     index = -1  # index of the sample ``cur`` belongs to
-    for name, _size, data in members:
-        key, ext = _split(name)
-        if key is None:
-            continue
+    for key, ext, data in members:
         if is_forbidden_ext(ext):
-            raise _forbidden(url, key, name)
+            raise _forbidden(url, key, f"{key}.{ext}")
         if cur is None or key != cur["__key__"]:
             if cur is not None and index >= start:
                 yield cur
             cur, seen, index = {"__key__": key, "__url__": url}, set(), index + 1
         if ext in seen:
-            raise ShardReadError(f"shard {url}: {name}: duplicate file name in tar file ({ext} of {key!r})")
+            raise ShardReadError(f"shard {url}: {key}.{ext}: duplicate file name in tar file ({ext} of {key!r})")
         seen.add(ext)
         if data is not None:
             cur[ext] = data
@@ -238,17 +234,18 @@ def open_records(url: str, *, start: int = 0, skip_exts=()) -> Iterator[dict]:
             head = f.peek(6)[:6]
             if not any(head.startswith(m) for m in _COMPRESSED_MAGIC):
                 src = _Source(f, url, os.fstat(f.fileno()).st_size)
-                index = [-1, None]  # sample index of the current key, for seeking over records before start
+                state = [-1, None]  # sample index and key of the latest member (same count as _group's)
 
-                def skip_data(name: str) -> bool:
+                def select(name: str):
                     key, ext = _split(name)
                     if key is None:
-                        return True
-                    if key != index[1]:
-                        index[0], index[1] = index[0] + 1, key
-                    return index[0] < start or ext in skip_exts or is_forbidden_ext(ext)
+                        return None
+                    if key != state[1]:
+                        state[0], state[1] = state[0] + 1, key
+                    # records before ``start`` (resume), unused and forbidden members: headers only
+                    return key, ext, not (state[0] < start or ext in skip_exts or is_forbidden_ext(ext))
 
-                yield from _group(iter_members(src, skip_data), url, start, skip_exts)
+                yield from _group(iter_members(src, select), url, start)
                 return
         finally:
             f.close()

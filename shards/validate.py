@@ -6,6 +6,8 @@ writer turns a non-empty list into :class:`SampleError`.
 """
 from __future__ import annotations
 
+import functools
+
 import math
 import re
 from typing import Any
@@ -46,6 +48,7 @@ class SampleError(ValueError):
         super().__init__(f"sample {key!r} does not match the shard schema: " + "; ".join(problems))
 
 
+@functools.lru_cache(maxsize=4096)  # pure, and called per member of every sample a loader reads
 def is_forbidden_ext(ext: str) -> bool:
     """True if any dot-separated part of a member extension names a code-executing decoder."""
     return any(part.lower() in FORBIDDEN_EXTENSIONS for part in ext.split("."))

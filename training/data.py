@@ -150,7 +150,7 @@ def collate_samples(samples: list[dict], num_waypoints: int | None = None) -> di
             traj[i], has[i] = t, True
     out = {
         "latents": lat, "trajectory": torch.from_numpy(traj), "has_trajectory": torch.from_numpy(has),
-        "command": torch.tensor([_COMMAND_INDEX.get(m.get("command"), -1) for m in metas], dtype=torch.long),
+        "command": torch.from_numpy(np.array([_COMMAND_INDEX.get(m.get("command"), -1) for m in metas], np.int64)),
         "source": [m.get("source", "") for m in metas], "keys": keys, "meta": metas,
         "prompt_id": [m["prompt_id"] for m in metas], "null_prompt_id": [m["null_prompt_id"] for m in metas],
     }
@@ -178,7 +178,7 @@ class _EpochStream(IterableDataset):
         for items, cursor in ws.batches():
             out = collate_samples(items)
             out["_worker"] = logical
-            out["_cursor"] = dataclasses.asdict(cursor)
+            out["_cursor"] = cursor
             yield out
 
 
@@ -249,8 +249,8 @@ class StreamLoader:
             self._tables[ids] = torch.stack(embs)
         row = {p: i for i, p in enumerate(ids)}
         return Batch(latents=d["latents"], prompt_table=self._tables[ids],
-                     prompt_index=torch.tensor([row[p] for p in d["prompt_id"]], dtype=torch.long),
-                     null_index=torch.tensor([row[p] for p in d["null_prompt_id"]], dtype=torch.long),
+                     prompt_index=torch.from_numpy(np.array([row[p] for p in d["prompt_id"]], np.int64)),
+                     null_index=torch.from_numpy(np.array([row[p] for p in d["null_prompt_id"]], np.int64)),
                      trajectory=d["trajectory"], has_trajectory=d["has_trajectory"], command=d["command"],
                      source=list(d["source"]), keys=list(d["keys"]), meta=list(d["meta"]),
                      frames=d.get("frames"), dino=d.get("dino"))
@@ -259,7 +259,9 @@ class StreamLoader:
         W = self.plan.num_workers
         ds = _EpochStream(self.plan, self.epoch, self.rank, self.batches_in_epoch % W, dict(self.cursors))
         nw = self.cfg.num_workers
-        dl = DataLoader(ds, batch_size=None, num_workers=nw, pin_memory=self.pin_memory,
+        # no workers, no pinning: iterate the stream directly (DataLoader would only add per-batch profiler
+        # hooks; it draws its seed from its own generator, so skipping it changes no RNG state)
+        dl = ds if nw == 0 and not self.pin_memory else DataLoader(ds, batch_size=None, num_workers=nw, pin_memory=self.pin_memory,
                         prefetch_factor=self.cfg.prefetch_factor if nw else None, persistent_workers=False,
                         # its own generator: a DataLoader iterator otherwise draws its base seed from the global
                         # torch RNG, so a resumed run (a new iterator mid-epoch) would shift the model's noise
