@@ -178,3 +178,18 @@ def test_block_causal_mask_layout():
     assert torch.equal(m, expect)
     suffix = block_causal_mask(2, 2, 1, prefix_frames=1, with_text_queries=False)
     assert torch.equal(suffix, expect[4:])
+
+
+def test_blocks_return_no_views(tiny_model):
+    """Blocks are FSDP2 units: a view among their outputs makes FSDP2 warn that an in-place op on it could
+    corrupt gradients (its pre-backward hook lands on the view). Every output must own its storage."""
+    blk = tiny_model.transformer_blocks[0]
+    d = blk.attn1.to_q.in_features
+    tdim = blk.norm1.linear.in_features
+    video, text = torch.randn(2, 3 * 4, d, requires_grad=True), torch.randn(2, 5, d, requires_grad=True)
+    temb, temb_text = torch.randn(2, 3, tdim), torch.randn(2, tdim)
+    v, e, kv = blk(video, text, temb, temb_text, None)
+    assert kv is None and v._base is None and e._base is None  # training: no keys/values returned
+    v, e, kv = blk(video, text, temb, temb_text, None, None, True)
+    assert all(t._base is None and t.is_contiguous() for t in (v, e, *kv))
+    assert kv[0].shape == kv[1].shape == (2, blk.attn1.heads, 5 + 12, blk.attn1.head_dim)

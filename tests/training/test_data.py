@@ -129,3 +129,38 @@ def test_every_shard_bad_is_an_error_not_a_hang(tmp_path):
         p.write_bytes(b"not a tar at all" * 10)
     with pytest.raises(DataError, match="in a row failed"):
         next(iter(StreamLoader(_cfg(root, max_consecutive_failures=5), verbose=False)))
+
+
+def _add_pickle_member(shard):
+    """Append a sample carrying a pickle member to ``shard`` (rewritten, still a valid tar)."""
+    with tarfile.open(shard) as t:
+        members = [(m, t.extractfile(m).read()) for m in t.getmembers()]
+    with tarfile.open(shard, "w") as t:
+        for m, data in members:
+            t.addfile(m, io.BytesIO(data))
+        m = tarfile.TarInfo("zzz-evil.state.pickle")
+        payload = b"\x80\x04never unpickled"
+        m.size = len(payload)
+        t.addfile(m, io.BytesIO(payload))
+
+
+def test_pickle_member_refuses_the_shard(world_dataset, capfd):
+    shards = sorted((world_dataset / "shards").glob("*.tar"))
+    _add_pickle_member(shards[0])
+    loader = StreamLoader(_cfg(world_dataset, samples_per_epoch=24), verbose=False)
+    keys = [k for b in loader for k in b.keys]
+    assert len(keys) == 24 and "zzz-evil" not in keys
+    err = capfd.readouterr().err
+    assert "code-executing format" in err and shards[0].name in err and loader.skipped > 0
+    with pytest.raises(DataError, match="code-executing"):
+        for _ in StreamLoader(_cfg(world_dataset, samples_per_epoch=24, strict=True), verbose=False):
+            pass
+
+
+def test_position_of_another_sample_order_is_refused(world_dataset):
+    a = StreamLoader(_cfg(world_dataset), verbose=False)
+    next(iter(a))
+    state = a.state_dict()
+    del state["plan"]["sample_order"]  # a position saved by the loader before the counter-based hash
+    with pytest.raises(DataError, match="cannot resume the data position"):
+        StreamLoader(_cfg(world_dataset), verbose=False).load_state_dict(state)
