@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import types
 import typing
 from pathlib import Path
@@ -75,7 +76,7 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
             if len(args) != len(value):
                 raise ConfigError(f"{key}: expected {len(args)} items, got {len(value)}")
-            return tuple(_convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
+            return tuple(_convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
         item_tp = args[0] if args else Any
         items = [_convert(v, item_tp, f"{key}[{i}]") for i, v in enumerate(value)]
         return tuple(items) if (origin is tuple or tp is tuple) else items
@@ -178,8 +179,21 @@ def apply_overrides(data: dict, overrides: typing.Iterable[str]) -> dict:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected key=value")
         k, v = item.split("=", 1)
-        set_by_path(data, k.strip(), yaml.safe_load(v) if v.strip() else "")
+        set_by_path(data, k.strip(), _parse_value(v))
     return data
+
+
+_FLOAT_RE = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)$")
+
+
+def _parse_value(v: str) -> Any:
+    """YAML-parse an override value; YAML 1.1 reads ``1e-4`` (no dot) as a string, so read it as a float."""
+    if not v.strip():
+        return ""
+    out = yaml.safe_load(v)
+    if isinstance(out, str) and _FLOAT_RE.match(out.strip()):
+        return float(out)
+    return out
 
 
 def load(cls: type[T], path: str | Path | None = None, overrides: typing.Iterable[str] = (),

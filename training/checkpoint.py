@@ -1,0 +1,228 @@
+"""Sharded, atomic, safely-loaded checkpoints (torch.distributed.checkpoint).
+
+Layout of one checkpoint, ``RUN_DIR/checkpoints/step_00001000/``::
+
+    .metadata, __*_*.distcp   DCP: model, optimizer and EMA state, sharded by the writing ranks
+                              (FSDP2 DTensors stay sharded; DCP reshards on load to another world size)
+    rank_<r>.json             per rank: RNG states (python, numpy, torch, cuda) and the data position
+    meta.json                 step, scheduler state (the step: the LR is a pure function of it),
+                              world size, resolved config, time; written last
+
+Atomicity: everything is written to ``step_XXXXXXXX.tmp/``; after every rank is done, rank 0
+renames it to ``step_XXXXXXXX/`` (one ``rename``, atomic on POSIX). A crash during a save leaves
+only a ``.tmp`` folder, which ``latest_complete`` ignores and the next save removes, so the
+previous checkpoint stays the latest usable one.
+
+Safe loading: DCP reads its ``.metadata`` with plain ``pickle.load`` and non-tensor values with
+``torch.load(weights_only=False)``. ``SafeFileSystemReader`` swaps in an unpickler that only admits
+DCP's own metadata classes, and ``SafeLoadPlanner`` loads values with ``weights_only=True``.
+The JSON files need no unpickling at all.
+"""
+from __future__ import annotations
+
+import base64
+import io
+import json
+import os
+import pickle
+import random
+import shutil
+import signal
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed.checkpoint as dcp
+from torch.distributed.checkpoint import DefaultLoadPlanner, FileSystemReader, FileSystemWriter
+
+CHECKPOINTS = "checkpoints"
+_PREFIX = "step_"
+_TMP = ".tmp"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, incomplete, or holds something we refuse to load."""
+
+
+# ---------------------------------------------------------------- safe unpickling of DCP metadata
+_ALLOWED_MODULE_PREFIXES = ("torch.distributed.checkpoint.",)
+_ALLOWED_GLOBALS = {
+    ("torch", "Size"), ("torch", "device"), ("collections", "OrderedDict"), ("builtins", "set"),
+    ("builtins", "frozenset"), ("builtins", "slice"), ("torch._utils", "_rebuild_tensor_v2"),
+    ("torch.serialization", "_get_layout"), ("pathlib", "PosixPath"), ("pathlib", "PurePosixPath"),
+    ("enum", "Enum"),
+}
+
+
+class _MetadataUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str):
+        ok = (module, name) in _ALLOWED_GLOBALS or module.startswith(_ALLOWED_MODULE_PREFIXES)
+        # torch dtypes / layouts / memory formats pickle as ``torch.<name>`` attributes
+        if module == "torch" and isinstance(getattr(torch, name, None), (torch.dtype, torch.layout, torch.memory_format)):
+            ok = True
+        if not ok:
+            raise CheckpointError(f"checkpoint metadata refers to {module}.{name}, which is not allowed "
+                                  "(only torch.distributed.checkpoint metadata classes are unpickled)")
+        return super().find_class(module, name)
+
+
+class SafeFileSystemReader(FileSystemReader):
+    """FileSystemReader whose metadata is unpickled with an allow-list."""
+
+    def read_metadata(self, *args: Any, **kwargs: Any):
+        rank = kwargs.get("rank")
+        path = self._get_metadata_path(rank)
+        with self.fs.create_stream(path, "rb") as f:
+            metadata = _MetadataUnpickler(f).load()
+        if getattr(metadata, "storage_meta", None) is None:
+            from torch.distributed.checkpoint.metadata import StorageMeta
+            metadata.storage_meta = StorageMeta()
+        metadata.storage_meta.load_id = self.load_id
+        return metadata
+
+
+class SafeLoadPlanner(DefaultLoadPlanner):
+    """Non-tensor values (optimizer hyper-parameters) are loaded with ``weights_only=True``."""
+
+    def load_bytes(self, read_item, value: io.BytesIO) -> None:
+        from torch.distributed.checkpoint._nested_dict import set_element  # noqa: F401  (same helper DCP uses)
+        obj = torch.load(value, weights_only=True)
+        if self.flatten_state_dict:
+            set_element(self.original_state_dict, self.mappings[read_item.dest_index.fqn], obj)
+        else:
+            self.state_dict[read_item.dest_index.fqn] = obj
+
+
+# ---------------------------------------------------------------- RNG states as JSON
+def _b64(t: torch.Tensor) -> str:
+    return base64.b64encode(t.cpu().numpy().tobytes()).decode()
+
+
+def _unb64(s: str) -> torch.Tensor:
+    return torch.from_numpy(np.frombuffer(base64.b64decode(s), dtype=np.uint8).copy())
+
+
+def rng_state() -> dict:
+    """This process's RNG states as JSON-able data."""
+    ver, internal, gauss = random.getstate()
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    out = {
+        "python": [ver, list(internal), gauss],
+        "numpy": [name, keys.tolist(), int(pos), int(has_gauss), float(cached)],
+        "torch": _b64(torch.get_rng_state()),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        out["cuda"] = [_b64(s) for s in torch.cuda.get_rng_state_all()]
+    return out
+
+
+def set_rng_state(state: dict) -> None:
+    ver, internal, gauss = state["python"]
+    random.setstate((ver, tuple(internal), gauss))
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+    torch.set_rng_state(_unb64(state["torch"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([_unb64(s) for s in state["cuda"]])
+
+
+# ---------------------------------------------------------------- finding checkpoints
+def checkpoint_path(run_dir: str | Path, step: int) -> Path:
+    return Path(run_dir) / CHECKPOINTS / f"{_PREFIX}{step:08d}"
+
+
+def list_complete(run_dir: str | Path) -> list[tuple[int, Path]]:
+    """Complete checkpoints (renamed into place and holding meta.json), oldest first."""
+    root = Path(run_dir) / CHECKPOINTS
+    out = []
+    if root.is_dir():
+        for p in root.iterdir():
+            if p.is_dir() and p.name.startswith(_PREFIX) and not p.name.endswith(_TMP) and (p / "meta.json").is_file():
+                try:
+                    out.append((int(p.name[len(_PREFIX):]), p))
+                except ValueError:
+                    continue
+    return sorted(out)
+
+
+def latest_complete(run_dir: str | Path) -> Path | None:
+    done = list_complete(run_dir)
+    return done[-1][1] if done else None
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "w") as f:
+        json.dump(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------- save / load
+def save(run_dir: str | Path, step: int, state: dict[str, Any], *, rank_state: dict, meta: dict,
+         rank: int, barrier, keep: int = 2) -> Path:
+    """Write a checkpoint atomically. Collective: every rank calls it with its own ``rank_state``.
+
+    ``state``: {"model": sd, "optim": sd, "ema": sd} of tensors / DTensors (from get_state_dict).
+    ``barrier``: a no-arg callable (the process-group barrier, or a no-op).
+    """
+    final = checkpoint_path(run_dir, step)
+    tmp = final.with_name(final.name + _TMP)
+    if rank == 0:
+        if tmp.exists():
+            shutil.rmtree(tmp)  # left by a crash during an earlier save
+        tmp.mkdir(parents=True)
+    barrier()
+    with warnings.catch_warnings():  # single-process runs: DCP warns that it saves without a process group
+        warnings.filterwarnings("ignore", message="torch.distributed is disabled")
+        dcp.save(state, storage_writer=FileSystemWriter(tmp))
+    _write_json(tmp / f"rank_{rank}.json", rank_state)
+    barrier()
+    if rank == 0:
+        if os.environ.get("RESIM_FAULT_KILL_IN_SAVE") == str(step):
+            # fault injection for tests: die (SIGKILL, no clean-up) with the save half done
+            os.kill(os.getpid(), signal.SIGKILL)
+        _write_json(tmp / "meta.json", {**meta, "step": step, "saved_unix_s": time.time()})
+        if final.exists():  # the same step saved again (a resumed run re-reaching it): replace
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+        _fsync_dir(final.parent)
+        for _, old in list_complete(run_dir)[:-keep]:
+            shutil.rmtree(old, ignore_errors=True)
+    barrier()
+    return final
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def load(path: str | Path, state: dict[str, Any], *, rank: int) -> tuple[dict, dict | None]:
+    """Load ``state`` in place from checkpoint ``path``; return (meta, this rank's rank_state or None).
+
+    ``rank_state`` is None when the checkpoint was written by fewer ranks than this run has
+    (a resharded resume: weights and optimizer load, RNG / data position start fresh).
+    """
+    p = Path(path)
+    if not (p / "meta.json").is_file():
+        raise CheckpointError(f"{p} is not a complete checkpoint (no meta.json)")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="torch.distributed is disabled")
+        dcp.load(state, storage_reader=SafeFileSystemReader(p), planner=SafeLoadPlanner())
+    meta = json.loads((p / "meta.json").read_text())
+    rs_path = p / f"rank_{rank}.json"
+    rank_state = json.loads(rs_path.read_text()) if rs_path.is_file() else None
+    return meta, rank_state

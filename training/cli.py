@@ -1,0 +1,101 @@
+"""`resim train NAME ...` (one subcommand per model with presets) and `resim train launch`.
+
+Light module: torch is imported inside the handlers.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+TRAIN_EPILOG = """\
+examples:
+  resim train world --preset tiny --shards out/shards --out runs/wm             # seconds on a CPU
+  resim train world --preset tiny --shards out/shards --out runs/wm --resume    # continue the latest checkpoint
+  resim train world --preset stage2 --shards /data/resim --out runs/s2 \\
+      --set model.init_weights=runs/s1/final/model.safetensors --set data.num_workers=8
+  resim train launch --nnodes 5 --nproc-per-node 8 --dry-run -- world --preset stage1 --shards D --out R
+
+The run folder gets config.yaml (resolved), metrics.jsonl (one JSON object per optimizer step),
+tensorboard/, checkpoints/step_XXXXXXXX/ (sharded, atomic), final/model.safetensors and loss_curve.png.
+Exit codes: 0 ok, 2 bad config, 3 non-finite loss (message names the last good checkpoint), 4 bad data.
+"""
+
+
+def add_train_arguments(p: argparse.ArgumentParser, presets: list[str]) -> None:
+    p.add_argument("--preset", default=presets[0], choices=presets,
+                   help=f"named config to start from (default {presets[0]}); see training/presets.py")
+    p.add_argument("--shards", help="dataset folder (shards/, index/, prompts/) = data.shards")
+    p.add_argument("--out", required=True, help="run folder (created; checkpoints, metrics, final weights)")
+    p.add_argument("--config", help="YAML file applied over the preset (same keys as config.yaml of a run)")
+    p.add_argument("--steps", type=int, help="total optimizer steps = trainer.steps")
+    p.add_argument("--checkpoint-every", type=int, help="checkpoint interval in steps = trainer.checkpoint_every_steps")
+    p.add_argument("--resume", action="store_true", help="continue from the latest complete checkpoint in --out")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any config value, e.g. --set optim.lr=1e-4 --set data.num_workers=4 (repeatable)")
+    p.add_argument("--print-config", action="store_true", help="print the resolved config as YAML and exit")
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    import yaml
+
+    from resim.config import ConfigError, to_dict
+    from training.run import resolve_config
+
+    try:
+        cfg = resolve_config(args.model_name, args.preset, config_file=args.config, overrides=args.overrides,
+                             shards=args.shards, steps=args.steps, checkpoint_every=args.checkpoint_every)
+    except ConfigError as e:
+        print(f"resim train {args.model_name}: config error: {e}", file=sys.stderr)
+        return 2
+    if args.print_config:
+        print(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+        return 0
+    from training.run import run_training
+    from training.stream import DataError
+    from training.trainer import NonFiniteLossError
+
+    try:
+        run_training(cfg, args.out, resume=args.resume)
+    except ConfigError as e:
+        print(f"resim train {args.model_name}: config error: {e}", file=sys.stderr)
+        return 2
+    except NonFiniteLossError as e:
+        print(f"resim train {args.model_name}: {e}", file=sys.stderr)
+        return 3
+    except DataError as e:
+        print(f"resim train {args.model_name}: data error: {e}", file=sys.stderr)
+        return 4
+    return 0
+
+
+def _cmd_launch(args: argparse.Namespace) -> int:
+    from training.launch import main_launch
+
+    return main_launch(args)
+
+
+def register(subparsers) -> None:
+    from training.presets import PRESETS
+
+    p = subparsers.add_parser(
+        "train", help="train a model from shards (world model; launch on many GPUs)",
+        description="Train a model from shards on one CPU/GPU, or on many with `resim train launch`.",
+        epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="train_command", metavar="SUBCOMMAND")
+    for name, table in PRESETS.items():
+        s = sub.add_parser(name, help=f"train the {name} model (presets: {', '.join(table)})",
+                           description=f"Train the {name} model. Presets: {', '.join(table)}.",
+                           epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        add_train_arguments(s, list(table))
+        s.set_defaults(func=_cmd_train, model_name=name)
+    from training.launch import add_launch_arguments
+    lp = sub.add_parser(
+        "launch", help="run `resim train ...` on N nodes x G processes with torchrun, print a SLURM script, or dry-run",
+        description="Wrap torchrun around `resim train NAME ...` (the arguments after `--`).",
+        epilog="examples:\n  resim train launch --nproc-per-node 8 -- world --preset stage2 --shards D --out R\n"
+               "  resim train launch --nnodes 5 --nproc-per-node 8 --slurm -- world --preset stage1 --shards D --out R\n"
+               "  resim train launch --nnodes 5 --nproc-per-node 8 --dry-run -- world --preset stage3 --shards D --out R",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_launch_arguments(lp)
+    lp.set_defaults(func=_cmd_launch)
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])

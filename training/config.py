@@ -1,0 +1,123 @@
+"""Typed configs of a training run (issue 7): optimiser, trainer loop, data stream, the whole run.
+
+A run config is ``RunConfig``: which registered model (``model_name``) with its own
+config as a plain mapping (``model``, validated by the model's builder), plus the
+data stream, the optimiser and the loop. Presets (``training/presets.py``) are
+plain dicts of this shape; ``--set key=value`` overrides any leaf.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from resim.config import ConfigError
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with linear warmup then a constant or cosine schedule (per optimizer step)."""
+
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    betas: tuple[float, float] = (0.9, 0.999)
+    eps: float = 1e-8
+    warmup_steps: int = 0
+    schedule: Literal["constant", "cosine"] = "constant"
+    min_lr_ratio: float = 0.0          # cosine decays to lr * min_lr_ratio at the last step
+    grad_clip_norm: float = 1.0        # <= 0 disables clipping (the norm is still logged)
+
+    def __post_init__(self):
+        if self.lr <= 0:
+            raise ConfigError(f"optim.lr must be > 0, got {self.lr}")
+        if self.warmup_steps < 0:
+            raise ConfigError(f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
+        if not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise ConfigError(f"optim.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
+        if self.weight_decay < 0:
+            raise ConfigError(f"optim.weight_decay must be >= 0, got {self.weight_decay}")
+
+
+@dataclass
+class TrainerConfig:
+    """The generic loop (``training.trainer.Trainer``)."""
+
+    steps: int = 100                       # optimizer steps in total (a resumed run continues to this)
+    grad_accum_steps: int = 1              # micro-batches per optimizer step (ignored if global_batch_size set)
+    global_batch_size: Optional[int] = None  # if set: accum = global / (batch_size_per_gpu * world); must divide
+    precision: Literal["fp32", "bf16"] = "fp32"  # bf16 = autocast; falls back to fp32 where unsupported
+    ema_decay: float = 0.0                 # 0 disables EMA; e.g. 0.9999
+    activation_checkpointing: bool = False
+    compile: bool = False                  # torch.compile the model's loss module
+    parallel: Literal["auto", "none", "ddp", "fsdp"] = "auto"  # auto: DDP if world > 1 (FSDP for presets that say so)
+    fsdp_reshard_after_forward: bool = True
+    checkpoint_every_steps: int = 0        # 0: only at the end
+    keep_checkpoints: int = 2              # complete checkpoints kept (older ones deleted)
+    log_every_steps: int = 1               # metrics.jsonl gets every step; console/TensorBoard every N
+    seed: int = 0
+    tensorboard: bool = True
+    progress_bar: bool = True
+    loss_curve_png: bool = True
+    peak_tflops_per_gpu: float = 989.0     # dense bf16 peak for MFU (H100 SXM); set for your GPU
+    save_final_weights: bool = True        # final/model.safetensors (+ ema) consolidated on rank 0
+
+    def __post_init__(self):
+        if self.steps < 1:
+            raise ConfigError(f"trainer.steps must be >= 1, got {self.steps}")
+        if self.grad_accum_steps < 1:
+            raise ConfigError(f"trainer.grad_accum_steps must be >= 1, got {self.grad_accum_steps}")
+        if self.global_batch_size is not None and self.global_batch_size < 1:
+            raise ConfigError(f"trainer.global_batch_size must be >= 1, got {self.global_batch_size}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ConfigError(f"trainer.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.checkpoint_every_steps < 0 or self.keep_checkpoints < 1:
+            raise ConfigError("trainer.checkpoint_every_steps must be >= 0 and keep_checkpoints >= 1")
+        if self.log_every_steps < 1:
+            raise ConfigError("trainer.log_every_steps must be >= 1")
+
+
+@dataclass
+class DataConfig:
+    """The shard stream (``training.data``). See docs/training.md for how ranks/workers split it."""
+
+    shards: Optional[Path] = None          # dataset folder (with shards/, index/, manifest/, prompts/)
+    urls: tuple[str, ...] = ()             # or explicit shard URLs (anything webdataset's gopen opens)
+    batch_size_per_gpu: int = 1
+    num_workers: int = 0                   # DataLoader workers per rank
+    samples_per_epoch: Optional[int] = None  # global; None = number of samples in the dataset
+    source_weights: dict[str, float] = field(default_factory=dict)  # e.g. {opendv: 1, navsim: 1}; {} = by count
+    open_shards_per_worker: int = 4        # shards interleaved per worker (shuffling without a buffer)
+    strict: bool = False                   # a corrupt sample / unreadable shard is an error instead of skipped
+    max_consecutive_failures: int = 64     # unreadable draws in a row before giving up (every shard bad)
+    load_frames: bool = False              # decode frames.mp4 into Batch.frames (reward model)
+    load_dino: bool = False                # Batch.dino from dino.npy (reward model)
+    seed: int = 0
+    prefetch_factor: int = 2
+
+    def __post_init__(self):
+        if self.batch_size_per_gpu < 1:
+            raise ConfigError(f"data.batch_size_per_gpu must be >= 1, got {self.batch_size_per_gpu}")
+        if self.num_workers < 0:
+            raise ConfigError(f"data.num_workers must be >= 0, got {self.num_workers}")
+        if self.samples_per_epoch is not None and self.samples_per_epoch < 1:
+            raise ConfigError(f"data.samples_per_epoch must be >= 1, got {self.samples_per_epoch}")
+        if self.open_shards_per_worker < 1:
+            raise ConfigError("data.open_shards_per_worker must be >= 1")
+        for k, v in self.source_weights.items():
+            if v < 0:
+                raise ConfigError(f"data.source_weights.{k} must be >= 0, got {v}")
+        if self.source_weights and not any(v > 0 for v in self.source_weights.values()):
+            raise ConfigError("data.source_weights: at least one weight must be > 0")
+
+
+@dataclass
+class RunConfig:
+    """Everything a training run needs; saved resolved as RUN_DIR/config.yaml."""
+
+    model_name: str = "world"              # a name in training.registry
+    model: dict[str, Any] = field(default_factory=dict)  # the model's own config (validated by its builder)
+    data: DataConfig = field(default_factory=DataConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    preset: str = ""                       # which named preset this came from (informational)
+    reference: dict[str, Any] = field(default_factory=dict)  # paper values the preset reproduces (informational)

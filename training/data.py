@@ -1,0 +1,237 @@
+"""Training data: the typed ``Batch`` and ``StreamLoader`` (shards -> batches, split across ranks and workers).
+
+``StreamLoader(cfg, rank=r, world_size=n)`` is an iterable of ``Batch`` (one epoch per ``iter``)
+with ``state_dict()`` / ``load_state_dict()`` for exact resume. Every rank yields exactly
+``plan.batches_per_rank`` batches per epoch whatever the number of shards, so DDP never waits
+on a rank that ran dry (see ``training/stream.py`` for how shards are drawn).
+
+DataLoader workers yield pre-stacked tensors; the prompt embeddings (1-4 MB each, a handful of
+distinct ones per dataset) are attached in the main process from the dataset's prompt table
+(cached), so they do not travel through worker queues per sample.
+
+Worker order: DataLoader takes batches round-robin from its workers, so batch ``b`` of an epoch
+comes from logical worker ``b % W``. On resume at batch ``b0`` the physical worker ``p`` plays
+logical worker ``(b0 + p) % W``, which keeps the global order exactly as in the uninterrupted run.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from shards.schema import COMMANDS
+from training.config import DataConfig
+from training.stream import (Cursor, DataError, StreamPlan, WorkerStream, batches_per_worker, dataset_counts,
+                             shard_mixing)
+
+_COMMAND_INDEX = {c: i for i, c in enumerate(COMMANDS)}
+
+
+@dataclass
+class Batch:
+    """One batch of clips, ``B`` samples. Tensors are float32 unless said otherwise.
+
+    latents:        (B, T_lat, C, h, w) VAE latents x scaling factor (as stored, widened to float32)
+    text:           (B, L, D) prompt embedding (prefix + command), padded as the encoder produced it
+    null_text:      (B, L, D) embedding of the prefix alone (the CFG / command-drop null prompt)
+    trajectory:     (B, N, 3) future waypoints (x m fwd, y m left, yaw rad left +); zeros where absent
+    has_trajectory: (B,) bool, whether ``trajectory`` is real for the sample
+    command:        (B,) int64 index into ``shards.schema.COMMANDS``
+    source:         B strings (``opendv`` | ``navsim`` | ``carla`` | ``synthetic``)
+    keys:           B sample keys; ``meta``: B metadata dicts (``meta.json``)
+    frames:         (B, T, 3, H, W) uint8 RGB 0..255 from frames.mp4, when ``data.load_frames``
+    dino:           (B, T_dino, N_tok, D) DINOv2 features, when ``data.load_dino``
+    actions:        (B, T_lat, A) per-frame actions, when a data source provides them (None here:
+                    the world model's objective derives them from the trajectory)
+    """
+
+    latents: torch.Tensor
+    text: torch.Tensor
+    null_text: torch.Tensor
+    trajectory: torch.Tensor
+    has_trajectory: torch.Tensor
+    command: torch.Tensor
+    source: list[str]
+    keys: list[str]
+    meta: list[dict] = field(default_factory=list)
+    frames: torch.Tensor | None = None
+    dino: torch.Tensor | None = None
+    actions: torch.Tensor | None = None
+
+    def __len__(self) -> int:
+        return int(self.latents.shape[0])
+
+    @property
+    def num_history_frames(self) -> int:
+        """History (conditioning) pixel frames of the clips (from the metadata; equal across the batch)."""
+        return int(self.meta[0]["num_history_frames"]) if self.meta else 0
+
+    def to(self, device: torch.device | str, non_blocking: bool = True) -> "Batch":
+        def mv(v):
+            return v.to(device, non_blocking=non_blocking) if isinstance(v, torch.Tensor) else v
+        return dataclasses.replace(self, **{f.name: mv(getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+    def pin_memory(self) -> "Batch":
+        def pin(v):
+            return v.pin_memory() if isinstance(v, torch.Tensor) else v
+        return dataclasses.replace(self, **{f.name: pin(getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+
+def _stack(arrays: list[np.ndarray], name: str, keys: list[str]) -> torch.Tensor:
+    shapes = {a.shape for a in arrays}
+    if len(shapes) > 1:
+        detail = ", ".join(f"{k}: {a.shape}" for k, a in zip(keys, arrays))
+        raise DataError(f"cannot batch {name}: samples differ in shape ({detail}); train one resolution / clip "
+                        "length per run (or one per data source with batch_size_per_gpu=1)")
+    return torch.from_numpy(np.stack(arrays))
+
+
+def collate_samples(samples: list[dict], num_waypoints: int | None = None) -> dict[str, Any]:
+    """Decoded shard samples -> a dict of stacked tensors (no prompt embeddings yet). Runs in workers."""
+    keys = [s["__key__"] for s in samples]
+    metas = [s["meta.json"] for s in samples]
+    lat = _stack([np.asarray(s["latent.npy"], dtype=np.float32) for s in samples], "latents", keys)
+    trajs = [s.get("traj.npy") for s in samples]
+    n = num_waypoints or next((t.shape[0] for t in trajs if t is not None), 8)
+    traj = np.zeros((len(samples), n, 3), np.float32)
+    has = np.zeros(len(samples), bool)
+    for i, t in enumerate(trajs):
+        if t is not None:
+            if t.shape[0] != n:
+                raise DataError(f"cannot batch trajectories: {keys[i]} has {t.shape[0]} waypoints, others {n}")
+            traj[i], has[i] = t, True
+    out = {
+        "latents": lat, "trajectory": torch.from_numpy(traj), "has_trajectory": torch.from_numpy(has),
+        "command": torch.tensor([_COMMAND_INDEX.get(m.get("command"), -1) for m in metas], dtype=torch.long),
+        "source": [m.get("source", "") for m in metas], "keys": keys, "meta": metas,
+        "prompt_id": [m["prompt_id"] for m in metas], "null_prompt_id": [m["null_prompt_id"] for m in metas],
+    }
+    if "frames" in samples[0]:
+        out["frames"] = _stack([s["frames"] for s in samples], "frames", keys).permute(0, 1, 4, 2, 3).contiguous()
+    if "dino.npy" in samples[0]:
+        out["dino"] = _stack([np.asarray(s["dino.npy"], np.float32) for s in samples], "dino", keys)
+    return out
+
+
+class _EpochStream(IterableDataset):
+    """One epoch of one rank; each DataLoader worker plays one logical worker."""
+
+    def __init__(self, plan: StreamPlan, epoch: int, rank: int, offset: int, cursors: dict[int, dict]):
+        self.plan, self.epoch, self.rank, self.offset, self.cursors = plan, epoch, rank, offset, cursors
+
+    def __iter__(self):
+        info = get_worker_info()
+        phys = info.id if info is not None else 0
+        nphys = info.num_workers if info is not None else 1
+        if nphys != self.plan.num_workers:
+            raise DataError(f"{nphys} DataLoader workers, plan made for {self.plan.num_workers}")
+        logical = (self.offset + phys) % self.plan.num_workers
+        ws = WorkerStream(self.plan, self.epoch, self.rank, logical, Cursor.from_dict(self.cursors.get(logical)))
+        for items, cursor in ws.batches():
+            out = collate_samples(items)
+            out["_worker"] = logical
+            out["_cursor"] = dataclasses.asdict(cursor)
+            yield out
+
+
+class StreamLoader:
+    """Batches for rank ``rank`` of ``world_size`` from the shards of ``cfg``; resumable."""
+
+    def __init__(self, cfg: DataConfig, *, rank: int = 0, world_size: int = 1, pin_memory: bool = False,
+                 verbose: bool = True):
+        if cfg.shards is None:
+            raise DataError("data.shards is not set: the dataset folder (shards/, index/, prompts/) is needed "
+                            "for sample counts and the prompt table")
+        root = Path(cfg.shards)
+        if not root.is_dir():
+            raise DataError(f"data.shards={root} is not a folder")
+        paths, counts = dataset_counts(root)
+        urls = list(cfg.urls) or paths
+        if cfg.urls and len(cfg.urls) != len(paths):
+            counts = [{"unknown": 1} for _ in urls]  # explicit URLs: no per-shard counts, draw uniformly
+        if not urls:
+            raise DataError(f"no committed shards in {root / 'shards'} (a shard is committed when index/<name>.json exists)")
+        probs, share = shard_mixing(counts, dict(cfg.source_weights))
+        total = sum(sum(c.values()) for c in counts)
+        spe = cfg.samples_per_epoch or total
+        if cfg.urls and cfg.samples_per_epoch is None:
+            raise DataError("data.urls given: set data.samples_per_epoch (the shard indexes may not describe them)")
+        from shards.prompts import PromptTable
+        self.prompts = PromptTable(root)
+        W = max(1, cfg.num_workers)
+        self.plan = StreamPlan(
+            urls=urls, probs=probs, prompt_ids=list(self.prompts.ids()), batch_size=cfg.batch_size_per_gpu,
+            batches_per_worker=batches_per_worker(spe, cfg.batch_size_per_gpu, world_size, W), num_workers=W,
+            world_size=world_size, seed=cfg.seed, open_shards=cfg.open_shards_per_worker, strict=cfg.strict,
+            max_consecutive_failures=cfg.max_consecutive_failures, load_frames=cfg.load_frames,
+            load_dino=cfg.load_dino, mixing=share)
+        self.cfg, self.rank, self.world_size, self.pin_memory = cfg, rank, world_size, pin_memory
+        self.epoch = 0
+        self.batches_in_epoch = 0
+        self.cursors: dict[int, dict] = {}
+        self.skipped_before = 0  # skipped samples + bad shard draws of finished epochs
+        self._emb: dict[str, torch.Tensor] = {}
+        if verbose and rank == 0:
+            mix = ", ".join(f"{s} {v:.0%}" for s, v in sorted(share.items()))
+            print(f"[resim data] {len(urls)} shards, {total} samples ({mix}); {self.plan.batches_per_rank} batches "
+                  f"of {cfg.batch_size_per_gpu} per rank per epoch ({world_size} ranks x {W} workers)", flush=True)
+
+    def __len__(self) -> int:
+        return self.plan.batches_per_rank
+
+    @property
+    def skipped(self) -> int:
+        """Corrupt samples skipped + unreadable shard draws on this rank so far."""
+        return self.skipped_before + sum(c["skipped_samples"] + c["bad_shards"] for c in self.cursors.values())
+
+    def _embedding(self, pid: str) -> torch.Tensor:
+        if pid not in self._emb:
+            self._emb[pid] = torch.from_numpy(np.array(self.prompts.get(pid, as_float32=True), dtype=np.float32, copy=True))
+        return self._emb[pid]
+
+    def _batch(self, d: dict) -> Batch:
+        texts = [self._embedding(p) for p in d["prompt_id"]]
+        nulls = [self._embedding(p) for p in d["null_prompt_id"]]
+        if len({t.shape for t in texts + nulls}) > 1:
+            raise DataError(f"prompt embeddings differ in shape within a batch ({d['keys']})")
+        return Batch(latents=d["latents"], text=torch.stack(texts), null_text=torch.stack(nulls),
+                     trajectory=d["trajectory"], has_trajectory=d["has_trajectory"], command=d["command"],
+                     source=list(d["source"]), keys=list(d["keys"]), meta=list(d["meta"]),
+                     frames=d.get("frames"), dino=d.get("dino"))
+
+    def __iter__(self) -> Iterator[Batch]:
+        W = self.plan.num_workers
+        ds = _EpochStream(self.plan, self.epoch, self.rank, self.batches_in_epoch % W, dict(self.cursors))
+        nw = self.cfg.num_workers
+        dl = DataLoader(ds, batch_size=None, num_workers=nw, pin_memory=self.pin_memory,
+                        prefetch_factor=self.cfg.prefetch_factor if nw else None, persistent_workers=False)
+        for d in dl:
+            self.cursors[int(d.pop("_worker"))] = {k: (v.tolist() if isinstance(v, torch.Tensor) else v)
+                                                   for k, v in d.pop("_cursor").items()}
+            self.batches_in_epoch += 1
+            yield self._batch(d)
+        self.skipped_before = self.skipped
+        self.epoch += 1
+        self.batches_in_epoch = 0
+        self.cursors = {}
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.epoch, "batches_in_epoch": self.batches_in_epoch, "skipped_before": self.skipped_before,
+                "cursors": {str(k): v for k, v in self.cursors.items()}, "plan": {
+                    "num_workers": self.plan.num_workers, "batch_size": self.plan.batch_size,
+                    "batches_per_worker": self.plan.batches_per_worker, "num_shards": len(self.plan.urls)}}
+
+    def load_state_dict(self, d: dict) -> None:
+        want = self.state_dict()["plan"]
+        if d.get("plan") != want:
+            raise DataError(f"cannot resume the data position exactly: the checkpoint's stream was {d.get('plan')}, "
+                            f"this run's is {want} (same shards, workers and batch size are needed)")
+        self.epoch = int(d["epoch"])
+        self.batches_in_epoch = int(d["batches_in_epoch"])
+        self.skipped_before = int(d.get("skipped_before", 0))
+        self.cursors = {int(k): v for k, v in d["cursors"].items()}

@@ -1,0 +1,128 @@
+"""The world model as a trainable unit (registry name ``world``): build, freeze per stage, LoRA, hooks.
+
+``build_world(model_cfg, device=...)`` validates ``WorldTrainConfig`` (the ``model:`` section of a
+run config), builds ``training.models.dit.WorldModel`` from a preset (random init, or CogVideoX
+weights from a local folder with ``pretrained``), optionally loads the previous stage's weights
+(``init_weights``: a run's ``final/model.safetensors``), applies LoRA and sets which parameters train
+(ReSim Table S.1: stage 1 the DiT; stage 2 LoRA + trajectory/action encoders with the DiT frozen;
+stage 3 everything). The objective is ``training.diffusion.training_losses`` via ``WorldModel.loss``.
+
+``TrainableWorldModel`` adds the trainer/launcher hooks: ``fsdp_units`` (the transformer blocks),
+``set_activation_checkpointing``, ``tokens_per_sample``, ``flops_per_sample`` (for MFU) and
+``activation_bytes_per_sample`` (the dry run's memory estimate).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import torch
+
+from resim.config import ConfigError, from_dict
+from training.models.dit import NEW_MODULE_PREFIXES, WorldModel
+
+
+@dataclass
+class WorldTrainConfig:
+    preset: str = "tiny"                       # training.models.config.PRESETS (tiny | small | cogvideox-2b)
+    overrides: dict[str, Any] = field(default_factory=dict)   # WorldModelConfig fields
+    pretrained: Optional[Path] = None          # local CogVideoX folder (diffusers save_pretrained layout)
+    init_weights: Optional[Path] = None        # previous stage: RUN_DIR/final/model.safetensors (or ema.safetensors)
+    objective: dict[str, Any] = field(default_factory=dict)   # training.diffusion.config.ObjectiveConfig fields
+    trainable: Literal["all", "dit", "lora+new", "new"] = "all"
+    lora_rank: int = 0                         # 0: no LoRA
+    lora_alpha: float = 0.0                    # 0: = rank (scale 1)
+    lora_targets: tuple[str, ...] = ("to_q", "to_k", "to_v", "to_out.0")
+    latent_hw: tuple[int, int] = (0, 0)        # (h, w) of the latents, for the dry run's estimates; 0 = sample size
+    latent_frames: int = 13                    # T_lat, for the dry run's estimates
+
+    def __post_init__(self):
+        if self.lora_rank < 0:
+            raise ConfigError("model.lora_rank must be >= 0")
+        if self.trainable == "lora+new" and self.lora_rank == 0:
+            raise ConfigError("model.trainable='lora+new' needs model.lora_rank > 0")
+
+
+class TrainableWorldModel(WorldModel):
+    """``WorldModel`` plus the hooks the trainer and the launcher's dry run use (same parameter names)."""
+
+    def fsdp_units(self):
+        return list(self.transformer_blocks)
+
+    def set_activation_checkpointing(self, on: bool = True) -> None:
+        self.cfg.gradient_checkpointing = bool(on)  # the DiT checkpoints each block itself
+
+    def tokens_per_sample(self, batch: Any = None, latent_thw: tuple[int, int, int] | None = None) -> int:
+        c = self.cfg
+        if latent_thw is None:
+            _, t, _, h, w = batch.latents.shape
+        else:
+            t, h, w = latent_thw
+        return t * (h // c.patch_size) * (w // c.patch_size) + c.max_text_seq_length
+
+    def flops_per_sample(self, batch: Any = None, latent_thw: tuple[int, int, int] | None = None) -> float:
+        """Training FLOPs of one sample (forward + backward = 3 x forward; recompute not counted, as MFU
+        conventionally excludes it): 6 x block params x tokens + attention 12 x layers x S^2 x d."""
+        c = self.cfg
+        s = self.tokens_per_sample(batch, latent_thw)
+        block_params = sum(p.numel() for p in self.transformer_blocks.parameters())
+        d = c.hidden_dim
+        return 6.0 * block_params * s + 12.0 * c.num_layers * s * s * d
+
+    def activation_bytes_per_sample(self, latent_thw: tuple[int, int, int], checkpointing: bool,
+                                    bytes_per_value: int = 2) -> float:
+        """Rough activation memory of one sample: ~34 values per token per hidden unit per block without
+        checkpointing (Korthikanti et al. 2022, flash attention so no S^2 term), the block inputs (2 tensors)
+        plus one block's worth with it."""
+        c = self.cfg
+        s = self.tokens_per_sample(latent_thw=latent_thw)
+        per_block = 34 * s * c.hidden_dim * bytes_per_value
+        if checkpointing:
+            return c.num_layers * 2 * s * c.hidden_dim * bytes_per_value + per_block
+        return c.num_layers * per_block
+
+
+def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> TrainableWorldModel:
+    from training.diffusion.config import ObjectiveConfig
+    from training.lora import apply_lora
+    from training.models.config import preset as model_preset
+
+    cfg = from_dict(WorldTrainConfig, model_cfg, prefix="model")
+    objective = from_dict(ObjectiveConfig, cfg.objective, prefix="model.objective")
+    if cfg.pretrained is not None:
+        if str(device) == "meta":
+            raise ConfigError("model.pretrained cannot be loaded on the meta device (dry run): leave it unset")
+        model = TrainableWorldModel.from_cogvideox(Path(cfg.pretrained), objective=objective, **cfg.overrides)
+    else:
+        with torch.device(device):
+            model = TrainableWorldModel(model_preset(cfg.preset, **cfg.overrides), objective=objective)
+    if cfg.lora_rank:
+        apply_lora(model.transformer_blocks, cfg.lora_targets, cfg.lora_rank, cfg.lora_alpha or float(cfg.lora_rank))
+    if cfg.init_weights is not None:
+        _load_init(model, Path(cfg.init_weights))
+    for n, p in model.named_parameters():
+        is_new = n.startswith(NEW_MODULE_PREFIXES)
+        is_lora = n.endswith((".lora_A", ".lora_B"))
+        p.requires_grad_({"all": True, "dit": not is_new and not is_lora, "lora+new": is_new or is_lora,
+                          "new": is_new}[cfg.trainable])
+    # frozen DiT + LoRA: some blocks' frozen params are unused by DDP's reducer only if nothing trains there
+    model.ddp_find_unused_parameters = False
+    return model
+
+
+def _load_init(model: torch.nn.Module, path: Path) -> None:
+    """Load the previous stage's weights; only LoRA tensors may be missing, nothing may be unexpected."""
+    from safetensors.torch import load_file
+
+    if not path.is_file():
+        raise ConfigError(f"model.init_weights={path} does not exist (expected RUN_DIR/final/model.safetensors)")
+    sd = load_file(str(path))
+    own = model.state_dict()
+    missing = [k for k in own if k not in sd and not k.endswith((".lora_A", ".lora_B"))]
+    unexpected = [k for k in sd if k not in own]
+    bad = [k for k in sd if k in own and tuple(sd[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or bad:
+        raise ConfigError(f"model.init_weights={path} does not fit this model: missing={missing[:5]} "
+                          f"unexpected={unexpected[:5]} shape mismatch={bad[:5]}")
+    model.load_state_dict(sd, strict=False)
