@@ -15,6 +15,8 @@ import sys
 COMMANDS: list[str] = [
     "shards.cli",
     "training.cli",
+    "training.reward.cli",
+    "training.sampling.cli",
 ]
 
 EPILOG = """\

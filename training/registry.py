@@ -18,6 +18,7 @@ from typing import Any, Callable
 BUILDERS: dict[str, str] = {
     "toy": "training.toy:build_toy",
     "world": "training.world:build_world",
+    "reward": "training.reward.train:build_reward",
 }
 
 

@@ -1,0 +1,328 @@
+"""Typed config of the Ray pipeline (`resim pipeline run CONFIG`), validated before any work starts.
+
+Sections (one dataclass each; units in field names):
+
+* ``sources``  which layouts to read (``opendv``, ``navsim``, ``carla``) and/or a ``synthetic`` world;
+* ``clip``     clip geometry (ReSim: 10 Hz, 9 history + 40 future frames) and the window stride;
+* ``labels``   optical-flow and trajectory labelling knobs (turn threshold, flow resolution);
+* ``balance``  ReSim's turn balance: windows extracted ``turn_factor`` x more densely in turning segments;
+* ``encode``   resolution, VAE + T5 folders (placeholders by default), dtype, slicing/tiling;
+* ``shards``   shard size limits and the shard prefix;
+* ``quarantine`` retry policy for items that fail;
+* ``ray``      where to run and the resources of every stage, declared once here.
+
+Every error names the dotted key (``clip.stride_frames: ...``), and paths that must exist are checked
+in :func:`check_paths` before Ray starts. ``--set key.sub=value`` overrides any value (YAML-parsed).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+from resim.config import ConfigError, from_dict, load, to_dict
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+PLACEHOLDER_VAE = REPO_ROOT / "configs" / "models" / "placeholder-cogvideox-vae-tiny"
+PLACEHOLDER_T5 = REPO_ROOT / "configs" / "models" / "placeholder-t5-tiny"
+
+
+def _positive(name: str, value: float, allow_zero: bool = False) -> None:
+    if value < 0 or (value == 0 and not allow_zero):
+        raise ConfigError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+
+
+# ------------------------------------------------------------------------------------------- sources
+@dataclass
+class OpenDVSource:
+    """OpenDV-YouTube style: a folder of long dashcam videos (mp4/webm/mkv), resampled to clip.fps_hz.
+
+    ReSim discards the first 90 s and last 60 s of every video (intros, outros) and keeps >= 720p videos.
+    """
+
+    root: Optional[Path] = None               # null: source disabled
+    start_discard_s: float = 90.0
+    end_discard_s: float = 60.0
+    min_height_px: int = 720
+    max_items: Optional[int] = None           # cap for smoke runs
+
+    def __post_init__(self):
+        _positive("start_discard_s", self.start_discard_s, allow_zero=True)
+        _positive("end_discard_s", self.end_discard_s, allow_zero=True)
+        _positive("min_height_px", self.min_height_px)
+
+
+@dataclass
+class NavsimSource:
+    """NAVSIM / OpenScene: ``navsim_logs/<split>/<log>.pkl`` + ``sensor_blobs/<split>/<log>/CAM_F0``."""
+
+    root: Optional[Path] = None
+    split: str = "mini"
+    camera: str = "CAM_F0"
+    max_items: Optional[int] = None
+
+
+@dataclass
+class CarlaSource:
+    """Bench2Drive-style CARLA episodes (``anno/*.json.gz`` + ``camera/rgb_front``), with route outcomes."""
+
+    root: Optional[Path] = None
+    camera: str = "rgb_front"
+    max_items: Optional[int] = None
+
+
+@dataclass
+class SyntheticSource:
+    """A synthetic world (``resim synth``) in the three real layouts, read back through the real readers.
+
+    Generated into ``root`` when ``root`` has no ``ground_truth`` file yet (reused otherwise).
+    """
+
+    root: Optional[Path] = None               # null: disabled; relative paths are relative to the CWD
+    episodes: int = 6
+    seed: int = 0
+    layouts: tuple[str, ...] = ("opendv", "navsim", "carla")
+
+    def __post_init__(self):
+        _positive("episodes", self.episodes)
+        bad = [x for x in self.layouts if x not in ("opendv", "navsim", "carla")]
+        if bad:
+            raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
+
+
+@dataclass
+class SourcesConfig:
+    opendv: OpenDVSource = field(default_factory=OpenDVSource)
+    navsim: NavsimSource = field(default_factory=NavsimSource)
+    carla: CarlaSource = field(default_factory=CarlaSource)
+    synthetic: SyntheticSource = field(default_factory=SyntheticSource)
+
+
+# ---------------------------------------------------------------------------------------------- clip
+@dataclass
+class ClipConfig:
+    """Clip geometry. ReSim: 10 Hz, 9 history + 40 future frames (49 = 1 + 4 x 12 for the causal VAE)."""
+
+    fps_hz: float = 10.0
+    num_history_frames: int = 9
+    num_future_frames: int = 40
+    stride_frames: int = 20                   # start-to-start distance of straight-driving windows
+    num_waypoints: int = 8
+    waypoint_dt_s: float = 0.5
+
+    def __post_init__(self):
+        _positive("fps_hz", self.fps_hz)
+        _positive("stride_frames", self.stride_frames)
+        _positive("num_waypoints", self.num_waypoints)
+        _positive("waypoint_dt_s", self.waypoint_dt_s)
+        if self.num_history_frames < 1 or self.num_future_frames < 1:
+            raise ConfigError("num_history_frames and num_future_frames must be >= 1")
+        if (self.num_frames - 1) % 4:
+            raise ConfigError(
+                f"num_history_frames + num_future_frames - 1 = {self.num_frames - 1} must be divisible by 4 "
+                "(CogVideoX's causal VAE compresses time 4x after the first frame)")
+        horizon_s = self.num_waypoints * self.waypoint_dt_s
+        if horizon_s > self.num_future_frames / self.fps_hz + 1e-9:
+            raise ConfigError(f"num_waypoints x waypoint_dt_s = {horizon_s} s exceeds the future window "
+                              f"{self.num_future_frames / self.fps_hz} s")
+
+    @property
+    def num_frames(self) -> int:
+        return self.num_history_frames + self.num_future_frames
+
+    def spec(self):
+        from shards.schema import ClipSpec
+
+        return ClipSpec(fps_hz=self.fps_hz, num_history_frames=self.num_history_frames,
+                        num_future_frames=self.num_future_frames, num_waypoints=self.num_waypoints,
+                        waypoint_dt_s=self.waypoint_dt_s)
+
+
+# -------------------------------------------------------------------------------------------- labels
+@dataclass
+class LabelsConfig:
+    """Command labelling (issue 4). Flow runs on every clip; the trajectory command where poses exist."""
+
+    turn_threshold_deg: float = 15.0          # |heading change over the future window| above this = turning
+    flow_size_hw: tuple[int, int] = (90, 160) # frames are downscaled to this before optical flow
+    prefer: Literal["trajectory", "flow"] = "trajectory"   # which command wins where both exist
+    max_missing_pose_frac: float = 0.0        # NaN poses tolerated in a window (0: any NaN quarantines it)
+
+    def __post_init__(self):
+        _positive("turn_threshold_deg", self.turn_threshold_deg)
+        if min(self.flow_size_hw) < 16:
+            raise ConfigError(f"flow_size_hw must be >= 16 px per side, got {list(self.flow_size_hw)}")
+
+
+# ------------------------------------------------------------------------------------------- balance
+@dataclass
+class BalanceConfig:
+    """ReSim's turn balance: turning windows are extracted ``turn_factor`` x more densely (distinct,
+    overlapping windows at stride ``clip.stride_frames / turn_factor``), never byte copies."""
+
+    enabled: bool = True
+    turn_factor: int = 5
+
+    def __post_init__(self):
+        _positive("turn_factor", self.turn_factor)
+
+
+# -------------------------------------------------------------------------------------------- encode
+@dataclass
+class EncodeConfig:
+    """Resize/crop + CogVideoX VAE + T5. Null model folders = the shipped tiny random placeholders."""
+
+    height_px: int = 64                       # VAE input (ReSim stages: 256x448 then 512x896)
+    width_px: int = 96
+    frames_height_px: int = 64                # frames.mp4 (low-res pixels for reward/metrics/previews)
+    frames_width_px: int = 96
+    vae: Optional[Path] = None                # local folder (a diffusers VAE or a pipeline with vae/)
+    text_encoder: Optional[Path] = None       # local folder (T5 + tokenizer, or a pipeline with both)
+    placeholder_seed: int = 0                 # weights of placeholder models when a folder has none
+    max_text_tokens: int = 226                # CogVideoX was trained with 226 padded T5 tokens
+    dtype: Literal["float32", "float16", "bfloat16"] = "float32"   # compute dtype of the VAE
+    latent_dtype: Literal["float16", "bfloat16"] = "float16"       # stored dtype
+    vae_slicing: bool = True
+    vae_tiling: bool = True
+    batch_size: int = 1                       # clips per VAE forward
+    torch_threads: int = 1                    # per CPU encode actor (one Ray CPU each)
+
+    def __post_init__(self):
+        for k in ("height_px", "width_px", "frames_height_px", "frames_width_px"):
+            v = getattr(self, k)
+            if v <= 0 or v % 8:
+                raise ConfigError(f"{k} must be a positive multiple of 8 (VAE downsamples 8x), got {v}")
+        _positive("batch_size", self.batch_size)
+        _positive("max_text_tokens", self.max_text_tokens)
+        _positive("torch_threads", self.torch_threads)
+
+    @property
+    def vae_path(self) -> Path:
+        return Path(self.vae) if self.vae is not None else PLACEHOLDER_VAE
+
+    @property
+    def text_encoder_path(self) -> Path:
+        return Path(self.text_encoder) if self.text_encoder is not None else PLACEHOLDER_T5
+
+
+# -------------------------------------------------------------------------------------------- shards
+@dataclass
+class ShardsConfig:
+    max_samples_per_shard: int = 1000
+    max_bytes_per_shard: int = 1 << 30
+
+
+@dataclass
+class QuarantineConfig:
+    """Bad input goes to ``quarantine/*.parquet``; transient I/O errors are retried first."""
+
+    max_attempts: int = 2                     # tries for OSError (I/O) before quarantining; SourceError: 1
+    retry_quarantined: bool = False           # on rerun, try quarantined units again (attempts += 1)
+
+    def __post_init__(self):
+        _positive("max_attempts", self.max_attempts)
+
+
+# ----------------------------------------------------------------------------------------------- ray
+@dataclass
+class StageResources:
+    """Resources of one stage's actor pool (declared once here, used by the Ray runner)."""
+
+    actors: int = 1
+    num_cpus: float = 1.0
+    num_gpus: float | Literal["auto"] = 0.0   # "auto": 1 per actor when the cluster has GPUs, else 0
+
+    def __post_init__(self):
+        _positive("actors", self.actors)
+        _positive("num_cpus", self.num_cpus, allow_zero=True)
+        if self.num_gpus != "auto":
+            _positive("num_gpus", float(self.num_gpus), allow_zero=True)
+
+
+def _res(actors=1, num_cpus=1.0, num_gpus=0.0):
+    return lambda: StageResources(actors=actors, num_cpus=num_cpus, num_gpus=num_gpus)
+
+
+@dataclass
+class StagesResources:
+    cut: StageResources = field(default_factory=_res(1, 0.25))
+    label: StageResources = field(default_factory=_res(1, 0.5))
+    balance: StageResources = field(default_factory=_res(1, 0.1))
+    encode: StageResources = field(default_factory=_res(1, 1.0, "auto"))
+    prompts: StageResources = field(default_factory=_res(1, 0.5, "auto"))
+    write: StageResources = field(default_factory=_res(1, 0.25))
+
+
+@dataclass
+class RayConfig:
+    """Where the job runs. ``address: null`` starts an embedded local Ray (``num_cpus`` of this machine)."""
+
+    address: Optional[str] = None             # "auto" or "HOST:6379" to join a running cluster
+    num_cpus: Optional[int] = None            # embedded Ray only; null = all cores
+    executor: Literal["ray", "local"] = "ray" # "local": same stages, sequential, no Ray (debugging, tests)
+    progress_bars: bool = True
+    stages: StagesResources = field(default_factory=StagesResources)
+
+
+# ------------------------------------------------------------------------------------------ pipeline
+@dataclass
+class PipelineConfig:
+    out: Optional[Path] = None                # output dataset folder (or --out)
+    sources: SourcesConfig = field(default_factory=SourcesConfig)
+    clip: ClipConfig = field(default_factory=ClipConfig)
+    labels: LabelsConfig = field(default_factory=LabelsConfig)
+    balance: BalanceConfig = field(default_factory=BalanceConfig)
+    encode: EncodeConfig = field(default_factory=EncodeConfig)
+    shards: ShardsConfig = field(default_factory=ShardsConfig)
+    quarantine: QuarantineConfig = field(default_factory=QuarantineConfig)
+    ray: RayConfig = field(default_factory=RayConfig)
+
+    def __post_init__(self):
+        if self.balance.enabled and self.clip.stride_frames % self.balance.turn_factor:
+            raise ConfigError(
+                f"balance.turn_factor: clip.stride_frames ({self.clip.stride_frames}) must be divisible by "
+                f"balance.turn_factor ({self.balance.turn_factor}) so turning windows lie on a finer grid")
+        if not any((self.sources.opendv.root, self.sources.navsim.root, self.sources.carla.root,
+                    self.sources.synthetic.root)):
+            raise ConfigError("sources: no source configured (set sources.<kind>.root for at least one of "
+                              "opendv, navsim, carla, synthetic)")
+
+    @property
+    def fine_stride_frames(self) -> int:
+        """Start-to-start distance of turning windows (stride / factor)."""
+        if not self.balance.enabled:
+            return self.clip.stride_frames
+        return self.clip.stride_frames // self.balance.turn_factor
+
+
+def load_config(path: str | Path | None, overrides=(), out: str | Path | None = None) -> PipelineConfig:
+    """YAML + ``--set`` overrides (+ ``--out``) → validated :class:`PipelineConfig`; paths checked too."""
+    extra = list(overrides or ())
+    if out is not None:
+        extra.append(f"out={Path(out)}")
+    cfg = load(PipelineConfig, path, extra)
+    check_paths(cfg)
+    return cfg
+
+
+def check_paths(cfg: PipelineConfig) -> None:
+    """Existence checks, each naming its key, before any work starts."""
+    if cfg.out is None:
+        raise ConfigError("out: no output folder (set `out:` in the config or pass --out DIR)")
+    for kind in ("opendv", "navsim", "carla"):
+        root = getattr(cfg.sources, kind).root
+        if root is not None and not Path(root).is_dir():
+            raise ConfigError(f"sources.{kind}.root: folder {root} does not exist")
+    for key, p in (("encode.vae", cfg.encode.vae_path), ("encode.text_encoder", cfg.encode.text_encoder_path)):
+        if not Path(p).is_dir():
+            raise ConfigError(f"{key}: model folder {p} does not exist")
+        if not any((Path(p) / sub / "config.json").is_file() for sub in ("", "vae", "text_encoder")):
+            raise ConfigError(f"{key}: {p} has no config.json (expected a diffusers/transformers folder)")
+
+
+def config_from_dict(data: dict) -> PipelineConfig:
+    """Rebuild a config shipped to Ray actors as a plain dict (no path checks: they ran on the driver)."""
+    return from_dict(PipelineConfig, data)
+
+
+__all__ = ["PipelineConfig", "load_config", "check_paths", "config_from_dict", "to_dict", "ConfigError"]

@@ -1,0 +1,39 @@
+import numpy as np
+import pytest
+
+from training.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
+
+
+def _clips(n_eps, per):
+    return [RewardClip(key=f"e{e}@{c}", item_id=f"ep{e}", infraction_score=e / n_eps, hazard=e % 2 == 0)
+            for e in range(n_eps) for c in range(per)]
+
+
+def test_split_by_episode_never_splits_an_episode():
+    clips = _clips(20, 4)
+    tr, ho = split_by_episode(clips, 0.25, seed=3)
+    assert {c.item_id for c in tr}.isdisjoint({c.item_id for c in ho})
+    assert len(tr) + len(ho) == len(clips)
+    assert {c.hazard for c in ho} == {True, False}  # stratified: both classes held out
+    assert len({c.item_id for c in ho}) == 6  # 25% of each class of 10 episodes, rounded
+    tr2, ho2 = split_by_episode(list(reversed(clips)), 0.25, seed=3)
+    assert {c.item_id for c in ho2} == {c.item_id for c in ho}  # order-independent
+    _, ho3 = split_by_episode(clips, 0.25, seed=4)
+    assert {c.item_id for c in ho3} != {c.item_id for c in ho}
+
+
+def test_window_indices(tiny_cfg):
+    # 4 frames every 2 -> span 7
+    np.testing.assert_array_equal(window_indices(10, tiny_cfg, "end"), [3, 5, 7, 9])
+    np.testing.assert_array_equal(window_indices(10, tiny_cfg, "start"), [0, 2, 4, 6])
+    with pytest.raises(ClipError, match="6 frames, the model's window needs 7"):
+        window_indices(6, tiny_cfg)
+
+
+def test_collate_video_shapes(tiny_cfg, toy):
+    b = collate(toy[:3], tiny_cfg, use_features=False)
+    assert b["video"].shape == (3, 4, 3, 32, 48) and b["video"].dtype.is_floating_point
+    assert 0.0 <= float(b["video"].min()) and float(b["video"].max()) <= 1.0
+    assert b["infraction_score"].shape == (3,)
+    with pytest.raises(ClipError, match="no stored features"):
+        collate(toy[:1], tiny_cfg, use_features=True)

@@ -1,0 +1,142 @@
+"""`resim reward ...`, `resim reward-train ...`, `resim reward-features ...` (issue 8).
+
+Light module: torch/transformers are imported inside the handlers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _load_train_cfg(args):
+    from resim import config as rconfig
+    from training.reward.config import PRESETS, RewardTrainConfig
+
+    if args.preset not in PRESETS:
+        raise rconfig.ConfigError(f"unknown preset {args.preset!r}; known: {', '.join(PRESETS)}")
+    return rconfig.load(RewardTrainConfig, args.config, args.set or (), base=PRESETS[args.preset])
+
+
+def _cmd_score(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from training.reward.checkpoint import CheckpointError, load_checkpoint
+    from training.reward.score import ScoreError, read_video_file, score_videos
+
+    try:
+        model = load_checkpoint(args.checkpoint)
+        results = []
+        for target in args.inputs:
+            if Path(target).is_file():
+                frames, kind = read_video_file(target), "video"
+            else:
+                if not args.shards:
+                    raise ScoreError(f"{target}: not a file; to score a shard sample by key pass --shards DIR")
+                from shards.reader import find_sample
+                from shards.video import decode_mp4
+
+                try:
+                    s = find_sample(args.shards, target, attach_prompts=False)
+                except KeyError as e:
+                    raise ScoreError(str(e.args[0])) from None
+                frames, kind = decode_mp4(s["frames.mp4"]), "shard sample"
+            (score,) = score_videos(model, [frames], stride=args.stride, names=[target])
+            results.append({"input": target, "kind": kind, "frames": int(len(frames)), "score": float(score)})
+    except (ScoreError, CheckpointError) as e:
+        print(f"resim reward: error: {e}", file=sys.stderr)
+        return 1
+    meta = model.metadata()
+    if args.json:
+        print(json.dumps({"model": meta, "results": results}, indent=2))
+    else:
+        for r in results:
+            print(f"{r['score']:.4f}  {r['input']}  ({r['kind']}, {r['frames']} frames)")
+        if meta["backbone_placeholder"]:
+            print("note: this model's backbone is a random-init PLACEHOLDER, not pretrained DINOv2", file=sys.stderr)
+    return 0
+
+
+def _cmd_features(args: argparse.Namespace) -> int:
+    import torch
+
+    from training.reward.features import add_features_to_dataset
+    from training.reward.model import Video2Reward
+
+    torch.set_num_threads(args.threads) if args.threads else None
+    cfg = _load_train_cfg(args)
+    model = Video2Reward(cfg.model)
+    summary = add_features_to_dataset(args.src, args.out, model, where=cfg.data.clip_window, progress=True)
+    print(json.dumps(summary, indent=2))
+    return 0 if summary["samples"] else 1
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from resim import config as rconfig
+    from shards.reader import iter_samples
+    from training.reward.data import clips_from_samples
+    from training.reward.train import run_training
+
+    cfg = _load_train_cfg(args)
+    clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
+    if not clips:
+        print(f"resim reward-train: error: {args.shards} has no sample with an infraction score", file=sys.stderr)
+        return 1
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rconfig.save(cfg, out / "config.yaml")
+    r = run_training(clips, cfg, out, progress=not args.no_progress)
+    m = r["metrics"]
+    print(f"trained on {r['n_train']} clips, held out {r['n_heldout']} clips of {len(r['heldout_items'])} episodes "
+          f"({'stored features' if r['used_features'] else 'backbone on pixels'})")
+    print(f"held-out: MAE {m['mae']:.4f}  Spearman {m['spearman']:.4f}  hazard AUC {m['hazard_auc']:.4f}")
+    for sk in r["skipped"]:
+        print(f"skipped clip {sk['key']}: {sk['reason']}", file=sys.stderr)
+    print(f"checkpoint, predictions and plot in {out}")
+    return 0
+
+
+def _add_cfg_args(p):
+    p.add_argument("--preset", default="tiny", help="named preset: tiny (placeholder backbone, 56 px) or resim (224 px)")
+    p.add_argument("--config", default=None, help="YAML RewardTrainConfig file applied over the preset")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set model.image_size_px=224 --set epochs=5")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "reward", help="score videos or shard samples with a trained Video2Reward model",
+        description="Predict the infraction score (1 = clean driving, lower = collisions / red lights / off-road / "
+        "too slow) of videos with a trained Video2Reward checkpoint. Each input is a video file (anything "
+        "OpenCV reads) or, with --shards, a shard sample key. Longer videos are scored by sliding windows "
+        "(averaged). A video shorter than the model's window, or with an unreadable frame, is an error.")
+    p.add_argument("inputs", nargs="+", metavar="VIDEO_OR_SHARD_KEY")
+    p.add_argument("--checkpoint", required=True, help="folder written by `resim reward-train`")
+    p.add_argument("--shards", default=None, help="shard dataset folder to look sample keys up in")
+    p.add_argument("--stride", type=int, default=None, help="frames between window starts (default: window span)")
+    p.add_argument("--json", action="store_true", help="print JSON (model metadata + one result per input)")
+    p.set_defaults(func=_cmd_score)
+
+    t = subparsers.add_parser(
+        "reward-train", help="train Video2Reward on the labelled clips of a shard dataset",
+        description="Regression to each clip's infraction score (ReSim B.2: AdamW, lr 1e-3). Held-out split by "
+        "episode (item_id). Uses stored dino.npy features when present and matching the backbone, else "
+        "computes them once (frozen backbone). Writes checkpoint, config, held-out predictions and a plot.")
+    t.add_argument("--shards", required=True, help="shard dataset folder")
+    t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer)")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_cfg_args(t)
+    t.set_defaults(func=_cmd_train)
+
+    f = subparsers.add_parser(
+        "reward-features", help="copy a shard dataset adding DINOv2 features (dino.npy) for Video2Reward",
+        description="Store per-frame DINOv2 features of the reward model's window (float16 (T, N_tokens, D), "
+        "meta.dino_id names backbone, input size and window) for every sample with an infraction score, "
+        "writing a new dataset. Clips that cannot be featurised are copied without features and quarantined.")
+    f.add_argument("src", help="source shard dataset folder")
+    f.add_argument("--out", required=True, help="destination dataset folder (must differ from src)")
+    f.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    _add_cfg_args(f)
+    f.set_defaults(func=_cmd_features)

@@ -1,0 +1,97 @@
+"""Typed configs for Video2Reward (issue 8; ReSim appendix B.2).
+
+``RewardModelConfig`` fixes everything that changes what the model computes
+(backbone, input size, which frames of a clip it sees, head size);
+``RewardTrainConfig`` the optimisation (ReSim: AdamW, lr 1e-3, 20 epochs) and
+the held-out split. Presets: ``tiny`` (placeholder backbone, 56 px, CPU tests
+and demo) and ``resim`` (DINOv2 at 224x224 as in the paper).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from resim.config import ConfigError
+
+PLACEHOLDER_BACKBONE_DIR = "configs/models/placeholder-dinov2-tiny"
+
+
+@dataclass
+class RewardModelConfig:
+    # Local folder readable by transformers.Dinov2Model.from_pretrained (config.json [+ weights]).
+    # A folder without weights is a placeholder: weights are built from `backbone_init_seed`.
+    backbone_dir: str = PLACEHOLDER_BACKBONE_DIR
+    backbone_init_seed: int = 0
+    freeze_backbone: bool = True
+    # Frames are resized to image_size_px x image_size_px (ReSim: 224) and ImageNet-normalised.
+    image_size_px: int = 56
+    # The model's window: num_frames frames taken every frame_step frames of the input video
+    # (so one window spans (num_frames - 1) * frame_step + 1 input frames).
+    num_frames: int = 8
+    frame_step: int = 1
+    # Backbone features are rounded to this dtype in the live path too, so that training on
+    # stored dino.npy (float16, shards/schema.py) and through the backbone sees identical inputs.
+    feature_dtype: Literal["float16", "float32"] = "float16"
+    # Head: project D -> head_dim, 2 factorised spatio-temporal blocks, mean-pool, MLP -> scalar.
+    head_dim: int = 64
+    num_heads: int = 4
+    num_blocks: int = 2
+    mlp_hidden_dim: int = 128
+    dropout: float = 0.0
+    head_init_seed: int = 0
+
+    def __post_init__(self):
+        if self.image_size_px < 8:
+            raise ConfigError(f"image_size_px must be >= 8, got {self.image_size_px}")
+        if self.num_frames < 1 or self.frame_step < 1:
+            raise ConfigError("num_frames and frame_step must be >= 1")
+        if self.head_dim % self.num_heads:
+            raise ConfigError(f"head_dim {self.head_dim} must be divisible by num_heads {self.num_heads}")
+        if self.num_blocks < 1:
+            raise ConfigError("num_blocks must be >= 1")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ConfigError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def window_frames(self) -> int:
+        """Input frames spanned by one model window."""
+        return (self.num_frames - 1) * self.frame_step + 1
+
+
+@dataclass
+class RewardDataConfig:
+    # Which clips carry labels: only those with an infraction score (CARLA-like / synthetic outcomes).
+    heldout_fraction: float = 0.25
+    split_seed: int = 0
+    # Where a window is cut from a longer clip: "end" = the last window (the imagined future).
+    clip_window: Literal["end", "start"] = "end"
+
+    def __post_init__(self):
+        if not 0.0 < self.heldout_fraction < 1.0:
+            raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
+
+
+@dataclass
+class RewardTrainConfig:
+    model: RewardModelConfig = field(default_factory=RewardModelConfig)
+    data: RewardDataConfig = field(default_factory=RewardDataConfig)
+    # ReSim B.2: AdamW, learning rate 1e-3, 20 epochs.
+    lr: float = 1e-3
+    weight_decay: float = 0.01
+    grad_clip_norm: float = 0.0  # 0: no clipping (ReSim states none)
+    epochs: int = 20
+    batch_size_per_gpu: int = 16
+    seed: int = 0
+    use_stored_features: bool = True  # use dino.npy when every sample has it and the id matches
+
+    def __post_init__(self):
+        if self.lr <= 0 or self.epochs < 1 or self.batch_size_per_gpu < 1:
+            raise ConfigError("lr must be > 0, epochs and batch_size_per_gpu >= 1")
+
+
+PRESETS: dict[str, dict] = {
+    "tiny": {},
+    "resim": {"model": {"image_size_px": 224, "backbone_dir": "models/dinov2-small", "head_dim": 256,
+                        "num_heads": 8, "mlp_hidden_dim": 512, "num_frames": 8, "frame_step": 5},
+              "batch_size_per_gpu": 32},
+}

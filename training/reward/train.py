@@ -1,0 +1,194 @@
+"""Training and held-out evaluation of Video2Reward.
+
+``run_training`` = split by episode -> (optionally) stored features -> fit -> predict held-out
+-> metrics (MAE, Spearman, hazard AUC) -> checkpoint + predictions + plot.
+
+``fit`` runs the common ``training.trainer.Trainer`` (issue 7) over ``model.loss(batch)``
+(ReSim B.2: AdamW, lr 1e-3), one pass over the training clips per epoch.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from training.reward.config import RewardTrainConfig
+from training.reward.data import RewardClip, iter_batches, split_by_episode
+from training.reward.features import add_clip_features
+from training.reward.metrics import reward_metrics
+from training.reward.model import Video2Reward
+
+
+def can_use_features(model: Video2Reward, clips: Sequence[RewardClip]) -> bool:
+    return model.cfg.freeze_backbone and bool(clips) and all(
+        c.dino is not None and c.dino_id == model.feature_id for c in clips)
+
+
+def usable_clips(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> tuple[list[RewardClip], list[dict]]:
+    """(clips the model can use, [{"key", "reason"}] of the others): bad clips (shorter than the window,
+    unreadable frames) are reported and left out, the run goes on (issue 8 / brief: bad input is named)."""
+    from training.reward.data import ClipError, window_indices
+
+    ok, skipped = [], []
+    for c in clips:
+        if c.dino is not None and c.dino_id:  # featurised from its window already; no need to decode frames
+            ok.append(c)
+            continue
+        try:
+            window_indices(len(c.clip_frames()), cfg.model, cfg.data.clip_window)
+            ok.append(c)
+        except ClipError as e:
+            skipped.append({"key": c.key, "reason": str(e)})
+    return ok, skipped
+
+
+def build_reward(model_cfg: dict, *, device="cpu") -> Video2Reward:
+    """Registry builder (``training.registry``: "reward"): a Video2Reward from its config mapping."""
+    from resim.config import from_dict
+    from training.reward.config import RewardModelConfig
+
+    return Video2Reward(from_dict(RewardModelConfig, model_cfg, prefix="model")).to(device)
+
+
+class EpochBatches:
+    """Re-iterable batches over fixed clips for ``Trainer.fit``: each ``iter()`` is one epoch,
+    shuffled with seed ``seed * 1000 + epoch`` (the epoch counts calls to ``iter``)."""
+
+    def __init__(self, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool):
+        self.clips, self.cfg, self.use_features = list(clips), cfg, use_features
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return -(-len(self.clips) // self.cfg.batch_size_per_gpu)
+
+    def __iter__(self):
+        e = self.epoch
+        self.epoch += 1
+        return iter_batches(self.clips, self.cfg.batch_size_per_gpu, self.cfg.model, self.use_features,
+                            shuffle_seed=self.cfg.seed * 1000 + e, where=self.cfg.data.clip_window)
+
+
+def run_config(cfg: RewardTrainConfig, steps: int, progress: bool = False):
+    """The common trainer's RunConfig for a reward run (AdamW at cfg.lr, constant LR, fp32)."""
+    from resim.config import to_dict
+    from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
+
+    return RunConfig(
+        model_name="reward", model=to_dict(cfg.model),
+        data=DataConfig(batch_size_per_gpu=cfg.batch_size_per_gpu, load_frames=True, load_dino=True, seed=cfg.seed),
+        optim=OptimConfig(lr=cfg.lr, weight_decay=cfg.weight_decay, grad_clip_norm=cfg.grad_clip_norm),
+        trainer=TrainerConfig(steps=steps, seed=cfg.seed, parallel="none", tensorboard=False,
+                              progress_bar=progress, loss_curve_png=True, save_final_weights=False),
+        preset="reward", reference={"resim_b2": "AdamW, lr 1e-3, 20 epochs, 35K CARLA samples, 224x224"})
+
+
+def fit(model: Video2Reward, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool,
+        run_dir: str | Path, progress: bool = False) -> dict:
+    """Train ``model`` in place through the common ``training.trainer.Trainer`` for ``cfg.epochs``
+    epochs over ``clips``; returns the trainer's summary plus "samples_per_s" and "history"
+    (the per-step rows of RUN_DIR/metrics.jsonl)."""
+    from training.trainer import Trainer
+
+    data = EpochBatches(clips, cfg, use_features)
+    steps = cfg.epochs * len(data)
+    t0 = time.perf_counter()
+    summary = Trainer(model, run_config(cfg, steps, progress), run_dir).fit(data)
+    dt = time.perf_counter() - t0
+    model.eval()
+    mpath = Path(run_dir) / "metrics.jsonl"
+    history = [json.loads(line) for line in mpath.read_text().splitlines() if line.strip()] if mpath.is_file() else []
+    return {**summary, "steps": steps, "samples_per_s": cfg.epochs * len(data.clips) / dt, "history": history}
+
+
+@torch.no_grad()
+def predict(model: Video2Reward, clips: Sequence[RewardClip], use_features: bool, batch_size: int = 32,
+            where: str = "end") -> np.ndarray:
+    model.eval()
+    out = []
+    for batch in iter_batches(clips, batch_size, model.cfg, use_features, where=where):
+        if use_features:
+            out.append(model(features=batch["dino"]))
+        else:
+            out.append(model(video=batch["video"]))
+    return torch.cat(out).numpy() if out else np.zeros(0, np.float32)
+
+
+def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
+                 progress: bool = False) -> dict:
+    """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
+
+    Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
+    "n_heldout", "heldout_items", "model"}.
+    """
+    clips, skipped = usable_clips([c for c in clips if c.infraction_score is not None], cfg)
+    train, held = split_by_episode(clips, cfg.data.heldout_fraction, cfg.data.split_seed)
+    if not train or not held:
+        raise ValueError(f"cannot split {len(clips)} labelled clips of {len({c.item_id for c in clips})} episodes "
+                         "into train and held-out: need at least 2 episodes")
+    torch.manual_seed(cfg.seed)
+    model = Video2Reward(cfg.model)
+    use_features = False
+    if cfg.use_stored_features and cfg.model.freeze_backbone:
+        if not can_use_features(model, train + held):
+            train, held = add_clip_features(model, train, cfg.data.clip_window), \
+                add_clip_features(model, held, cfg.data.clip_window)
+        use_features = True
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="resim-reward-") as tmp:
+        run_dir = Path(out_dir) / "trainer" if out_dir is not None else Path(tmp)
+        fitted = fit(model, train, cfg, use_features, run_dir, progress)
+    history = fitted["history"]
+    pred_h = predict(model, held, use_features, where=cfg.data.clip_window)
+    pred_t = predict(model, train, use_features, where=cfg.data.clip_window)
+    true_h = np.array([c.infraction_score for c in held])
+    haz_h = np.array([c.hazard for c in held])
+    metrics = reward_metrics(pred_h, true_h, haz_h)
+    train_metrics = reward_metrics(pred_t, np.array([c.infraction_score for c in train]),
+                                   np.array([c.hazard for c in train]))
+    result = {"metrics": metrics, "train_metrics": train_metrics, "history": history, "samples_per_s": fitted["samples_per_s"],
+              "used_features": use_features, "n_train": len(train), "n_heldout": len(held),
+              "heldout_items": sorted({c.item_id for c in held}), "model": model,
+              "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h}
+    if out_dir is not None:
+        from training.reward.checkpoint import save_checkpoint
+
+        out = Path(out_dir)
+        save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
+                                          "heldout_items": result["heldout_items"],
+                                          "used_stored_features": use_features, "skipped_clips": skipped})
+        (out / "heldout_predictions.json").write_text(json.dumps(
+            [{"key": c.key, "item_id": c.item_id, "true": float(t), "pred": float(p), "hazard": bool(c.hazard)}
+             for c, t, p in zip(held, true_h, pred_h)], indent=1))
+        (out / "history.json").write_text(json.dumps(history, indent=1))
+        plot_predictions(pred_h, true_h, haz_h, out / "heldout_pred_vs_true.png", metrics)
+    return result
+
+
+def plot_predictions(pred, true, hazard, path: str | Path, metrics: dict | None = None) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pred, true, hazard = np.asarray(pred), np.asarray(true), np.asarray(hazard, bool)
+    fig, ax = plt.subplots(figsize=(4.5, 4.2), dpi=110)
+    ax.scatter(true[~hazard], pred[~hazard], s=14, alpha=0.7, label="clean episodes")
+    ax.scatter(true[hazard], pred[hazard], s=14, alpha=0.7, c="tab:red", label="hazardous episodes")
+    lo = min(true.min(), pred.min()) - 0.05
+    hi = max(true.max(), pred.max()) + 0.05
+    ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
+    ax.set_xlabel("true infraction score")
+    ax.set_ylabel("predicted")
+    if metrics:
+        ax.set_title(f"held-out: MAE {metrics['mae']:.3f}  Spearman {metrics['spearman']:.3f}\n"
+                     f"hazard AUC {metrics['hazard_auc']:.3f}  (n={metrics['n']})", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,284 @@
+"""`resim sample` (roll the world model out from a history) and `resim plan` (rank candidate trajectories by
+the reward of their imagined futures). Issue 9. Light module: torch and friends are imported in the handlers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
+DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
+
+SAMPLE_EPILOG = """\
+examples:
+  resim sample --checkpoint runs/wm --history clip.mp4 --command "Turning left" --seconds 4 --out out/s1
+  resim sample --checkpoint runs/wm --shards out/shards --history KEY --trajectory turn_right --out out/s2
+  resim sample ... --command "Moving forward" --command "Turning left" --seconds 8    # one command per 4-s round
+  resim sample ... --preset vid2world --actions-from-trajectory                      # frame by frame + actions
+
+History: a video file (its last 9 frames are encoded with --vae) or, with --shards, a sample key (its stored
+history latents). --command / --trajectory may be repeated: round r uses the r-th (the last one repeats).
+A trajectory is a candidate name (keep_lane, turn_left, turn_right, brake, swerve), an (8, 3) .npy file or
+JSON [[x_m, y_m, yaw_rad], ...] at 0.5 s steps in the ego frame (x forward, y left).
+Writes DIR/sample.mp4, .gif, _sheet.png, _latents.npy (exact float32 latents: compare runs bit for bit),
+_meta.json and rollout.yaml (the resolved sampling config).
+"""
+
+PLAN_EPILOG = """\
+example:
+  resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --out out/plan
+
+Rolls out every candidate (default: keep_lane turn_left turn_right brake swerve) from the same history with
+the same noise, scores each imagined future with Video2Reward and writes DIR/ranking.md, ranking.json and
+plan_grid.png (one row per candidate, best first, with its reward).
+"""
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="world-model run dir (or its final/ folder)")
+    p.add_argument("--history", required=True, help="a video file, or a shard sample key (with --shards)")
+    p.add_argument("--shards", default=None, help="dataset folder holding the history key (and prompt table)")
+    p.add_argument("--seconds", type=float, default=4.0, help="future to generate, seconds (default 4)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--preset", default="resim", choices=["resim", "vid2world"],
+                   help="resim: 10-frame chunks, CFG 7.5->1; vid2world: frame by frame, action guidance 2.5, "
+                        "rescale 0.7 (default resim)")
+    p.add_argument("--steps", type=int, default=None, help="DDIM steps (default 50)")
+    p.add_argument("--chunk-frames", type=int, default=None, help="latent frames denoised together")
+    p.add_argument("--history-noise-level", type=int, default=None, help="noise level of history frames (0)")
+    p.add_argument("--guidance-scale", type=float, default=None, help="override the start guidance scale")
+    p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
+    p.add_argument("--no-kv-cache", action="store_true", help="recompute the history at every step")
+    p.add_argument("--actions-from-trajectory", action="store_true",
+                   help="also feed per-frame actions derived from the trajectory (action-conditioned models)")
+    p.add_argument("--vae", default=str(DEFAULT_VAE), help="CogVideoX VAE folder (default: tiny placeholder)")
+    p.add_argument("--text-encoder", default=str(DEFAULT_T5), help="T5 folder for prompts not in the table")
+    p.add_argument("--max-text-tokens", type=int, default=226, help="T5 padding length (CogVideoX: 226)")
+    p.add_argument("--size", default=None, help="HxW pixels for a video history (default: the model's sample size)")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
+    p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16", "float16"])
+    p.add_argument("--out", required=True, help="output folder")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("sample", help="roll a trained world model out from a history",
+                              description="Generate the future of a history with the world model (guided DDIM, "
+                                          "chunked causal rollout with a KV cache, any horizon).",
+                              epilog=SAMPLE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _common(p)
+    p.add_argument("--command", action="append", default=None,
+                   help='driving command per round: "Turning left", "Moving forward", "Turning right"')
+    p.add_argument("--trajectory", action="append", default=None, help="trajectory per round (see below)")
+    p.set_defaults(func=_cmd_sample)
+
+    q = subparsers.add_parser("plan", help="rank candidate trajectories by the reward of their imagined futures",
+                              description="ReSim-style planning: roll out K candidate trajectories, score each "
+                                          "imagined future with Video2Reward, rank them.",
+                              epilog=PLAN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _common(q)
+    q.add_argument("--reward", required=True, help="Video2Reward checkpoint folder")
+    q.add_argument("--candidates", nargs="+", default=None,
+                   help="candidate names (default: keep_lane turn_left turn_right brake swerve)")
+    q.add_argument("--speed-mps", type=float, default=8.0, help="speed of the candidate paths")
+    q.set_defaults(func=_cmd_plan)
+
+
+# ----------------------------------------------------------------------------------------------- set-up
+class _Setup:
+    """Everything both commands build from the common arguments."""
+
+    def __init__(self, args):
+        import torch
+
+        from pipelines.encoders import VideoVAE, pick_device
+        from training.sampling.guidance import guidance_preset
+        from training.sampling.load import PromptSource, history_from_shard, history_from_video, load_world_model
+        from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, rollout_num_future_frames
+        from resim.config import from_dict
+
+        self.device = args.device or pick_device()
+        dtype = getattr(torch, args.dtype)
+        self.model, self.model_info = load_world_model(args.checkpoint, self.device, dtype)
+        mcfg = self.model.cfg
+        self.vae = VideoVAE(args.vae, device=self.device)
+        rc = dict(ROLLOUT_PRESETS[args.preset])
+        for k, v in (("num_steps", args.steps), ("chunk_frames", args.chunk_frames),
+                     ("history_noise_level", args.history_noise_level)):
+            if v is not None:
+                rc[k] = v
+        rc["kv_cache"] = "off" if args.no_kv_cache else "auto"
+        g = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
+        if args.preset == "vid2world" and args.guidance_scale is not None:
+            g["scale_end"] = args.guidance_scale
+        rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **g)
+        if args.preset == "vid2world" and not args.no_guidance and not args.actions_from_trajectory:
+            raise SystemExit("resim: --preset vid2world guides on actions; add --actions-from-trajectory "
+                             "(and --trajectory) or --no-guidance")
+        self.cfg = from_dict(RolloutConfig, rc)
+        if Path(args.history).is_file():
+            size = (tuple(int(s) for s in args.size.lower().split("x")) if args.size
+                    else (mcfg.sample_height * self.vae.info.spatial_compression,
+                          mcfg.sample_width * self.vae.info.spatial_compression))
+            self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size)
+        elif args.shards:
+            self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)
+        else:
+            raise SystemExit(f"resim: history {args.history!r} is not a file; to use a shard sample key pass "
+                             "--shards DATASET_DIR")
+        self.prompts = PromptSource(self.history.prompt_root, args.text_encoder, device=self.device,
+                                    max_tokens=args.max_text_tokens)
+        self.num_future = rollout_num_future_frames(args.seconds, self.history.fps_hz, self.vae.info.temporal_compression)
+        self.actions_from_trajectory = args.actions_from_trajectory
+        self.args = args
+
+    def text_for(self, command):
+        t = self.prompts(command)
+        if t.shape[-1] != self.model.cfg.text_embed_dim:
+            raise SystemExit(f"resim: prompt embedding dim {t.shape[-1]} != the model's text_embed_dim "
+                             f"{self.model.cfg.text_embed_dim} (wrong --text-encoder or prompt table)")
+        return t.to(self.device)
+
+    def policy_for(self, trajs_per_round):
+        """A policy feeding actions derived from each round's trajectory (Vid2World-style conditioning)."""
+        if not self.actions_from_trajectory:
+            return None
+        from training.models.conditioning import actions_from_trajectory
+        cfg = self.cfg
+
+        def policy(inp):
+            traj = trajs_per_round(inp.round_index)
+            if traj is None:
+                raise SystemExit("resim: --actions-from-trajectory needs a --trajectory")
+            # offset of this chunk inside its round (rounds start right after the given history)
+            off = (inp.frame_index - self.history.latents.shape[1]) % cfg.frames_per_round
+            acts, _ = actions_from_trajectory(traj.float(), cfg.frames_per_round, 0)
+            return acts[:, off:off + inp.num_frames].to(self.device)
+        return policy
+
+    def progress(self, total: int, desc: str):
+        from tqdm import tqdm
+        return tqdm(total=total, desc=desc, unit="step", file=sys.stderr, dynamic_ncols=True)
+
+
+def _save_config(setup: _Setup, out: Path, extra: dict) -> None:
+    from resim.config import save, to_dict
+    save(setup.cfg, out / "rollout.yaml")
+    (out / "run.json").write_text(json.dumps({**setup.model_info, "history": setup.history.source,
+                                              "seconds": setup.args.seconds, "seed": setup.args.seed,
+                                              "device": setup.device, "dtype": setup.args.dtype,
+                                              "vae_id": setup.vae.info.vae_id,
+                                              "vae_placeholder": setup.vae.info.placeholder,
+                                              "prompts": setup.prompts.used, "rollout": to_dict(setup.cfg),
+                                              **extra}, indent=2, default=str))
+
+
+# ----------------------------------------------------------------------------------------------- sample
+def _cmd_sample(args) -> int:
+    import torch
+
+    from shards.schema import COMMANDS
+    from training.sampling.load import SamplingInputError, load_trajectory
+    from training.sampling.outputs import decode_rollout, write_rollout
+    from training.sampling.rollout import Condition, rollout, rollout_num_steps_total
+
+    for c in args.command or []:
+        if c not in COMMANDS:
+            print(f"resim sample: --command {c!r} is not one of {list(COMMANDS)}", file=sys.stderr)
+            return 2
+    try:
+        s = _Setup(args)
+        trajs = [load_trajectory(t) for t in (args.trajectory or [])]
+    except SamplingInputError as e:
+        print(f"resim sample: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    commands = args.command or [None]
+    null = s.text_for(None)
+
+    def traj_at(r):
+        if not trajs:
+            return None
+        return torch.from_numpy(trajs[min(r, len(trajs) - 1)])[None].to(s.device)
+
+    def cond_at(r):
+        cmd = commands[min(r, len(commands) - 1)]
+        return Condition(text=s.text_for(cmd), null_text=null, trajectory=traj_at(r), label=cmd or "(no command)")
+
+    total = rollout_num_steps_total(s.cfg, s.num_future)
+    t0 = time.perf_counter()
+    with s.progress(total, "sampling") as bar:
+        res = rollout(s.model, s.history.latents.to(s.device), cond_at, s.num_future, s.cfg, seed=args.seed,
+                      policy=s.policy_for(traj_at), progress=bar)
+    frames = decode_rollout(s.vae, res.latents, res.num_history_frames, s.cfg.frames_per_round,
+                            s.cfg.history_frames)[0]
+    num_hist_px = 1 + 4 * (res.num_history_frames - 1)
+    title = " | ".join(dict.fromkeys(res.round_labels)) + f"   ({args.seconds:g} s, seed {args.seed})"
+    paths = write_rollout(out, "sample", frames, res.latents[0].cpu().numpy(), num_history_px=num_hist_px,
+                          fps_hz=s.history.fps_hz, title=title,
+                          trajectory=trajs[0] if trajs else None,
+                          meta={"round_labels": res.round_labels, "kv_cache": res.kv_cache_used,
+                                "placeholder_vae": s.vae.info.placeholder})
+    _save_config(s, out, {"rollout_seconds": res.seconds, "model_forwards": res.model_forwards})
+    print(f"sampled {s.num_future} latent frames ({frames.shape[0] - num_hist_px} video frames, "
+          f"{len(res.round_labels)} round(s)) in {res.seconds:.1f} s "
+          f"({res.model_forwards} model calls, KV cache {'on' if res.kv_cache_used else 'off'}); "
+          f"total {time.perf_counter() - t0:.1f} s")
+    for k in ("mp4", "gif", "sheet", "latents"):
+        print(f"  {k:8s} {paths[k]}")
+    if s.vae.info.placeholder:
+        print("  note: the VAE is a random-init placeholder: pixels are not meaningful")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------- plan
+def _cmd_plan(args) -> int:
+    import numpy as np
+
+    from training.reward.checkpoint import load_checkpoint
+    from training.sampling.load import SamplingInputError
+    from training.sampling.outputs import grid_with_scores
+    from training.sampling.plan import CANDIDATE_NAMES, default_candidates, plan
+    from training.sampling.rollout import rollout_num_steps_total
+
+    names = args.candidates or list(CANDIDATE_NAMES)
+    bad = [n for n in names if n not in CANDIDATE_NAMES]
+    if bad:
+        print(f"resim plan: unknown candidate(s) {bad}; known: {', '.join(CANDIDATE_NAMES)}", file=sys.stderr)
+        return 2
+    try:
+        s = _Setup(args)
+    except SamplingInputError as e:
+        print(f"resim plan: {e}", file=sys.stderr)
+        return 2
+    reward = load_checkpoint(args.reward, device=s.device)
+    cands = default_candidates(args.speed_mps, names)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    total = rollout_num_steps_total(s.cfg, s.num_future)
+    with s.progress(total, f"imagining {len(cands)} futures") as bar:
+        policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if args.actions_from_trajectory else None
+        res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), s.text_for, cands, s.cfg, s.num_future,
+                   seed=args.seed, policy_for=policy_for, progress=bar)
+    table = res.table()
+    (out / "ranking.md").write_text(table + "\n")
+    (out / "ranking.json").write_text(json.dumps(
+        [{"rank": r.rank, "name": r.name, "command": r.command, "reward": r.score,
+          "trajectory": np.asarray(r.trajectory).tolist()} for r in res.rows], indent=2))
+    grid = grid_with_scores([{"name": r.name, "score": r.score, "rank": r.rank, "frames": r.frames,
+                              "num_history_px": res.num_history_px, "trajectory": r.trajectory}
+                             for r in res.rows], s.history.fps_hz)
+    grid.save(out / "plan_grid.png")
+    np.save(out / "plan_latents.npy", np.stack([r.latents for r in res.rows]).astype(np.float32))
+    _save_config(s, out, {"reward": str(args.reward), "reward_meta": reward.metadata(),
+                          "candidates": [r.name for r in res.rows], "rollout_seconds": res.seconds})
+    print(table)
+    print(f"best: {res.rows[0].name} (reward {res.rows[0].score:.4f}); {len(cands)} futures in {res.seconds:.1f} s")
+    print(f"  grid     {out / 'plan_grid.png'}\n  ranking  {out / 'ranking.md'}")
+    if reward.metadata().get("backbone_placeholder") or s.vae.info.placeholder:
+        print("  note: placeholder (random-init) VAE/backbone in use: scores rank imagined pixels of a toy setup")
+    return 0

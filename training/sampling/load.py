@@ -1,0 +1,185 @@
+"""Loading what a sampling run needs: the trained world model, the history latents, prompt embeddings.
+
+World-model checkpoint (the trainer's export, issue 7): ``RUN_DIR/final/`` (or ``RUN_DIR`` itself, or the
+``final`` folder) holding ``config.yaml`` (the resolved ``RunConfig``: ``model_name`` + ``model`` dict) and
+``model.safetensors`` (+ ``ema.safetensors``, preferred for sampling when present). The model is built through
+``training.registry`` by ``model_name``. Until a world-model builder is registered there, ``model_name`` "world"
+falls back to :func:`build_world_model` here (``model`` = ``{"preset": NAME, **WorldModelConfig overrides}``).
+
+History: a video file (its last ``1 + 4 (H - 1)`` frames, resized, encoded with the VAE) or a shard sample key
+(its stored latents' first ``H`` latent frames, i.e. the clip's history, and its pixel frames for outputs).
+Prompts: the dataset's prompt table when it holds the prompt, else the T5 encoder.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+
+class SamplingInputError(ValueError):
+    """A checkpoint, history or prompt given to the sampler is missing or unusable (names it and why)."""
+
+
+def build_world_model(model_cfg: dict, device: str | torch.device = "cpu"):
+    """``{"preset": "tiny", **overrides}`` or full ``WorldModelConfig`` fields → ``WorldModel``."""
+    from resim.config import from_dict
+    from training.models.config import WorldModelConfig, preset
+    from training.models.dit import WorldModel
+
+    cfg_dict = dict(model_cfg)
+    name = cfg_dict.pop("preset", None)
+    cfg = preset(name, **cfg_dict) if name else from_dict(WorldModelConfig, cfg_dict)
+    return WorldModel(cfg).to(device)
+
+
+def _checkpoint_dir(ckpt: str | Path) -> Path:
+    p = Path(ckpt)
+    for cand in (p, p / "final"):
+        if (cand / "model.safetensors").is_file() and (cand / "config.yaml").is_file():
+            return cand
+    raise SamplingInputError(f"checkpoint {p}: expected config.yaml + model.safetensors in it or in {p / 'final'} "
+                             "(the trainer writes them at the end of a run)")
+
+
+def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32,
+                     prefer_ema: bool = True) -> tuple[Any, dict]:
+    """Build + load the world model of a training run; returns (model in eval mode, info dict)."""
+    from safetensors.torch import load_file
+
+    from training import registry
+
+    d = _checkpoint_dir(ckpt)
+    run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
+    name = run_cfg.get("model_name", "world")
+    model_cfg = run_cfg.get("model") or {}
+    try:
+        model = registry.build(name, model_cfg, device="cpu")
+        builder = f"registry:{name}"
+    except KeyError:
+        if name != "world":
+            raise SamplingInputError(f"checkpoint {d}: model_name {name!r} has no builder in training.registry")
+        model = build_world_model(model_cfg)
+        builder = "training.sampling.load.build_world_model"
+    weights = d / "ema.safetensors" if prefer_ema and (d / "ema.safetensors").is_file() else d / "model.safetensors"
+    state = load_file(str(weights))
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise SamplingInputError(f"checkpoint {weights}: does not fit the model built from its config "
+                                 f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
+    model = model.to(device=device, dtype=dtype).eval().requires_grad_(False)
+    return model, {"checkpoint": str(d), "weights": weights.name, "builder": builder, "model_name": name}
+
+
+@dataclass
+class History:
+    latents: torch.Tensor             # (1, H, C, h, w) float32
+    frames: np.ndarray | None         # (1 + 4 (H - 1), H_px, W_px, 3) uint8: the pixel history, for outputs
+    fps_hz: float
+    source: str                       # what it came from
+    prompt_root: Path | None = None   # dataset whose prompt table can be used
+    meta: dict | None = None
+
+
+def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> History:
+    from shards.reader import find_sample
+
+    try:
+        s = find_sample(root, key, decode_video=True, attach_prompts=False)
+    except KeyError as e:
+        raise SamplingInputError(f"history {key!r}: not found in dataset {root}") from e
+    meta = s["meta.json"]
+    lat = np.asarray(s["latent.npy"], dtype=np.float32)
+    h_meta = 1 + (int(meta["num_history_frames"]) - 1) // 4
+    if num_latent_frames > h_meta:
+        raise SamplingInputError(f"history {key!r}: asks for {num_latent_frames} latent history frames, the clip's "
+                                 f"history has {h_meta} ({meta['num_history_frames']} pixel frames)")
+    lat = lat[h_meta - num_latent_frames:h_meta]
+    px = 1 + 4 * (h_meta - 1)
+    frames = s.get("frames")
+    frames = frames[px - (1 + 4 * (num_latent_frames - 1)):px] if frames is not None else None
+    return History(torch.from_numpy(lat)[None], frames, float(meta["fps_hz"]), f"shard:{key}", Path(root), meta)
+
+
+def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_hw: tuple[int, int]) -> History:
+    """The last ``1 + 4 (H - 1)`` frames of a video file, resized to ``size_hw``, encoded by ``vae`` (VideoVAE)."""
+    import cv2
+
+    p = Path(path)
+    if not p.is_file():
+        raise SamplingInputError(f"history {p}: no such file (give a video file or --shards ROOT with a sample key)")
+    cap = cv2.VideoCapture(str(p))
+    fps = cap.get(cv2.CAP_PROP_FPS) or 10.0
+    frames = []
+    ok, fr = cap.read()
+    while ok:
+        frames.append(cv2.cvtColor(cv2.resize(fr, (size_hw[1], size_hw[0]), interpolation=cv2.INTER_AREA),
+                                   cv2.COLOR_BGR2RGB))
+        ok, fr = cap.read()
+    cap.release()
+    need = 1 + 4 * (num_latent_frames - 1)
+    if len(frames) < need:
+        raise SamplingInputError(f"history {p}: {len(frames)} readable frames, need at least {need}")
+    clip = np.stack(frames[-need:])
+    lat = vae.encode(clip[None], seeds=[0])
+    return History(torch.from_numpy(lat), clip, float(fps), f"video:{p.name}")
+
+
+class PromptSource:
+    """Command → T5 embedding ``(1, L, D)``: from the dataset's prompt table if present, else encoded by T5."""
+
+    def __init__(self, prompt_root: Path | None = None, text_encoder_dir: str | Path | None = None,
+                 device: str = "cpu", max_tokens: int = 226):
+        self.table = None
+        if prompt_root is not None:
+            from shards.prompts import PromptTable
+            self.table = PromptTable(prompt_root)
+        self.encoder_dir, self.device, self.max_tokens = text_encoder_dir, device, max_tokens
+        self._encoder = None
+        self.used: dict[str, str] = {}
+
+    def __call__(self, command: str | None) -> torch.Tensor:
+        from shards.schema import prompt_id, prompt_text
+
+        text = prompt_text(command)
+        pid = prompt_id(text)
+        if self.table is not None and pid in self.table.ids():
+            self.used[text] = "prompt_table"
+            return torch.from_numpy(np.array(self.table.get(pid, as_float32=True)))[None]
+        if self.encoder_dir is None:
+            raise SamplingInputError(f"prompt {text!r} is not in the dataset's prompt table and no --text-encoder "
+                                     "was given to encode it")
+        if self._encoder is None:
+            from pipelines.encoders import TextEncoder
+            self._encoder = TextEncoder(self.encoder_dir, device=self.device, max_tokens=self.max_tokens)
+        self.used[text] = f"t5:{self._encoder.info.encoder_id}"
+        return torch.from_numpy(self._encoder.encode([text]))
+
+
+def load_trajectory(spec: str | None) -> np.ndarray | None:
+    """``--trajectory``: a candidate name (keep_lane, turn_left, …), a .npy file (8, 3), or JSON [[x, y, yaw], …]."""
+    import json
+
+    if spec is None:
+        return None
+    from training.sampling.plan import CANDIDATE_NAMES, make_candidate
+    if spec in CANDIDATE_NAMES:
+        return make_candidate(spec).trajectory
+    p = Path(spec)
+    if p.suffix == ".npy" and p.is_file():
+        arr = np.load(p, allow_pickle=False)
+    else:
+        try:
+            arr = np.asarray(json.loads(spec), dtype=np.float32)
+        except (json.JSONDecodeError, ValueError) as e:
+            raise SamplingInputError(f"--trajectory {spec!r}: not a candidate name ({', '.join(CANDIDATE_NAMES)}), "
+                                     f"a .npy file or JSON waypoints: {e}") from e
+    arr = np.asarray(arr, dtype=np.float32)
+    if arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all():
+        raise SamplingInputError(f"--trajectory {spec!r}: expected finite (num_waypoints, 3) [x m, y m, yaw rad], "
+                                 f"got shape {arr.shape}")
+    return arr
