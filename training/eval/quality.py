@@ -279,8 +279,9 @@ class VideoQualityEvaluator:
         return net is not None
 
     def _prepare(self, video: torch.Tensor) -> torch.Tensor:
-        """Stated range → float32 [0, 1] future frames at the metric resolution, on the device."""
-        x = to_unit(video, self.cfg.value_range)[:, self.cfg.num_conditioning_frames:].float()
+        """Stated range → float64 [0, 1] future frames at the metric resolution, on the device (PSNR/SSIM
+        run in float64; the networks get float32)."""
+        x = to_unit(video, self.cfg.value_range)[:, self.cfg.num_conditioning_frames:]
         rh, rw = self.cfg.resolution_hw
         if rh and (rh, rw) != tuple(x.shape[-2:]):
             b, t = x.shape[:2]
@@ -310,6 +311,7 @@ class VideoQualityEvaluator:
             self.sums["psnr"].add(psnr(g, r, "unit"))
         if "ssim" in self.sums:
             self.sums["ssim"].add(ssim(g, r, "unit"))
+        g, r = g.float(), r.float()
         for name in ("lpips", "dreamsim"):
             if name in self.sums:
                 self.sums[name].add(self._pairwise(getattr(self.nets, name), g, r).view(b, tf))
