@@ -17,6 +17,7 @@ COMMANDS: list[str] = [
     "training.cli",
     "training.reward.cli",
     "training.sampling.cli",
+    "training.eval.cli",
 ]
 
 EPILOG = """\

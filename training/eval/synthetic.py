@@ -139,21 +139,26 @@ def make_clips(cfg: SynthConfig, spec: ClipSpec | None = None) -> list[dict]:
 
 
 def write_synthetic_shards(root: str | Path, cfg: SynthConfig, spec: ClipSpec | None = None,
-                           prefix: str = "synth-eval") -> int:
-    """Render ``cfg.episodes`` episodes and write their clips as shards (+ a placeholder prompt table)."""
+                           prefix: str = "synth-eval", latent_channels: int = 16, latent_hw: tuple[int, int] = (8, 12),
+                           text_len: int = 16, text_dim: int = 64) -> int:
+    """Render ``cfg.episodes`` episodes and write their clips as shards (+ a placeholder prompt table).
+
+    Latent and prompt shapes default to the ``tiny`` world model's (16 x 8 x 12 latents, 16 x 64 prompts),
+    so the same shards drive the world-model evaluations in tests and the demo."""
     from shards.testing import add_dummy_prompts, make_dummy_sample
     from shards.video import encode_mp4
     from shards.writer import ShardWriter
 
     spec = spec or ClipSpec(fps_hz=cfg.fps_hz)
     clips = make_clips(cfg, spec)
-    add_dummy_prompts(root, seed=cfg.seed)
+    add_dummy_prompts(root, seq_len=text_len, dim=text_dim, seed=cfg.seed)
     with ShardWriter(root, prefix, max_samples_per_shard=64, config_hash=f"synth-eval-{cfg.seed}") as w:
         for i, c in enumerate(clips):
             yaw = c["yaw_deg"]
             command = "Turning left" if yaw > 15 else "Turning right" if yaw < -15 else "Moving forward"
             s = make_dummy_sample("synthetic", c["item_id"], c["start_frame"], command=command, yaw_deg=yaw,
-                                  seed=cfg.seed * 100_000 + i, spec=spec, frames_hw=cfg.frames_hw)
+                                  seed=cfg.seed * 100_000 + i, spec=spec, frames_hw=cfg.frames_hw,
+                                  latent_channels=latent_channels, latent_hw=latent_hw)
             s["frames.mp4"] = encode_mp4(c["frames"], spec.fps_hz)
             s["traj.npy"] = c["traj"]
             s["meta.json"].update(command_flow=None, commands_agree=None, yaw_deg_flow=None, confidence=1.0,
