@@ -19,6 +19,7 @@ COMMANDS: list[str] = [
     "training.reward.cli",
     "training.sampling.cli",
     "labeling.cli",
+    "training.eval.cli",
 ]
 
 EPILOG = """\

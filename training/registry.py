@@ -19,6 +19,7 @@ BUILDERS: dict[str, str] = {
     "toy": "training.toy:build_toy",
     "world": "training.world:build_world",
     "reward": "training.reward.train:build_reward",
+    "idm": "training.eval.idm:build_idm",
 }
 
 

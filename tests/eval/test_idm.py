@@ -1,0 +1,89 @@
+"""IDM: windows, loss masking, the Batch path, trajectory metrics and baselines in closed form, the episode
+split, and the synthetic world's waypoints against an independent closed form (shards.testing)."""
+import numpy as np
+import pytest
+import torch
+
+from resim.config import ConfigError
+from shards.testing import dummy_trajectory
+from training.eval.idm import InverseDynamicsModel, idm_preset
+from training.eval.idm_train import TrajClip, constant_velocity, split_by_episode, trajectory_errors
+from training.eval.synthetic import SynthConfig, future_waypoints, make_clips
+
+
+def test_windows():
+    fut, hist = idm_preset("tiny"), idm_preset("tiny-history")
+    assert fut.frame_indices(9, 49) == list(range(8, 49, 2))   # last history frame .. end, every 2nd
+    assert hist.frame_indices(9, 49) == list(range(0, 9))      # history only
+    with pytest.raises(ValueError, match="needs frames"):
+        fut.frame_indices(9, 30)
+    with pytest.raises(ConfigError, match="must equal future_frames"):
+        idm_preset("tiny", num_frames=11)
+
+
+def test_loss_masks_samples_without_trajectory_and_accepts_a_batch():
+    from training.data import Batch
+
+    torch.manual_seed(0)
+    m = InverseDynamicsModel(idm_preset("tiny-history"))
+    frames = torch.randint(0, 256, (2, 21, 3, 32, 48), dtype=torch.uint8)
+    traj = torch.from_numpy(np.stack([dummy_trajectory(20.0), dummy_trajectory(-5.0)]))
+    b = Batch(latents=torch.zeros(2, 6, 4, 4, 6), prompt_table=torch.zeros(2, 4, 8),
+              prompt_index=torch.tensor([0, 0]), null_index=torch.tensor([1, 1]),
+              trajectory=traj, has_trajectory=torch.tensor([True, False]), command=torch.zeros(2, dtype=torch.long),
+              source=["synthetic"] * 2, keys=["a", "b"], meta=[{"num_history_frames": 9}] * 2, frames=frames)
+    loss, logs = m.loss(b)
+    only_first = m.loss({"video": m.window(frames[:1], 9), "trajectory": traj[:1]})[0]
+    assert loss.item() == pytest.approx(only_first.item(), rel=1e-5)
+    loss.backward()
+    assert all(p.grad is not None for p in m.parameters() if p.requires_grad)
+    assert set(logs) == {"ade_m", "fde_m"}
+    with pytest.raises(ValueError, match="load_frames"):
+        m.loss(Batch(**{**b.__dict__, "frames": None}))
+
+
+def test_trajectory_errors_and_constant_velocity_closed_form():
+    gt = np.stack([dummy_trajectory(0.0, speed_mps=8.0), dummy_trajectory(30.0, speed_mps=8.0)])
+    shifted = gt.copy()
+    shifted[..., 0] += 3.0
+    shifted[..., 1] += 4.0
+    e = trajectory_errors(shifted, gt)
+    assert e["ade_m"] == pytest.approx(5.0) and e["fde_m"] == pytest.approx(5.0) and e["yaw_err_deg"] == 0
+    cv = constant_velocity(gt)
+    # straight at 8 m/s for the straight path: exact; for the turning one the first-step chord speed, no turn
+    assert trajectory_errors(cv[:1], gt[:1])["ade_m"] == pytest.approx(0.0, abs=1e-5)
+    assert np.allclose(cv[1, :, 1:], 0) and cv[1, -1, 0] == pytest.approx(8 * np.linalg.norm(gt[1, 0, :2]), rel=1e-6)
+    assert trajectory_errors(cv[1:], gt[1:])["fde_m"] > 1.0
+
+
+def test_split_by_episode_keeps_episodes_whole():
+    clips = [TrajClip(f"k{i}", f"ep{i % 5}", np.zeros((3, 4, 4, 3), np.uint8), np.zeros((8, 3), np.float32), 1, 10.0)
+             for i in range(20)]
+    train, held = split_by_episode(clips, 0.25, seed=3)
+    assert not {c.item_id for c in train} & {c.item_id for c in held}
+    assert len({c.item_id for c in held}) == 1 and len(train) + len(held) == 20
+    assert split_by_episode(clips, 0.25, seed=3)[1] == held           # deterministic
+    with pytest.raises(ValueError, match="at least 2"):
+        split_by_episode(clips[:1], 0.25)
+
+
+def test_synthetic_waypoints_match_constant_curvature_closed_form():
+    v, yaw_total_deg, fps = 8.0, 24.0, 10.0
+    rate = np.deg2rad(yaw_total_deg) / 4.0
+    t = np.arange(0, 50) / fps
+    th0 = 0.7  # an arbitrary world heading and origin: the ego frame must remove them
+    yaw = th0 + rate * t
+    x = 5.0 + v / rate * (np.sin(yaw) - np.sin(th0))
+    y = -2.0 - v / rate * (np.cos(yaw) - np.cos(th0))
+    poses = np.stack([x, y, yaw], -1)
+    got = future_waypoints(poses, 0, fps)
+    assert np.allclose(got, dummy_trajectory(yaw_total_deg, speed_mps=v), atol=1e-4)
+
+
+def test_synthetic_clips_render_and_move():
+    clips = make_clips(SynthConfig(episodes=1, frames_per_episode=49, seed=2))
+    assert len(clips) == 1
+    c = clips[0]
+    assert c["frames"].shape == (49, 32, 48, 3) and c["frames"].dtype == np.uint8
+    assert np.abs(c["frames"][1:].astype(int) - c["frames"][:-1]).mean() > 1.0   # the camera moves
+    assert c["traj"].shape == (8, 3) and c["traj"][-1, 0] > 4 * 2.0             # >= 2 m/s forward

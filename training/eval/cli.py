@@ -1,0 +1,332 @@
+"""`resim eval ...`: video quality, controllability, planning, and the inverse dynamics model (issue 10).
+
+Light module: torch and friends are imported in the handlers. Every command prints its protocol with the
+numbers and writes DIR/<name>.json + DIR/<name>.png. See docs/eval.md.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
+DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
+
+EPILOG = """\
+typical flow (held-out = the episodes the IDM did not train on):
+  resim eval synth --out data/eval-synth --episodes 24            # small rendered world with exact trajectories
+  resim eval idm --shards DATA --out runs/idm                      # IDM (future frames -> 8 waypoints)
+  resim eval idm --shards DATA --out runs/vo --window history      # VO-style planner (history only)
+  resim eval control  --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
+  resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
+  resim eval quality  --checkpoint runs/wm --shards DATA --out out/quality \\
+      --fid-weights W/pt_inception-2015-12-05-6726825d.pth --fvd-weights W/rgb_imagenet.pt \\
+      --lpips-trunk W/vgg16-397923af.pth --lpips-head W/lpips_vgg_v0.1.pth
+
+Weights are never downloaded; docs/eval.md says where to get the standard ones. Without them quality runs
+only with --allow-placeholder-networks (random-init networks, marked as such everywhere).
+"""
+
+
+def _world_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="world-model run folder (or its final/)")
+    p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--heldout-from", default=None,
+                   help="an IDM run folder or idm_report.json: evaluate only its held-out episodes "
+                        "(default for control/planning: the --idm run's)")
+    p.add_argument("--all-clips", action="store_true",
+                   help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
+    p.add_argument("--limit", type=int, default=None, help="at most N clips (in key order)")
+    p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
+    p.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the preset's 50)")
+    p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
+    p.add_argument("--batch-size", type=int, default=4, help="clips rolled out together")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--vae", default=str(DEFAULT_VAE), help="CogVideoX VAE folder (default: tiny placeholder)")
+    p.add_argument("--text-encoder", default=str(DEFAULT_T5), help="T5 folder for prompts not in the table")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("eval", help="evaluate world models: quality, controllability, planning, IDM",
+                              description="Evaluation (issue 10). Each command prints its protocol next to "
+                                          "the numbers and writes a JSON + PNG report.",
+                              epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="eval_command", metavar="EVAL_COMMAND")
+
+    q = sub.add_parser("quality", help="PSNR/SSIM/LPIPS/FID/FVD/DreamSim of rollouts vs ground truth, per horizon")
+    _world_args(q)
+    q.add_argument("--metrics", nargs="+", default=["psnr", "ssim", "lpips", "fid", "fvd", "dreamsim"])
+    q.add_argument("--resolution", default=None, help="HxW to score at (default: the recorded frames' size)")
+    q.add_argument("--horizons", type=float, nargs="+", default=None, help="horizons in s (default 1 2 4 ...)")
+    q.add_argument("--fid-weights", default=None, help="pytorch-fid pt_inception-2015-12-05-6726825d.pth")
+    q.add_argument("--fvd-weights", default=None, help="pytorch-i3d rgb_imagenet.pt")
+    q.add_argument("--lpips-net", default="vgg", choices=["vgg", "alex"])
+    q.add_argument("--lpips-trunk", default=None, help="torchvision vgg16-397923af.pth / alexnet-owt-7be5be79.pth")
+    q.add_argument("--lpips-head", default=None, help="lpips weights/v0.1/{vgg,alex}.pth")
+    q.add_argument("--dreamsim-dir", default=None, help="local DreamSim cache with the extracted checkpoint")
+    q.add_argument("--allow-placeholder-networks", action="store_true",
+                   help="use random-init networks where no weights are given (plumbing only; marked in the report)")
+    q.set_defaults(func=_cmd_quality)
+
+    c = sub.add_parser("control", help="Trajectory Difference under expert / non-expert trajectories (+ command acc.)")
+    _world_args(c)
+    c.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
+    c.set_defaults(func=_cmd_control)
+
+    pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE")
+    _world_args(pl)
+    pl.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
+    pl.add_argument("--planner", default=None, help="VO-style planner run folder (resim eval idm --window history)")
+    pl.add_argument("--with-command", action="store_true", help="give the policy the clip's command prompt")
+    pl.set_defaults(func=_cmd_planning)
+
+    i = sub.add_parser("idm", help="train + evaluate the inverse dynamics model (or the VO planner) on shards",
+                       description="Trains through the common Trainer on clips with traj.npy, split by episode; "
+                                   "reports held-out ADE/FDE next to the constant-velocity baseline.")
+    i.add_argument("--shards", required=True, help="dataset folder")
+    i.add_argument("--out", required=True, help="run folder (final/ weights, idm_report.json/.png)")
+    i.add_argument("--preset", default="small", help="IDM preset: tiny, small (default)")
+    i.add_argument("--window", default="future", choices=["future", "history"],
+                   help="future: the IDM; history: the VO-style planner baseline (same architecture)")
+    i.add_argument("--epochs", type=int, default=None)
+    i.add_argument("--batch-size", type=int, default=None)
+    i.add_argument("--lr", type=float, default=None)
+    i.add_argument("--heldout-fraction", type=float, default=None)
+    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
+    i.set_defaults(func=_cmd_idm)
+
+    s = sub.add_parser("synth", help="render a small world with exact trajectories into shards (IDM data)")
+    s.add_argument("--out", required=True)
+    s.add_argument("--episodes", type=int, default=24)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--size", default="32x48", help="HxW of the frames (default 32x48)")
+    s.set_defaults(func=_cmd_synth)
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _heldout_items(path: str | None, all_clips: bool = False):
+    import json
+
+    if path is None or all_clips:
+        return None
+    p = Path(path)
+    if p.is_dir():
+        p = p / "idm_report.json"
+    if not p.is_file():
+        raise SystemExit(f"resim eval: {p} not found (expected an IDM run folder with idm_report.json)")
+    return json.loads(p.read_text())["protocol"]["heldout_items"]
+
+
+def _runner(args):
+    import torch
+
+    from pipelines.encoders import VideoVAE, pick_device
+    from resim.config import from_dict
+    from training.sampling.guidance import guidance_preset
+    from training.sampling.load import PromptSource, load_world_model
+    from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
+    from training.eval.worldeval import WorldRollouts
+
+    device = args.device or pick_device()
+    model, info = load_world_model(args.checkpoint, device, torch.float32)
+    vae = VideoVAE(args.vae, device=device)
+    rc = dict(ROLLOUT_PRESETS[args.preset])
+    if args.steps:
+        rc["num_steps"] = args.steps
+    rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset)
+    cfg = from_dict(RolloutConfig, rc)
+    prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
+                           max_tokens=model.cfg.max_text_seq_length)
+    runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,
+                           batch_size=args.batch_size)
+    meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
+            "rollout": {k: v for k, v in rc.items() if k != "guidance"},
+            "guidance": "none" if args.no_guidance else args.preset, "seed": args.seed}
+    return runner, meta
+
+
+def _clips(args, items):
+    from training.eval.worldeval import eval_clips_from_dataset
+
+    clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit)
+    if not clips:
+        raise SystemExit(f"resim eval: no clips with a trajectory in {args.shards}"
+                         + (f" among the {len(items)} held-out episodes" if items else ""))
+    return clips
+
+
+def _finish(out: Path, name: str, report: dict, text: str, png_fn) -> None:
+    from training.eval.report import write_json
+
+    report.pop("_videos", None)
+    write_json(report, out / f"{name}.json")
+    png_fn(out / f"{name}.png")
+    print(text)
+    print(f"wrote {out / (name + '.json')} and {out / (name + '.png')}")
+
+
+# ------------------------------------------------------------------------------------------ commands
+def _cmd_quality(args) -> int:
+    from resim.config import ConfigError
+    from training.eval.quality import QualityConfig
+    from training.eval.report import format_quality, plot_quality
+    from training.eval.worldeval import quality_eval
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
+    clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips))
+    res = (tuple(int(v) for v in args.resolution.lower().split("x")) if args.resolution else (0, 0))
+    try:
+        qcfg = QualityConfig(value_range="uint8", fps_hz=clips[0].fps_hz,
+                             num_conditioning_frames=clips[0].num_history_frames,
+                             horizons_s=tuple(args.horizons or ()), resolution_hw=res, metrics=tuple(args.metrics),
+                             lpips_net=args.lpips_net, lpips_trunk_weights=args.lpips_trunk,
+                             lpips_head_weights=args.lpips_head, fid_weights=args.fid_weights,
+                             fvd_weights=args.fvd_weights, dreamsim_dir=args.dreamsim_dir,
+                             allow_placeholder_networks=args.allow_placeholder_networks, device=meta["device"])
+        t0 = time.perf_counter()
+        rep = quality_eval(runner, clips, qcfg)
+    except ConfigError as e:
+        print(f"resim eval quality: {e}", file=sys.stderr)
+        return 2
+    rep["protocol"]["world_model"] = meta
+    rep["protocol"]["heldout_from"] = "all clips" if args.all_clips or not args.heldout_from else args.heldout_from
+    rep["protocol"]["seconds"] = round(time.perf_counter() - t0, 2)
+    _finish(out, "quality", rep, format_quality(rep),
+            lambda p: plot_quality(rep, p, title=f"rollouts vs recorded ({Path(args.checkpoint).name})"))
+    return 0
+
+
+def _load_idm(path, device):
+    from training.eval.idm_train import load_idm
+
+    try:
+        return load_idm(path, device)
+    except (FileNotFoundError, ValueError) as e:
+        raise SystemExit(f"resim eval: {e}")
+
+
+def _traj_table(rows: dict) -> str:
+    lines = []
+    for name, v in rows.items():
+        if isinstance(v, dict) and "ade_m" in v:
+            lines.append(f"  {name:32s} ADE {v['ade_m']:.3f} m  FDE {v['fde_m']:.3f} m  yaw {v['yaw_err_deg']:.2f} deg"
+                         f"  (n={v['n']})")
+        elif isinstance(v, dict) and "trajectory_difference_m" in v:
+            lines.append(f"  {name:32s} L2 {v['trajectory_difference_m']:.3f} m  at 4 s "
+                         f"{v['trajectory_difference_final_m']:.3f} m  (n={v['n']})")
+        elif isinstance(v, str):
+            lines.append(f"  {name:32s} {v}")
+    return "\n".join(lines)
+
+
+def _cmd_control(args) -> int:
+    from training.eval.report import format_protocol, plot_bars
+    from training.eval.worldeval import control_eval
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
+    idm, idm_info = _load_idm(args.idm, meta["device"])
+    items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
+    clips = _clips(args, items)
+    t0 = time.perf_counter()
+    rep = control_eval(runner, idm, clips, seed=args.seed)
+    rep["protocol"] = {"clips": len({c.key for c in clips}), "episodes": len({c.item_id for c in clips}),
+                       "heldout_from": "ALL CLIPS (--all-clips)" if args.all_clips else args.heldout_from or args.idm,
+                       "idm": idm_info, "world_model": meta,
+                       "non_expert": "trajectory + command of a clip of another episode (seeded hash)",
+                       "trajectory_difference": "L2 (x, y) between IDM(generated video) and the conditioning "
+                                                "trajectory, mean over the 8 waypoints; also at 4 s",
+                       "seconds": round(time.perf_counter() - t0, 2)}
+    ca = rep["command_accuracy"]
+    acc = ca if isinstance(ca, str) else "  ".join(
+        f"{k}: {v['accuracy']:.3f} (n={v['n']})" for k, v in ca.items() if v["accuracy"] is not None)
+    text = "\n".join([format_protocol(rep["protocol"]), "Trajectory Difference (lower = more controllable):",
+                      _traj_table({k: rep[k] for k in ("expert", "non_expert", "idm_on_recorded_video")}),
+                      f"  non-expert trajectory vs recorded: {rep['non_expert_vs_recorded_trajectory_m']:.3f} m",
+                      f"command accuracy (flow labeler): {acc}"])
+    groups = {"L2 mean": {k: rep[k]["trajectory_difference_m"] for k in ("expert", "non_expert", "idm_on_recorded_video")},
+              "L2 at 4 s": {k: rep[k]["trajectory_difference_final_m"]
+                            for k in ("expert", "non_expert", "idm_on_recorded_video")}}
+    _finish(out, "control", rep, text, lambda p: plot_bars(groups, p, title=f"Trajectory Difference, {len(clips)} clips"))
+    return 0
+
+
+def _cmd_planning(args) -> int:
+    from training.eval.report import format_protocol, plot_bars
+    from training.eval.worldeval import planning_eval
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
+    idm, idm_info = _load_idm(args.idm, meta["device"])
+    planner, planner_info = _load_idm(args.planner, meta["device"]) if args.planner else (None, None)
+    if planner is not None and planner.cfg.window != "history":
+        print(f"resim eval planning: --planner {args.planner} sees window={planner.cfg.window!r}; the VO-style "
+              "planner must see history frames only (train it with `resim eval idm --window history`)",
+              file=sys.stderr)
+        return 2
+    clips = _clips(args, _heldout_items(args.heldout_from or args.idm, args.all_clips))
+    t0 = time.perf_counter()
+    rep = planning_eval(runner, idm, planner, clips, with_command=args.with_command)
+    rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
+                       "heldout_from": "ALL CLIPS (--all-clips)" if args.all_clips else args.heldout_from or args.idm,
+                       "idm": idm_info, "planner": planner_info,
+                       "policy_conditions": "clip command prompt" if args.with_command
+                       else "none (null prompt, no trajectory)",
+                       "constant_velocity": "straight at |waypoint_1| / 0.5 s (oracle initial speed)",
+                       "world_model": meta, "seconds": round(time.perf_counter() - t0, 2)}
+    names = ("video_prediction_policy", "vo_planner_history_only", "constant_velocity", "idm_on_recorded_future")
+    text = "\n".join([format_protocol(rep["protocol"]), "ADE/FDE vs the recorded future:",
+                      _traj_table({k: rep[k] for k in names})])
+    groups = {m.upper(): {k: (rep[k][f"{m}_m"] if isinstance(rep[k], dict) else None) for k in names}
+              for m in ("ade", "fde")}
+    _finish(out, "planning", rep, text, lambda p: plot_bars(groups, p, title=f"planning, {len(clips)} clips"))
+    return 0
+
+
+def _cmd_idm(args) -> int:
+    from resim.config import ConfigError, apply_overrides, from_dict
+    from training.eval.idm_train import IDMTrainConfig, run_idm_training
+
+    d = {"preset": args.preset if args.window == "future" or args.preset.endswith("-history")
+         else f"{args.preset}-history", "seed": args.seed}
+    for k, v in (("epochs", args.epochs), ("batch_size_per_gpu", args.batch_size), ("lr", args.lr),
+                 ("heldout_fraction", args.heldout_fraction)):
+        if v is not None:
+            d[k] = v
+    try:
+        ov = apply_overrides({}, args.overrides)
+        cfg = from_dict(IDMTrainConfig, {**d, "overrides": ov})
+        cfg.model_cfg()
+    except ConfigError as e:
+        print(f"resim eval idm: config error: {e}", file=sys.stderr)
+        return 2
+    res = run_idm_training(args.shards, cfg, args.out, progress=True)
+    res.pop("_model")
+    from training.eval.report import format_protocol
+
+    print(format_protocol(res["protocol"]))
+    print(f"model: {res['model']['architecture']}, {res['model']['parameters']:,} parameters")
+    print("held-out:")
+    print(_traj_table(res["heldout"]))
+    print(f"wrote {Path(args.out) / 'idm_report.json'}, idm_report.png and final/ (weights)")
+    return 0
+
+
+def _cmd_synth(args) -> int:
+    from training.eval.synthetic import SynthConfig, write_synthetic_shards
+
+    h, w = (int(v) for v in args.size.lower().split("x"))
+    n = write_synthetic_shards(args.out, SynthConfig(episodes=args.episodes, seed=args.seed, frames_hw=(h, w)))
+    print(f"wrote {n} clips of {args.episodes} episodes to {args.out}")
+    return 0

@@ -1,0 +1,268 @@
+"""Training and held-out evaluation of the inverse dynamics model (and its history-only planner twin).
+
+``run_idm_training(dataset_root, cfg)``: clips with trajectories from the shards (pixel frames from
+``frames.mp4`` through ``shards.reader``, the trajectory from ``traj.npy``) → split by episode (``item_id``)
+→ fit through the common ``training.trainer.Trainer`` → held-out ADE/FDE next to the constant-velocity
+baseline → ``OUT/final/`` (the trainer's export: ``model.safetensors`` + ``config.yaml``, loadable with
+:func:`load_idm`), ``OUT/idm_report.json`` and ``OUT/idm_report.png``.
+
+**Constant-velocity baseline** (CV): the shards carry no past poses, so CV takes the speed the car has over
+the first 0.5 s of the recorded future (``|waypoint_1| / 0.5 s``) and drives straight ahead at that speed.
+It uses a little of the future (an oracle initial speed), which makes it a *stronger* baseline than one
+extrapolating from the past; it knows nothing of turns or later speed changes.
+
+Clips are held in memory at the model's input resolution (uint8, ~0.2 MB per 49-frame clip at 48x80);
+for datasets too large for that, ``resim train idm`` streams shards through the common data loader
+(``InverseDynamicsModel.loss`` accepts a ``training.data.Batch``).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from resim.config import ConfigError
+from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
+
+
+@dataclass
+class IDMTrainConfig:
+    preset: str = "small"
+    overrides: dict[str, Any] = field(default_factory=dict)   # IDMConfig fields
+    epochs: int = 30
+    batch_size_per_gpu: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 0.01
+    warmup_steps: int = 20
+    heldout_fraction: float = 0.25
+    split_seed: int = 0
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.epochs < 1 or self.batch_size_per_gpu < 1:
+            raise ConfigError("epochs and batch_size_per_gpu must be >= 1")
+        if not 0.0 < self.heldout_fraction < 1.0:
+            raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
+
+    def model_cfg(self) -> IDMConfig:
+        return idm_preset(self.preset, **self.overrides)
+
+
+@dataclass
+class TrajClip:
+    key: str
+    item_id: str
+    frames: np.ndarray            # (T, h, w, 3) uint8 RGB, the whole clip, resized to the model's input
+    trajectory: np.ndarray        # (N, 3) float32, ego frame at the last history frame
+    num_history_frames: int
+    fps_hz: float
+    waypoint_dt_s: float = 0.5
+
+
+def resize_frames(frames: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """(T, H, W, 3) uint8 → (T, h, w, 3) uint8 (bilinear with antialias, as the model would resize)."""
+    if tuple(frames.shape[1:3]) == tuple(size_hw):
+        return frames
+    x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float()
+    x = F.interpolate(x, size=tuple(size_hw), mode="bilinear", align_corners=False, antialias=True)
+    return x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list[TrajClip], dict]:
+    """Clips with a trajectory from every committed shard of ``root``; returns (clips, counts)."""
+    from shards.reader import iter_samples
+
+    clips, counts = [], {"samples": 0, "without_trajectory": 0}
+    for s in iter_samples(root, decode_video=True, attach_prompts=False):
+        counts["samples"] += 1
+        meta = s["meta.json"]
+        if "traj.npy" not in s:
+            counts["without_trajectory"] += 1
+            continue
+        clips.append(TrajClip(key=s["__key__"], item_id=meta["item_id"], frames=resize_frames(s["frames"], size_hw),
+                              trajectory=np.asarray(s["traj.npy"], np.float32),
+                              num_history_frames=int(meta["num_history_frames"]), fps_hz=float(meta["fps_hz"])))
+    return clips, counts
+
+
+def split_by_episode(clips: Sequence[TrajClip], heldout_fraction: float, seed: int = 0
+                     ) -> tuple[list[TrajClip], list[TrajClip]]:
+    """(train, held-out) with whole episodes on one side; episodes ordered by a seeded hash of their id."""
+    eps = sorted({c.item_id for c in clips}, key=lambda e: hashlib.sha256(f"{seed}\0{e}".encode()).hexdigest())
+    if len(eps) < 2:
+        raise ValueError(f"{len(clips)} clips from {len(eps)} episode(s): a split by episode needs at least 2")
+    k = min(len(eps) - 1, max(1, int(np.floor(heldout_fraction * len(eps) + 0.5))))
+    held = set(eps[:k])
+    return [c for c in clips if c.item_id not in held], [c for c in clips if c.item_id in held]
+
+
+def collate(clips: Sequence[TrajClip], cfg: IDMConfig) -> dict:
+    """``{"video": (B, T, 3, h, w) float [0, 1] (the model's window), "trajectory": (B, N, 3), "keys"}``."""
+    vids = []
+    for c in clips:
+        idx = cfg.frame_indices(c.num_history_frames, len(c.frames))
+        vids.append(torch.from_numpy(np.ascontiguousarray(c.frames[idx])).permute(0, 3, 1, 2))
+    return {"video": torch.stack(vids).float().div_(255.0),
+            "trajectory": torch.from_numpy(np.stack([c.trajectory for c in clips])),
+            "keys": [c.key for c in clips]}
+
+
+class ClipBatches:
+    """Re-iterable epochs of shuffled batches for ``Trainer.fit`` (epoch e shuffled with seed*1000 + e)."""
+
+    def __init__(self, clips: Sequence[TrajClip], cfg: IDMConfig, batch_size: int, seed: int):
+        self.clips, self.cfg, self.bs, self.seed, self.epoch = list(clips), cfg, batch_size, seed, 0
+
+    def __len__(self) -> int:
+        return -(-len(self.clips) // self.bs)
+
+    def __iter__(self) -> Iterator[dict]:
+        order = np.random.default_rng(self.seed * 1000 + self.epoch).permutation(len(self.clips))
+        self.epoch += 1
+        for i in range(0, len(order), self.bs):
+            yield collate([self.clips[j] for j in order[i:i + self.bs]], self.cfg)
+
+
+@torch.no_grad()
+def predict(model: InverseDynamicsModel, clips: Sequence[TrajClip], batch_size: int = 32) -> np.ndarray:
+    """(N, num_waypoints, 3) predicted trajectories."""
+    model.eval()
+    dev = next(model.parameters()).device
+    out = [model(collate(clips[i:i + batch_size], model.cfg)["video"].to(dev)).cpu()
+           for i in range(0, len(clips), batch_size)]
+    return torch.cat(out).numpy() if out else np.zeros((0, model.cfg.num_waypoints, 3), np.float32)
+
+
+def constant_velocity(gt: np.ndarray, waypoint_dt_s: float = 0.5) -> np.ndarray:
+    """CV baseline (see module docstring): straight ahead at the speed of the first recorded 0.5 s."""
+    gt = np.asarray(gt, np.float64)
+    v0 = np.linalg.norm(gt[:, 0, :2], axis=-1) / waypoint_dt_s                    # (B,)
+    t = waypoint_dt_s * np.arange(1, gt.shape[1] + 1)                              # (N,)
+    out = np.zeros_like(gt)
+    out[..., 0] = v0[:, None] * t[None]
+    return out
+
+
+def trajectory_errors(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """ADE (mean L2 over waypoints), FDE (L2 at the last waypoint), both in metres, and the mean absolute
+    yaw error in degrees; mean over clips, plus the number of clips."""
+    pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[-1] != 3:
+        raise ValueError(f"pred {pred.shape} and gt {gt.shape} must both be (B, N, 3)")
+    d = np.linalg.norm(pred[..., :2] - gt[..., :2], axis=-1)                       # (B, N)
+    dyaw = (pred[..., 2] - gt[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    return {"ade_m": float(d.mean()), "fde_m": float(d[:, -1].mean()),
+            "yaw_err_deg": float(np.rad2deg(np.abs(dyaw)).mean()), "n": int(len(pred))}
+
+
+def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False):
+    from resim.config import to_dict
+    from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
+
+    return RunConfig(
+        model_name="idm", model={"preset": tcfg.preset, **to_dict(tcfg.overrides)},
+        data=DataConfig(batch_size_per_gpu=tcfg.batch_size_per_gpu, load_frames=True, seed=tcfg.seed),
+        optim=OptimConfig(lr=tcfg.lr, weight_decay=tcfg.weight_decay, warmup_steps=min(tcfg.warmup_steps, steps - 1),
+                          schedule="cosine", min_lr_ratio=0.05, grad_clip_norm=1.0),
+        trainer=TrainerConfig(steps=steps, seed=tcfg.seed, parallel="none", tensorboard=False, progress_bar=progress,
+                              loss_curve_png=True, save_final_weights=True),
+        preset=f"idm-{tcfg.preset}", reference={"resim": "IDM: video -> 8 waypoints at 2 Hz (XVO backbone there)"})
+
+
+def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainConfig, run_dir: str | Path,
+        progress: bool = False) -> dict:
+    from training.trainer import Trainer
+
+    data = ClipBatches(clips, model.cfg, tcfg.batch_size_per_gpu, tcfg.seed)
+    steps = tcfg.epochs * len(data)
+    t0 = time.perf_counter()
+    summary = Trainer(model, run_config(tcfg, steps, progress), run_dir).fit(data)
+    model.eval()
+    return {**summary, "steps": steps, "seconds": time.perf_counter() - t0}
+
+
+def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsModel, dict]:
+    """Load a trained IDM/planner from a run folder (or its ``final/``), built through the registry."""
+    import yaml
+    from safetensors.torch import load_file
+
+    from training import registry
+
+    p = Path(run_dir)
+    d = next((c for c in (p, p / "final") if (c / "model.safetensors").is_file() and (c / "config.yaml").is_file()),
+             None)
+    if d is None:
+        raise FileNotFoundError(f"IDM checkpoint {p}: expected config.yaml + model.safetensors in it or in {p / 'final'}"
+                                " (written by `resim eval idm`)")
+    run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
+    if run_cfg.get("model_name") != "idm":
+        raise ValueError(f"{d}: model_name is {run_cfg.get('model_name')!r}, not an IDM run")
+    model = registry.build("idm", run_cfg.get("model") or {}, device="cpu")
+    model.load_state_dict(load_file(str(d / "model.safetensors")), strict=True)
+    sha = hashlib.sha256((d / "model.safetensors").read_bytes()).hexdigest()
+    return model.to(device).eval().requires_grad_(False), {"checkpoint": str(d), "weights_sha256": sha}
+
+
+def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path, progress: bool = False,
+                     clips: Sequence[TrajClip] | None = None) -> dict:
+    """Load, split by episode, train, evaluate held-out vs the CV baseline, write the report."""
+    from training.eval.report import plot_bars, write_json
+
+    mcfg = tcfg.model_cfg()
+    counts: dict = {}
+    if clips is None:
+        clips, counts = clips_from_dataset(root, mcfg.input_hw)
+    usable, skipped = [], []
+    for c in clips:
+        try:
+            mcfg.frame_indices(c.num_history_frames, len(c.frames))
+            usable.append(c)
+        except ValueError as e:
+            skipped.append({"key": c.key, "reason": str(e)})
+    train, held = split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed)
+    torch.manual_seed(tcfg.seed)
+    model = InverseDynamicsModel(mcfg)
+    out = Path(out_dir)
+    fitted = fit(model, train, tcfg, out, progress)
+    gt_h = np.stack([c.trajectory for c in held])
+    gt_t = np.stack([c.trajectory for c in train])
+    dt = held[0].waypoint_dt_s
+    res = {
+        "model": {"window": mcfg.window, "architecture": receptive_note(mcfg), "parameters": num_parameters(model),
+                  "config": {"preset": tcfg.preset, **tcfg.overrides}},
+        "heldout": {"idm" if mcfg.window == "future" else "planner": trajectory_errors(predict(model, held), gt_h),
+                    "constant_velocity": trajectory_errors(constant_velocity(gt_h, dt), gt_h)},
+        "train": {"model": trajectory_errors(predict(model, train), gt_t),
+                  "constant_velocity": trajectory_errors(constant_velocity(gt_t, dt), gt_t)},
+        "protocol": {"dataset": str(root), "clips_train": len(train), "clips_heldout": len(held),
+                     "episodes_train": len({c.item_id for c in train}),
+                     "episodes_heldout": len({c.item_id for c in held}),
+                     "heldout_items": sorted({c.item_id for c in held}), "split": "by episode (item_id), seeded hash",
+                     "split_seed": tcfg.split_seed, "skipped": skipped, **counts,
+                     "constant_velocity": "straight ahead at |waypoint_1| / 0.5 s (oracle initial speed)",
+                     "ade": "mean L2 over the 8 waypoints (x, y), metres; fde: L2 at 4.0 s",
+                     "device": str(next(model.parameters()).device)},
+        "training": {k: fitted[k] for k in ("steps", "seconds") if k in fitted},
+        "checkpoint": str(out / "final"),
+    }
+    write_json(res, out / "idm_report.json")
+    key = "idm" if mcfg.window == "future" else "planner"
+    plot_bars({"held-out ADE": {key: res["heldout"][key]["ade_m"], "constant velocity":
+                                res["heldout"]["constant_velocity"]["ade_m"]},
+               "held-out FDE": {key: res["heldout"][key]["fde_m"], "constant velocity":
+                                res["heldout"]["constant_velocity"]["fde_m"]}},
+              out / "idm_report.png", title=f"{key} ({len(held)} held-out clips, {res['protocol']['episodes_heldout']}"
+                                             " episodes)")
+    (out / "train_config.json").write_text(json.dumps({"preset": tcfg.preset, "overrides": tcfg.overrides,
+                                                        "epochs": tcfg.epochs, "lr": tcfg.lr,
+                                                        "batch_size_per_gpu": tcfg.batch_size_per_gpu,
+                                                        "seed": tcfg.seed, "split_seed": tcfg.split_seed}, indent=1))
+    res["_model"] = model
+    return res

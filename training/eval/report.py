@@ -1,0 +1,156 @@
+"""Writing evaluation reports: protocol text (printed with every number), JSON, and PNG plots.
+
+Every ``resim eval`` command writes ``DIR/<name>.json`` (the numbers *and* the protocol they were measured
+under) and ``DIR/<name>.png``, and prints the protocol before the numbers.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _plain(o: Any) -> Any:
+    import torch
+
+    if isinstance(o, dict):
+        return {str(k): _plain(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_plain(v) for v in o]
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, torch.Tensor):
+        return _plain(o.detach().cpu().numpy())
+    if isinstance(o, np.ndarray):
+        return _plain(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        f = float(o)
+        return f if math.isfinite(f) else str(f)   # JSON has no inf/nan
+    if isinstance(o, np.integer):
+        return int(o)
+    return o
+
+
+def write_json(obj: Any, path: str | Path) -> Path:
+    """Write atomically (tmp + rename) so a killed run never leaves half a report."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_suffix(p.suffix + ".tmp")
+    tmp.write_text(json.dumps(_plain(obj), indent=2, sort_keys=False))
+    tmp.replace(p)
+    return p
+
+
+def format_protocol(protocol: dict, indent: str = "  ") -> str:
+    lines = ["protocol:"]
+    for k, v in protocol.items():
+        if isinstance(v, dict):
+            lines.append(f"{indent}{k}:")
+            for k2, v2 in v.items():
+                lines.append(f"{indent * 2}{k2}: {v2}")
+        else:
+            lines.append(f"{indent}{k}: {v}")
+    return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def format_quality(report: dict) -> str:
+    """Protocol, then the per-horizon table, the overall numbers and the warnings."""
+    out = [format_protocol(report["protocol"]), "", "per horizon (future frames in (from, to] s):"]
+    rows = report["per_horizon"]
+    cols = [c for c in ("psnr", "ssim", "lpips", "dreamsim", "fid") if rows and c in rows[0]]
+    out.append("  " + "  ".join(f"{h:>10s}" for h in ["horizon", "frames", *cols]))
+    for r in rows:
+        vals = [f"{r['from_s']:g}-{r['horizon_s']:g} s", str(r["frames_per_clip"]), *[_fmt(r[c]) for c in cols]]
+        out.append("  " + "  ".join(f"{v:>10s}" for v in vals))
+    for r in report.get("fvd_per_horizon", []):
+        out.append(f"  FVD first {r['horizon_s']:g} s ({r['frames']} frames): {_fmt(r['fvd'])}")
+    out.append("overall (all future frames):")
+    for k, v in report["overall"].items():
+        if isinstance(v, dict):
+            v = ", ".join(f"{a}={_fmt(b)}" for a, b in v.items())
+        out.append(f"  {k}: {_fmt(v)}")
+    for w in report.get("warnings", []):
+        out.append(f"WARNING: {w}")
+    return "\n".join(out)
+
+
+def plot_quality(report: dict, path: str | Path, title: str = "") -> Path:
+    """One panel per metric: per-frame curves (PSNR/SSIM/LPIPS/DreamSim) with per-horizon means as steps,
+    FID per horizon bin, FVD per cumulative horizon."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pf = report["per_frame"]
+    panels = [m for m in ("psnr", "ssim", "lpips", "dreamsim") if m in pf]
+    has_fid = any(r.get("fid") is not None for r in report["per_horizon"])
+    has_fvd = any(r.get("fvd") is not None for r in report.get("fvd_per_horizon", []))
+    panels += (["fid"] if has_fid else []) + (["fvd"] if has_fvd else [])
+    n = max(len(panels), 1)
+    fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 3.0), dpi=110, squeeze=False)
+    for ax, m in zip(axes[0], panels):
+        if m in pf:
+            ax.plot(pf["time_s"], pf[m], ".-", lw=1, ms=3, label="per frame")
+            for r in report["per_horizon"]:
+                if r.get(m) is not None:
+                    ax.hlines(r[m], r["from_s"], r["horizon_s"], colors="tab:orange", lw=2)
+            ax.plot([], [], color="tab:orange", lw=2, label="horizon mean")
+            ax.legend(fontsize=6)
+        elif m == "fid":
+            xs = [r["horizon_s"] for r in report["per_horizon"] if r.get("fid") is not None]
+            ax.plot(xs, [r["fid"] for r in report["per_horizon"] if r.get("fid") is not None], "o-")
+        else:
+            rows = [r for r in report["fvd_per_horizon"] if r.get("fvd") is not None]
+            ax.plot([r["horizon_s"] for r in rows], [r["fvd"] for r in rows], "o-")
+        ax.set_xlabel("prediction horizon (s)")
+        ax.set_title(m.upper(), fontsize=9)
+        ax.grid(alpha=0.3)
+    proto = report["protocol"]
+    sub = f"{proto['clips']} clips, {proto.get('metric_resolution_hw')}"
+    if proto.get("placeholder_networks"):
+        sub += f"; PLACEHOLDER nets: {','.join(proto['placeholder_networks'])}"
+    fig.suptitle(f"{title}  ({sub})".strip(), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_bars(groups: dict[str, dict[str, float | None]], path: str | Path, title: str = "",
+              ylabel: str = "m") -> Path:
+    """Grouped bars: ``{"ADE": {"IDM": 0.4, "constant velocity": 1.2}, "FDE": {...}}``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(k for g in groups.values() for k in g))
+    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(groups) * max(len(names), 1) / 2, 3.2), dpi=110)
+    width = 0.8 / max(len(names), 1)
+    for j, name in enumerate(names):
+        xs = [i + j * width for i in range(len(groups))]
+        vals = [g.get(name) for g in groups.values()]
+        bars = ax.bar(xs, [v if v is not None else 0 for v in vals], width, label=name)
+        for b, v in zip(bars, vals):
+            ax.annotate("n/a" if v is None else f"{v:.3g}", (b.get_x() + b.get_width() / 2, b.get_height()),
+                        ha="center", va="bottom", fontsize=7)
+    ax.set_xticks([i + width * (len(names) - 1) / 2 for i in range(len(groups))], list(groups))
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)

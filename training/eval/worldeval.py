@@ -1,0 +1,246 @@
+"""World-model evaluations on held-out clips: controllability, planning, video quality (issue 10).
+
+All three roll the world model out with the sampler (``training.sampling.rollout``) from each clip's history
+latents, decode the latents with the VAE (``training.sampling.outputs.decode_rollout``) and compare with the
+clip's recorded frames / trajectory:
+
+* :func:`control_eval` (ReSim's *Trajectory Difference*): (a) conditioned on the clip's recorded trajectory
+  and command (expert action), (b) on the trajectory and command of another clip (non-expert action,
+  drawn from another episode with a seeded RNG); the IDM reads the trajectory off each generated video, the
+  report gives its L2 to the conditioning trajectory (mean over waypoints, and at 4 s), plus, when the
+  optical-flow labeler (``labeling``, issue 4) is importable, the share of generated videos whose flow
+  command equals the conditioning command. The IDM's error on the *recorded* video of the same clips is the
+  floor the generated numbers should be read against.
+* :func:`planning_eval` (ReSim's video-prediction policy): rollout with no trajectory and the null prompt
+  (no action condition), IDM on the predicted future → trajectory; baselines: the VO-style planner (the
+  IDM's architecture on history frames only) and constant velocity; ADE/FDE against the recorded future.
+* :func:`quality_eval`: rollouts under the recorded trajectory and command vs the recorded frames through
+  :class:`training.eval.quality.VideoQualityEvaluator` (history frames excluded), per horizon.
+
+Frames generated at the VAE's resolution are compared with ``frames.mp4`` after resizing both to the
+evaluation resolution (the protocol says which); the IDM resizes its input itself.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from training.eval.idm_train import constant_velocity, trajectory_errors
+
+
+@dataclass
+class EvalClip:
+    key: str
+    item_id: str
+    latents: np.ndarray           # (T_lat, C, h, w) float32, VAE latents x scaling factor
+    frames: np.ndarray            # (T, H, W, 3) uint8 RGB (frames.mp4)
+    trajectory: np.ndarray | None # (8, 3) float32
+    command: str | None
+    num_history_frames: int
+    fps_hz: float
+    vae_placeholder: bool
+
+
+def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = None, limit: int | None = None,
+                            need_trajectory: bool = True) -> list[EvalClip]:
+    """Clips of ``root`` (only those of episodes ``items`` when given; the first ``limit`` in key order)."""
+    from shards.reader import iter_samples
+
+    keep = set(items) if items is not None else None
+    out = []
+    for s in iter_samples(root, decode_video=True, attach_prompts=False):
+        m = s["meta.json"]
+        if keep is not None and m["item_id"] not in keep:
+            continue
+        if need_trajectory and "traj.npy" not in s:
+            continue
+        out.append(EvalClip(s["__key__"], m["item_id"], np.asarray(s["latent.npy"], np.float32), s["frames"],
+                            np.asarray(s["traj.npy"], np.float32) if "traj.npy" in s else None, m.get("command"),
+                            int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder"))))
+    out.sort(key=lambda c: c.key)
+    return out[:limit] if limit else out
+
+
+class WorldRollouts:
+    """Rolls the world model out for batches of clips and decodes the result to pixels.
+
+    ``text_for(command | None) -> (1, L, D)`` gives prompt embeddings (``None``: the prefix-only null prompt),
+    e.g. a ``training.sampling.load.PromptSource``.
+    """
+
+    def __init__(self, model: Any, vae: Any, rollout_cfg: Any, text_for: Callable[[str | None], torch.Tensor],
+                 device: str = "cpu", seed: int = 0, batch_size: int = 4):
+        self.model, self.vae, self.cfg, self.text_for = model, vae, rollout_cfg, text_for
+        self.device, self.seed, self.batch_size = device, seed, batch_size
+        self.rollouts = 0
+
+    def history_latents(self, clip: EvalClip) -> int:
+        return 1 + (clip.num_history_frames - 1) // 4
+
+    def generate(self, clips: Sequence[EvalClip], trajectories: Sequence[np.ndarray | None],
+                 commands: Sequence[str | None]) -> np.ndarray:
+        """Decoded videos ``(N, T, H, W, 3)`` uint8 (history then generated frames, the clip's length)."""
+        out = []
+        for i in range(0, len(clips), self.batch_size):
+            out.append(self._batch(clips[i:i + self.batch_size], trajectories[i:i + self.batch_size],
+                                   commands[i:i + self.batch_size], seed=self.seed + i))
+        return np.concatenate(out)
+
+    def _batch(self, clips, trajs, commands, seed: int) -> np.ndarray:
+        from training.sampling.outputs import decode_rollout
+        from training.sampling.rollout import Condition, rollout
+
+        h = self.history_latents(clips[0])
+        t_lat = clips[0].latents.shape[0]
+        if any(c.latents.shape[0] != t_lat or self.history_latents(c) != h for c in clips):
+            raise ValueError("clips of one batch must share their geometry")
+        hist = torch.from_numpy(np.stack([c.latents[:h] for c in clips])).to(self.device)
+        text = torch.cat([self.text_for(c) for c in commands]).to(self.device)
+        null = torch.cat([self.text_for(None) for _ in commands]).to(self.device)
+        if all(t is None for t in trajs):
+            traj = None
+        elif any(t is None for t in trajs):
+            raise ValueError("a batch mixes clips with and without a conditioning trajectory")
+        else:
+            traj = torch.from_numpy(np.stack(trajs)).float().to(self.device)
+        cond = Condition(text=text, null_text=null, trajectory=traj)
+        res = rollout(self.model, hist, cond, t_lat - h, self.cfg, seed=seed)
+        self.rollouts += len(clips)
+        return decode_rollout(self.vae, res.latents, res.num_history_frames, self.cfg.frames_per_round,
+                              self.cfg.history_frames)
+
+
+def _idm_on(idm, videos: np.ndarray, num_history_frames: int, batch_size: int = 16) -> np.ndarray:
+    """IDM trajectories ``(N, 8, 3)`` of whole videos ``(N, T, H, W, 3)`` uint8."""
+    dev = next(idm.parameters()).device
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(videos), batch_size):
+            v = torch.from_numpy(np.ascontiguousarray(videos[i:i + batch_size])).permute(0, 1, 4, 2, 3)
+            out.append(idm(idm.window(v, num_history_frames).to(dev)).cpu())
+    return torch.cat(out).numpy()
+
+
+def _l2(pred: np.ndarray, target: np.ndarray) -> dict:
+    """Trajectory Difference: L2 (x, y) between trajectories, mean over waypoints and at the last one (m)."""
+    e = trajectory_errors(pred, target)
+    return {"trajectory_difference_m": e["ade_m"], "trajectory_difference_final_m": e["fde_m"],
+            "yaw_difference_deg": e["yaw_err_deg"], "n": e["n"]}
+
+
+def flow_labeler_status() -> tuple[Any, str]:
+    """(FlowLabeler instance or None, reason)."""
+    try:
+        from labeling.config import preset as labeler_preset
+        from labeling.flow import FlowLabeler
+    except ImportError as e:
+        return None, f"the optical-flow labeler (labeling/, issue 4) is not importable on this branch: {e}"
+    return FlowLabeler(labeler_preset("default")), ""
+
+
+def command_accuracy(videos: np.ndarray, commands: Sequence[str | None], num_history_frames: int, fps_hz: float,
+                     labeler: Any) -> dict:
+    """Share of generated futures whose flow-labelled command equals the conditioning command."""
+    got = []
+    for v, c in zip(videos, commands):
+        if c is None:
+            continue
+        lab = labeler.label(list(v[num_history_frames - 1:]), fps_hz)
+        got.append((lab.command, c))
+    n = len(got)
+    return {"accuracy": (sum(a == b for a, b in got) / n) if n else None, "n": n,
+            "confusion": [{"conditioned": b, "labelled": a} for a, b in got]}
+
+
+def _other_clip_index(clips: Sequence[EvalClip], i: int, seed: int) -> int:
+    """A clip of another episode, chosen by a seeded hash (deterministic, independent of list order)."""
+    cands = [j for j, c in enumerate(clips) if c.item_id != clips[i].item_id and c.trajectory is not None]
+    if not cands:
+        raise ValueError("non-expert trajectories come from other episodes: the held-out set has only one")
+    return min(cands, key=lambda j: hashlib.sha256(f"{seed}\0{clips[i].key}\0{clips[j].key}".encode()).hexdigest())
+
+
+def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], seed: int = 0) -> dict:
+    clips = [c for c in clips if c.trajectory is not None]
+    if not clips:
+        raise ValueError("no held-out clips with a trajectory")
+    nh, fps = clips[0].num_history_frames, clips[0].fps_hz
+    expert_t = [c.trajectory for c in clips]
+    expert_c = [c.command for c in clips]
+    others = [_other_clip_index(clips, i, seed) for i in range(len(clips))]
+    non_t = [clips[j].trajectory for j in others]
+    non_c = [clips[j].command for j in others]
+    vid_e = runner.generate(clips, expert_t, expert_c)
+    vid_n = runner.generate(clips, non_t, non_c)
+    pred_e, pred_n = _idm_on(idm, vid_e, nh), _idm_on(idm, vid_n, nh)
+    gt_vid = np.stack([c.frames for c in clips])
+    pred_gt = _idm_on(idm, gt_vid, nh)
+    rep: dict[str, Any] = {
+        "expert": _l2(pred_e, np.stack(expert_t)),
+        "non_expert": _l2(pred_n, np.stack(non_t)),
+        "idm_on_recorded_video": _l2(pred_gt, np.stack(expert_t)),
+        "non_expert_vs_recorded_trajectory_m": _l2(np.stack(non_t), np.stack(expert_t))["trajectory_difference_m"],
+        "pairs": [{"clip": c.key, "non_expert_from": clips[j].key} for c, j in zip(clips, others)],
+    }
+    labeler, reason = flow_labeler_status()
+    if labeler is None:
+        rep["command_accuracy"] = f"not available: {reason}"
+    else:
+        rep["command_accuracy"] = {"expert": command_accuracy(vid_e, expert_c, nh, fps, labeler),
+                                   "non_expert": command_accuracy(vid_n, non_c, nh, fps, labeler),
+                                   "recorded_video": command_accuracy(gt_vid, expert_c, nh, fps, labeler)}
+    rep["_videos"] = {"expert": vid_e, "non_expert": vid_n}
+    return rep
+
+
+def planning_eval(runner: WorldRollouts, idm: Any, planner: Any | None, clips: Sequence[EvalClip],
+                  with_command: bool = False) -> dict:
+    clips = [c for c in clips if c.trajectory is not None]
+    if not clips:
+        raise ValueError("no held-out clips with a trajectory")
+    nh = clips[0].num_history_frames
+    gt = np.stack([c.trajectory for c in clips])
+    vids = runner.generate(clips, [None] * len(clips), [c.command if with_command else None for c in clips])
+    rep: dict[str, Any] = {"video_prediction_policy": trajectory_errors(_idm_on(idm, vids, nh), gt),
+                           "constant_velocity": trajectory_errors(constant_velocity(gt), gt),
+                           "idm_on_recorded_future": trajectory_errors(
+                               _idm_on(idm, np.stack([c.frames for c in clips]), nh), gt)}
+    if planner is not None:
+        if planner.cfg.window != "history":
+            raise ValueError("the VO-style planner must see history frames only (window='history')")
+        rep["vo_planner_history_only"] = trajectory_errors(
+            _idm_on(planner, np.stack([c.frames for c in clips]), nh), gt)
+    else:
+        rep["vo_planner_history_only"] = "not available: no planner checkpoint given"
+    rep["_videos"] = {"policy": vids}
+    return rep
+
+
+def quality_eval(runner: WorldRollouts, clips: Sequence[EvalClip], qcfg: Any, networks: Any = None) -> dict:
+    from training.eval.quality import VideoQualityEvaluator
+
+    ev = VideoQualityEvaluator(qcfg, networks)
+    for i in range(0, len(clips), runner.batch_size):
+        part = clips[i:i + runner.batch_size]
+        gen = runner.generate(part, [c.trajectory for c in part], [c.command for c in part])
+        gt = np.stack([c.frames for c in part])
+        g = torch.from_numpy(gen).permute(0, 1, 4, 2, 3)
+        r = torch.from_numpy(gt).permute(0, 1, 4, 2, 3)
+        if g.shape[1] != r.shape[1]:
+            raise ValueError(f"generated {g.shape[1]} frames, the clip has {r.shape[1]}")
+        if g.shape[-2:] != r.shape[-2:]:   # VAE resolution vs frames.mp4: bring generated to the GT's size
+            from training.eval.idm_train import resize_frames
+
+            g = torch.from_numpy(np.stack([resize_frames(v, tuple(r.shape[-2:])) for v in gen])).permute(0, 1, 4, 2, 3)
+        ev.update(g, r)
+    rep = ev.compute()
+    rep["protocol"]["generated_resize"] = ("generated frames resized from the VAE's resolution "
+                                           f"{tuple(gen.shape[2:4])} to the recorded frames' {tuple(gt.shape[1:3])} "
+                                           "(bilinear, antialias) before scoring"
+                                           if tuple(gen.shape[2:4]) != tuple(gt.shape[1:3]) else "none")
+    return rep
