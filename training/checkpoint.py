@@ -38,6 +38,8 @@ import torch
 import torch.distributed.checkpoint as dcp
 from torch.distributed.checkpoint import DefaultLoadPlanner, FileSystemReader, FileSystemWriter
 
+from shards.fsio import fsync_dir
+
 CHECKPOINTS = "checkpoints"
 _PREFIX = "step_"
 _TMP = ".tmp"
@@ -190,24 +192,11 @@ def save(run_dir: str | Path, step: int, state: dict[str, Any], *, rank_state: d
         if final.exists():  # the same step saved again (a resumed run re-reaching it): replace
             shutil.rmtree(final)
         os.replace(tmp, final)
-        _fsync_dir(final.parent)
+        fsync_dir(final.parent)
         for _, old in list_complete(run_dir)[:-keep]:
             shutil.rmtree(old, ignore_errors=True)
     barrier()
     return final
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def load(path: str | Path, state: dict[str, Any], *, rank: int) -> tuple[dict, dict | None]:
