@@ -1,0 +1,245 @@
+"""Run the pipeline: enumerate → (skip committed units) → prompts → cut → label → balance → encode → write.
+
+Two executors over the *same* stage classes:
+
+* ``ray`` (default): Ray Data over work units; every stage is an actor pool
+  (``compute=ActorPoolStrategy(size=ray.stages.<stage>.actors)``) with the CPUs/GPUs declared once in
+  ``ray.stages``; the encode and prompt pools get a GPU each when the cluster has GPUs
+  (``num_gpus: auto``). Starts an embedded local Ray when ``ray.address`` is null, joins a cluster
+  otherwise (or reuses a Ray already initialised in this process).
+* ``local``: a sequential loop, stage by stage, in this process (unit tests, debugging).
+
+Rows are unit states (JSON strings of paths and labels); only the encode stage touches pixels at
+training resolution, one clip-deep buffer at a time.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipelines import quarantine, resume
+from pipelines.config import PipelineConfig, to_dict
+from pipelines.units import dumps, loads, make_reader, new_state, source_specs
+from resim.config import ConfigError, save
+
+log = logging.getLogger("resim.pipeline")
+
+
+@dataclass
+class RunResult:
+    out: Path
+    stats: dict
+    enumerated: int
+    ran: int
+    skipped: int
+    wall_s: float
+    report_png: Path | None = None
+    extra: dict = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------- enumerate
+class EnumerateStage:
+    """Stage 1: the configured sources → one initial state per item (driver side; listing is cheap)."""
+
+    name = "enumerate"
+
+    def __init__(self, cfg: PipelineConfig):
+        self.cfg = cfg
+
+    def __call__(self) -> tuple[list[dict], list[dict]]:
+        from pipelines.sources.episode import SourceError
+
+        states, bad = [], []
+        for spec in source_specs(self.cfg):
+            try:
+                items = make_reader(spec).list_items()
+            except SourceError as e:   # e.g. an unreadable results file: the whole source is unusable
+                bad.append({"item": spec.root, "unit_id": f"_source-{spec.origin.replace('/', '-')}",
+                            "source": spec.origin, "stage": self.name, "status": "quarantined",
+                            "reason": f"{e.item}: {e.reason}", "attempts": 1})
+                continue
+            if spec.max_items is not None:
+                items = items[:spec.max_items]
+            states.extend(new_state(spec, item) for item in items)
+        ids = [s["unit_id"] for s in states]
+        if len(set(ids)) != len(ids):
+            raise RuntimeError("two work units share an id")   # our bug (unit ids hash kind + item id)
+        return states, bad
+
+
+def ensure_synthetic(cfg: PipelineConfig) -> None:
+    """Generate the synthetic world into ``sources.synthetic.root`` unless one is already there."""
+    s = cfg.sources.synthetic
+    if s.root is None:
+        return
+    root = Path(s.root)
+    if any((root / f).exists() for f in ("ground_truth.json", "ground_truth.parquet")):
+        return
+    from pipelines.sources.synth import generate
+
+    log.info("generating a synthetic world (%d episodes, seed %d) in %s", s.episodes, s.seed, root)
+    generate(root, episodes=s.episodes, seed=s.seed)
+
+
+# ------------------------------------------------------------------------------------- executors
+def _gpus(res, have_gpu: bool) -> float:
+    if res.num_gpus == "auto":
+        return 1.0 if have_gpu else 0.0
+    return float(res.num_gpus)
+
+
+def init_ray(cfg: PipelineConfig) -> bool:
+    """Start or join Ray; returns True when this call started it (and so should shut it down)."""
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    import ray
+
+    if ray.is_initialized():
+        return False
+    kw = dict(include_dashboard=False, log_to_driver=True, logging_level=logging.ERROR,
+              configure_logging=True)
+    if cfg.ray.address:
+        ray.init(address=cfg.ray.address, logging_level=logging.ERROR,
+                 runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path[:1] + [str(Path.cwd())])}})
+    else:
+        # workers inherit this environment; make sure they can import our packages from the checkout
+        repo = str(Path(__file__).resolve().parents[1])
+        pp = os.environ.get("PYTHONPATH", "")
+        if repo not in pp.split(os.pathsep):
+            os.environ["PYTHONPATH"] = os.pathsep.join([repo] + ([pp] if pp else []))
+        ray.init(num_cpus=cfg.ray.num_cpus, **kw)
+    return True
+
+
+def _quiet_ray_data(progress: bool) -> None:
+    import ray.data
+
+    ctx = ray.data.DataContext.get_current()
+    ctx.enable_progress_bars = progress
+    ctx.print_on_execution_start = False
+    for name in ("ray.data", "ray"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+
+
+def run_prompts_ray(cfg: PipelineConfig, have_gpu: bool) -> list[str]:
+    import ray
+
+    from pipelines.stages.prompts import PromptStage, all_prompts
+
+    res = cfg.ray.stages.prompts
+    texts = all_prompts()
+    ds = ray.data.from_items([{"text": t, "role": r} for t, r in texts], override_num_blocks=1)
+    ds = ds.map_batches(PromptStage, fn_constructor_kwargs={"cfg": to_dict(cfg)}, batch_size=len(texts),
+                        compute=ray.data.ActorPoolStrategy(size=1), num_cpus=res.num_cpus,
+                        num_gpus=_gpus(res, have_gpu))
+    return [r["prompt_id"] for r in ds.take_all()]
+
+
+def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_done) -> None:
+    import ray
+
+    from pipelines.stages import UNIT_STAGES
+
+    if not states:
+        return
+    cfg_dict = to_dict(cfg)
+    ds = ray.data.from_items([{"unit": dumps(s)} for s in states], override_num_blocks=len(states))
+    for name, cls in UNIT_STAGES:
+        res = getattr(cfg.ray.stages, name)
+        ds = ds.map_batches(cls, fn_constructor_kwargs={"cfg": cfg_dict}, batch_size=1, batch_format="numpy",
+                            compute=ray.data.ActorPoolStrategy(size=res.actors), num_cpus=res.num_cpus,
+                            num_gpus=_gpus(res, have_gpu))
+    for row in ds.iter_rows():
+        on_done(loads(row["unit"]))
+
+
+def run_prompts_local(cfg: PipelineConfig) -> list[str]:
+    from pipelines.stages.prompts import PromptStage, all_prompts
+
+    texts = all_prompts()
+    out = PromptStage(cfg)({"text": [t for t, _ in texts], "role": [r for _, r in texts]})
+    return list(out["prompt_id"])
+
+
+def run_units_local(cfg: PipelineConfig, states: list[dict], on_done, progress: bool = True) -> None:
+    from tqdm import tqdm
+
+    from pipelines.stages import UNIT_STAGES
+
+    for name, cls in UNIT_STAGES:
+        stage = cls(cfg)
+        states = [stage.run_one(s) for s in tqdm(states, desc=f"{name:>8}", disable=not progress, unit="unit")]
+    for s in states:
+        on_done(s)
+
+
+# ------------------------------------------------------------------------------------------- run
+def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
+    """Create OUT, refuse to mix two configs in one dataset, save the resolved config."""
+    from pipelines.stages.encode import data_config_hash
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = out / "config_hash.txt"
+    h = data_config_hash(cfg)
+    if stamp.exists() and stamp.read_text().strip() != h and not force:
+        raise ConfigError(f"out: {out} already holds a dataset made with a different config "
+                          f"(data hash {stamp.read_text().strip()} != {h}); use another --out (or --force)")
+    save(cfg, out / "config.yaml")
+    stamp.write_text(h + "\n")
+    return out
+
+
+def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = None) -> RunResult:
+    from pipelines import report
+
+    t0 = time.perf_counter()
+    progress = cfg.ray.progress_bars if progress is None else progress
+    out = prepare_out(cfg, force)
+    ensure_synthetic(cfg)
+    states, bad_sources = EnumerateStage(cfg)()
+    quarantine.write_rows(out, "_enumerate", bad_sources)
+    todo, skipped = resume.plan(states, resume.read_markers(out), cfg.quarantine.retry_quarantined)
+    log.info("%d units enumerated, %d already committed, %d to run", len(states), len(skipped), len(todo))
+    done: list[dict] = []
+
+    started = False
+    cpus = 1.0
+    if cfg.ray.executor == "ray":
+        started = init_ray(cfg)
+        try:
+            import ray
+
+            _quiet_ray_data(progress)
+            have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
+            cpus = float(ray.cluster_resources().get("CPU", 1.0))
+            run_prompts_ray(cfg, have_gpu)
+            run_units_ray(cfg, todo, have_gpu, done.append)
+        finally:
+            if started:
+                import ray
+
+                ray.shutdown()
+    else:
+        run_prompts_local(cfg)
+        run_units_local(cfg, todo, done.append, progress)
+
+    wall = time.perf_counter() - t0
+    markers = resume.read_markers(out)
+    enumerated_ids = {s["unit_id"] for s in states}
+    stats = report.compute_stats(out, [m for uid, m in markers.items() if uid in enumerated_ids],
+                                 this_run={"units_run": len(todo), "units_skipped": len(skipped), "wall_s": wall,
+                                           "executor": cfg.ray.executor,
+                                           "clips_written": sum((d.get("written") or {}).get("num_samples", 0)
+                                                                for d in done),
+                                           "cpus": cpus},
+                                 cfg=cfg)
+    report.write_stats(out, stats)
+    png = report.write_report_png(out, stats)
+    return RunResult(out=out, stats=stats, enumerated=len(states), ran=len(todo), skipped=len(skipped),
+                     wall_s=wall, report_png=png)
+
