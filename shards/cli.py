@@ -1,8 +1,27 @@
-"""`resim shards ...`: inspect WebDataset shard datasets. Imports only numpy/pyarrow/webdataset."""
+"""`resim shards ...`: inspect WebDataset shard datasets. Imports only numpy/pyarrow/webdataset
+(preview also needs matplotlib and OpenCV, imported in its handler)."""
 from __future__ import annotations
 
 import argparse
 import json
+import sys
+
+DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
+
+STATS_EPILOG = """\
+--json prints one JSON object with these keys:
+  root, num_shards, num_samples, shard_bytes, uncommitted_shards, schema_versions, config_hashes
+  by_source, by_command, by_command_source, by_hazard ("true"/"false"/"null"), by_source_command
+  turning_share            fraction of samples whose command is not "Moving forward"
+  quarantine               {num_items, by_source, by_stage, by_reason, items[:20]} from DIR/quarantine/*.parquet
+  bytes_per_sample         mean bytes per member (meta.json, latent.npy, traj.npy, frames.mp4, dino.npy),
+                           tar_overhead, in_shards, prompt_table_amortised, total
+  member_presence          samples carrying each member
+  latent                   {shapes: {"TxCxhxw": n}, dtypes: {name: n}}
+  prompt_table             {num_prompts, bytes, entries: [{id, role, command, text, shape, dtype, encoder_id,
+                           placeholder, num_tokens, bytes}]}
+(see shards/stats.py and docs/data_format.md)
+"""
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:
@@ -12,13 +31,179 @@ def _cmd_schema(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ls(args) -> int:
+    from shards import layout
+    from shards.manifest import read_indexes
+
+    indexes = read_indexes(args.dir)
+    committed = {i["shard"] for i in indexes}
+    rows = [{"shard": i["shard"], "num_samples": i["num_samples"], "bytes": i["bytes"],
+             "committed": True, "sha256": i["sha256"]} for i in indexes]
+    rows += [{"shard": p.name, "num_samples": None, "bytes": p.stat().st_size, "committed": False, "sha256": None}
+             for p in layout.all_shard_files(args.dir) if p.name not in committed]
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    if not rows:
+        print(f"no shards in {args.dir}")
+        return 0
+    print(f"{'shard':<48} {'samples':>8} {'MiB':>9}")
+    for r in rows:
+        n = r["num_samples"] if r["committed"] else "(uncommitted)"
+        print(f"{r['shard']:<48} {n!s:>8} {r['bytes'] / 2**20:9.2f}")
+    tot = sum(r["num_samples"] or 0 for r in rows)
+    print(f"{len(rows)} shards, {tot} samples, {sum(r['bytes'] for r in rows) / 2**20:.2f} MiB")
+    return 0
+
+
+def _cmd_stats(args) -> int:
+    from shards.stats import compute_stats, format_stats
+
+    st = compute_stats(args.dir)
+    print(json.dumps(st, indent=1, default=str) if args.json else format_stats(st))
+    return 0
+
+
+def _describe(v):
+    import numpy as np
+
+    if isinstance(v, np.ndarray):
+        return {"shape": list(v.shape), "dtype": str(v.dtype)}
+    if isinstance(v, (bytes, bytearray)):
+        return {"bytes": len(v)}
+    return None
+
+
+def _cmd_show(args) -> int:
+    from shards.reader import find_sample
+
+    try:
+        s = find_sample(args.dir, args.key, latent_as="stored", attach_prompts=True)
+    except KeyError as e:
+        print(f"error: {e.args[0]}", file=sys.stderr)
+        return 1
+    fields = {k: _describe(v) for k, v in s.items() if not k.startswith("__") and k != "meta.json"}
+    if "latent.npy" in fields and s["meta.json"]["latent_dtype"] == "bfloat16":
+        fields["latent.npy"]["note"] = "bfloat16 stored as uint16 bits"
+    from shards.prompts import PromptTable
+
+    table = PromptTable(args.dir)
+    for field, pid in (("prompt_embedding", s["meta.json"]["prompt_id"]),
+                       ("null_prompt_embedding", s["meta.json"]["null_prompt_id"])):
+        info = table.info(pid)
+        fields[field].update(stored_dtype=info["dtype"], text=info["text"], prompt_id=pid)
+    out = {"key": s["__key__"], "shard": s["__url__"], "meta": s["meta.json"], "fields": fields}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    print(f"key   {out['key']}\nshard {out['shard']}\nmeta:")
+    for k, v in out["meta"].items():
+        print(f"  {k:<24} {v}")
+    print("fields:")
+    for k, v in fields.items():
+        print(f"  {k:<24} {v}")
+    return 0
+
+
+def _cmd_verify(args) -> int:
+    from shards.verify import verify
+
+    progress = None
+    if not args.quiet:
+        progress = lambda shard: print(f"checking {shard}", file=sys.stderr)  # noqa: E731
+    problems = verify(args.dir, decode_video=not args.no_video, progress=progress)
+    for p in problems:
+        print(p)
+    if problems:
+        print(f"verify: {len(problems)} problem(s) in {args.dir}", file=sys.stderr)
+        return 1
+    print(f"verify: OK ({args.dir})")
+    return 0
+
+
+def _cmd_preview(args) -> int:
+    import random
+    from pathlib import Path
+
+    from shards.manifest import read_manifest
+    from shards.preview import render_preview
+    from shards.reader import find_sample
+
+    if bool(args.key) == bool(args.random):
+        print("error: give either KEY or --random N", file=sys.stderr)
+        return 2
+    if args.key:
+        keys = [args.key]
+        outs = [Path(args.out or f"preview-{args.key}.png")]
+    else:
+        all_keys = read_manifest(args.dir)["key"].to_pylist()
+        if not all_keys:
+            print(f"error: no samples in {args.dir}", file=sys.stderr)
+            return 1
+        keys = random.Random(args.seed).sample(all_keys, min(args.random, len(all_keys)))
+        folder = Path(args.out or "previews")
+        outs = [folder / f"{k}.png" for k in keys]
+    for k, o in zip(keys, outs):
+        try:
+            s = find_sample(args.dir, k, decode_video=True, attach_prompts=False)
+        except KeyError as e:
+            print(f"error: {e.args[0]}", file=sys.stderr)
+            return 1
+        print(render_preview(s, o))
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "shards",
         help="inspect shard datasets (ls, stats, show, verify, preview, schema)",
-        description="Inspect a resim shard dataset (a folder with shards/, index/, manifest/, prompts/).",
+        description="Inspect a resim shard dataset (a folder with shards/, index/, manifest/, prompts/). "
+        "The format is described in docs/data_format.md; `resim shards schema` prints it as JSON.",
     )
     sub = p.add_subparsers(dest="shards_command", metavar="SUBCOMMAND")
+
+    s = sub.add_parser("ls", help="list shards with sample counts and sizes",
+                       description="List shards with sample counts and sizes (uncommitted shards are marked).")
+    s.add_argument("dir", help=DATASET_HELP)
+    s.add_argument("--json", action="store_true", help="one JSON list of {shard, num_samples, bytes, committed, sha256}")
+    s.set_defaults(func=_cmd_ls)
+
+    s = sub.add_parser("stats", help="totals by source/command/hazard, bytes per sample, prompt table",
+                       description="Totals by source, command and hazard; turning share; quarantined items; bytes "
+                       "per sample split by member (prompt table amortised); latent shape/dtype; prompt table. "
+                       "Reads manifests and indexes only (fast).",
+                       epilog=STATS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("dir", help=DATASET_HELP)
+    s.add_argument("--json", action="store_true", help="print one machine-readable JSON object (keys below)")
+    s.set_defaults(func=_cmd_stats)
+
+    s = sub.add_parser("show", help="one sample's metadata and field shapes",
+                       description="Print one sample's metadata and the shape/dtype/size of each member.")
+    s.add_argument("dir", help=DATASET_HELP)
+    s.add_argument("key", help="sample key (see `resim shards ls`/the manifest)")
+    s.add_argument("--json", action="store_true", help="print {key, shard, meta, fields} as JSON")
+    s.set_defaults(func=_cmd_show)
+
+    s = sub.add_parser("verify", help="check shards against indexes, samples against the schema; exit 1 on problems",
+                       description="Check every shard against its index (sha256, size, counts, keys), that every "
+                       "sample decodes and matches the schema, frames.mp4 decodes to the declared frames, every "
+                       "prompt reference resolves, and no writer left temporary/uncommitted files. Prints one line "
+                       "per problem naming shard and key. Exit status 0 only when everything holds, else 1.")
+    s.add_argument("dir", help=DATASET_HELP)
+    s.add_argument("--no-video", action="store_true", help="skip decoding frames.mp4 (faster)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no per-shard progress on stderr")
+    s.set_defaults(func=_cmd_verify)
+
+    s = sub.add_parser("preview", help="PNG contact sheet of a sample (frames, command, heading, trajectory)",
+                       description="Write a PNG contact sheet of a sample's frames with its command, heading change "
+                       "and trajectory (top-down inset). Needs matplotlib and OpenCV.")
+    s.add_argument("dir", help=DATASET_HELP)
+    s.add_argument("key", nargs="?", help="sample key (or use --random N)")
+    s.add_argument("--random", type=int, metavar="N", help="preview N random samples instead of KEY")
+    s.add_argument("--seed", type=int, default=0, help="seed for --random (default 0)")
+    s.add_argument("--out", help="PNG path for KEY (default preview-KEY.png); folder for --random (default previews/)")
+    s.set_defaults(func=_cmd_preview)
+
     s = sub.add_parser("schema", help="print the sample schema (members, metadata fields) as JSON")
     s.set_defaults(func=_cmd_schema)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])

@@ -1,0 +1,62 @@
+"""Read a dataset's manifests (one Parquet row per sample) and indexes (one JSON per shard) without opening tars."""
+from __future__ import annotations
+
+import json
+
+from shards import layout
+from shards.schema import MANIFEST_COLUMNS
+
+
+def read_manifest(root, committed_only: bool = True):
+    """All manifest rows as one ``pyarrow.Table`` (columns ``MANIFEST_COLUMNS``; empty table if none).
+
+    With ``committed_only``, rows of shards without an index (an interrupted writer) are left out.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from shards.writer import manifest_schema
+
+    d = layout.manifest_dir(root)
+    tables = []
+    for p in sorted(d.glob("*.parquet")) if d.is_dir() else []:
+        if p.name.startswith("."):
+            continue
+        if committed_only and not layout.index_path(root, p.stem + ".tar").is_file():
+            continue
+        tables.append(pq.read_table(p).select(list(MANIFEST_COLUMNS)).cast(manifest_schema()))
+    if not tables:
+        return manifest_schema().empty_table()
+    return pa.concat_tables(tables)
+
+
+def read_indexes(root) -> list[dict]:
+    """Every ``index/*.json``, sorted by shard name."""
+    d = layout.index_dir(root)
+    out = []
+    for p in sorted(d.glob("*.json")) if d.is_dir() else []:
+        if not p.name.startswith("."):
+            with open(p) as fh:
+                out.append(json.load(fh))
+    return out
+
+
+def read_quarantine(root):
+    """``DIR/quarantine/*.parquet`` concatenated (columns item, source, stage, reason, attempts), or None."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    d = layout.quarantine_dir(root)
+    files = sorted(p for p in d.glob("*.parquet") if not p.name.startswith(".")) if d.is_dir() else []
+    if not files:
+        return None
+    return pa.concat_tables([pq.read_table(p) for p in files], promote_options="default")
+
+
+def shard_of_key(root, key: str) -> str | None:
+    """The shard file name holding ``key``, from the manifest (None if not listed)."""
+    import pyarrow.compute as pc
+
+    t = read_manifest(root)
+    hit = t.filter(pc.equal(t["key"], key))
+    return hit["shard"][0].as_py() if hit.num_rows else None

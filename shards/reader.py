@@ -1,0 +1,227 @@
+"""Reading shards: safe per-sample decoding, local iteration, and WebDataset training streams.
+
+A shard is untrusted input. Only the schema's encodings are decoded (JSON, npy
+with ``allow_pickle=False``, mp4 through OpenCV on demand); a sample carrying a
+member whose extension names a code-executing decoder (``FORBIDDEN_EXTENSIONS``:
+``.pyd``, ``.pickle``, ``.pth``, ...) raises :class:`ForbiddenMemberError` naming
+the shard and key. Members outside the schema are passed through as raw bytes.
+
+Latents and prompt embeddings come back as exact float32 by default
+(``latent_as="float32"``; float16 and bfloat16 both widen exactly), or as stored
+(``latent_as="stored"``: float16, or uint16 bit patterns for bfloat16 — see
+``shards.npy.bf16_bits_to_torch``).
+"""
+from __future__ import annotations
+
+import json
+import re
+import tarfile
+from functools import partial
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from shards import layout
+from shards.npy import decode_npy, stored_to_float32
+from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS
+from shards.validate import is_forbidden_ext
+
+_BASE_PLUS_EXT = re.compile(r"^((?:.*/|)[^.]+)[.]([^/]*)$")  # the same split WebDataset uses
+LATENT_AS = ("float32", "stored")
+
+
+class ShardReadError(ValueError):
+    """A shard cannot be read (truncated, not a tar, malformed grouping)."""
+
+
+class ForbiddenMemberError(ShardReadError):
+    """A shard carries a member in a code-executing format (pickle and friends)."""
+
+
+def split_member_name(name: str) -> tuple[str | None, str | None]:
+    """``"dir/KEY.meta.json" -> ("dir/KEY", "meta.json")`` exactly as WebDataset groups members."""
+    m = _BASE_PLUS_EXT.match(name)
+    return (m.group(1), m.group(2)) if m else (None, None)
+
+
+def check_members(raw: dict, shard: str | None = None) -> None:
+    """Raise :class:`ForbiddenMemberError` if ``raw`` has a member with a forbidden extension."""
+    for ext in raw:
+        if not ext.startswith("__") and is_forbidden_ext(ext):
+            key = raw.get("__key__")
+            where = shard or raw.get("__url__") or "<unknown shard>"
+            raise ForbiddenMemberError(
+                f"shard {where}: sample {key!r} carries member '{key}.{ext}', a code-executing format "
+                f"(forbidden: {', '.join(FORBIDDEN_EXTENSIONS)}); refusing this shard")
+
+
+def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "float32") -> dict:
+    """Decode one raw WebDataset sample (``{"__key__", "meta.json": bytes, ...}``) with the schema's decoders.
+
+    Returns the same keys with decoded values (``frames.mp4`` stays bytes); with
+    ``decode_video`` also ``"frames"``: (T, H, W, 3) uint8 RGB.
+    """
+    if latent_as not in LATENT_AS:
+        raise ValueError(f"latent_as must be one of {LATENT_AS}, got {latent_as!r}")
+    check_members(raw)
+    out: dict = {}
+    where = f"shard {raw.get('__url__', '?')} sample {raw.get('__key__')!r}"
+    for ext, value in raw.items():
+        if ext.startswith("__"):
+            out[ext] = value
+            continue
+        m = MEMBERS.get(ext)
+        if m is None:
+            out[ext] = value  # not in the schema: left as bytes, never decoded
+            continue
+        try:
+            if m.encoding == "json":
+                out[ext] = json.loads(bytes(value).decode("utf-8"))
+            elif m.encoding == "npy":
+                out[ext] = decode_npy(value)
+            else:
+                out[ext] = bytes(value)
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ShardReadError(f"{where}: member {ext} cannot be decoded: {e}") from e
+    if latent_as == "float32" and isinstance(out.get("latent.npy"), np.ndarray):
+        dtype = (out.get("meta.json") or {}).get("latent_dtype", out["latent.npy"].dtype.name)
+        out["latent.npy"] = stored_to_float32(out["latent.npy"], dtype)
+    if decode_video and "frames.mp4" in out:
+        from shards.video import decode_mp4
+
+        out["frames"] = decode_mp4(out["frames.mp4"])
+    return out
+
+
+# ---- local reading --------------------------------------------------------------------------------
+def iter_raw_shard(path) -> Iterator[dict]:
+    """Raw samples of one tar, grouped like WebDataset; refuses the shard up front if any member is forbidden."""
+    path = Path(path)
+    try:
+        with tarfile.open(path, "r:") as tar:
+            members = tar.getmembers()  # headers only: check the whole shard before yielding anything
+            for ti in members:
+                key, ext = split_member_name(ti.name)
+                if ti.isfile() and ext and is_forbidden_ext(ext.lower()):
+                    raise ForbiddenMemberError(
+                        f"shard {path}: sample {key!r} carries member '{ti.name}', a code-executing format "
+                        f"(forbidden: {', '.join(FORBIDDEN_EXTENSIONS)}); refusing this shard")
+            cur: dict | None = None
+            for ti in members:
+                if not ti.isfile():
+                    continue
+                key, ext = split_member_name(ti.name)
+                if key is None or Path(key).name.startswith("__"):
+                    continue  # WebDataset skips these too
+                ext = ext.lower()
+                if cur is None or cur["__key__"] != key:
+                    if cur is not None:
+                        yield cur
+                    cur = {"__key__": key, "__url__": str(path)}
+                if ext in cur:
+                    raise ShardReadError(f"shard {path}: sample {key!r} has member {ext} twice")
+                fh = tar.extractfile(ti)
+                data = fh.read()
+                if len(data) != ti.size:
+                    raise ShardReadError(f"shard {path}: member {ti.name} is truncated")
+                cur[ext] = data
+            if cur is not None:
+                yield cur
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise ShardReadError(f"shard {path}: cannot read the tar: {e}") from e
+
+
+class PromptAttacher:
+    """Adds ``prompt_embedding`` and ``null_prompt_embedding`` from the dataset's prompt table (cached)."""
+
+    def __init__(self, root, latent_as: str = "float32"):
+        self.root = str(root)
+        self.as_float32 = latent_as == "float32"
+        self._table = None
+
+    def __call__(self, sample: dict) -> dict:
+        from shards.prompts import PromptTable
+
+        if self._table is None:  # opened lazily, so the attacher pickles cheaply into workers
+            self._table = PromptTable(self.root)
+        meta = sample["meta.json"]
+        sample["prompt_embedding"] = self._table.get(meta["prompt_id"], as_float32=self.as_float32)
+        sample["null_prompt_embedding"] = self._table.get(meta["null_prompt_id"], as_float32=self.as_float32)
+        return sample
+
+
+def iter_samples(root, *, decode_video: bool = False, latent_as: str = "float32", attach_prompts: bool = True,
+                 shards: Iterable | None = None) -> Iterator[dict]:
+    """Decoded samples of every committed shard of dataset ``root`` (or of the given shard paths), in order."""
+    paths = [Path(s) for s in shards] if shards is not None else layout.committed_shards(root)
+    attach = PromptAttacher(root, latent_as) if attach_prompts else None
+    for p in paths:
+        for raw in iter_raw_shard(p):
+            s = decode_sample(raw, decode_video=decode_video, latent_as=latent_as)
+            yield attach(s) if attach else s
+
+
+def find_sample(root, key: str, **kw) -> dict:
+    """One decoded sample by key (finds its shard through the manifest, else scans)."""
+    from shards.manifest import shard_of_key
+
+    shard = shard_of_key(root, key)
+    paths = [layout.shards_dir(root) / shard] if shard else None
+    for s in iter_samples(root, shards=paths, **kw):
+        if s["__key__"] == key:
+            return s
+    raise KeyError(f"no sample with key {key!r} in {root}")
+
+
+# ---- training streams -----------------------------------------------------------------------------
+def shard_urls(root) -> list[str]:
+    """Paths of the committed shards of a dataset folder, for ``make_webdataset``."""
+    return [str(p) for p in layout.committed_shards(root)]
+
+
+def _decode_checked(raw: dict, decode_video: bool, latent_as: str) -> dict:
+    return decode_sample(raw, decode_video=decode_video, latent_as=latent_as)
+
+
+def make_webdataset(urls, *, shardshuffle: int | bool = False, shuffle_samples: int = 0, resampled: bool = False,
+                    nodesplitter=None, workersplitter=None, empty_check: bool = False, seed: int | None = None,
+                    decode_video: bool = False, latent_as: str = "float32", prompts_root=None, handler=None):
+    """A ``webdataset.WebDataset`` stream of decoded samples for training.
+
+    Args:
+        urls: a dataset folder (its committed shards are used), or shard paths/URLs (list or brace pattern).
+        shardshuffle: shard-order shuffle buffer (False: keep order).
+        shuffle_samples: sample shuffle buffer (0: none).
+        resampled: sample shards with replacement forever (for fixed-step training; shardshuffle is ignored).
+        nodesplitter: defaults to ``wds.split_by_node`` (each rank gets a disjoint slice of shards under DDP).
+        workersplitter: defaults to ``wds.split_by_worker`` (DataLoader workers split a rank's shards).
+        empty_check: WebDataset raises when a worker gets no shards if True; False lets fewer shards than
+            workers through.
+        prompts_root: attach prompt embeddings from this dataset's prompt table in the stream. Leave None in
+            multi-worker loaders and look embeddings up by ``meta.prompt_id`` in the main process
+            (``PromptTable.get`` caches them), so 1-4 MB arrays do not travel through worker queues per sample.
+        handler: WebDataset exception handler (default: re-raise).
+    """
+    import webdataset as wds
+
+    if isinstance(urls, (str, Path)) and Path(urls).is_dir():
+        urls = shard_urls(urls)
+        if not urls:
+            raise ShardReadError("no committed shards (shards/*.tar with an index) in the given folder")
+    ds = wds.WebDataset(
+        urls,
+        handler=handler or wds.reraise_exception,
+        resampled=resampled,
+        shardshuffle=False if resampled else shardshuffle,
+        nodesplitter=nodesplitter or wds.split_by_node,
+        workersplitter=workersplitter or wds.split_by_worker,
+        empty_check=empty_check,
+        seed=seed,
+    )
+    if shuffle_samples:
+        ds = ds.shuffle(shuffle_samples)
+    ds = ds.map(partial(_decode_checked, decode_video=decode_video, latent_as=latent_as))
+    if prompts_root is not None:
+        ds = ds.map(PromptAttacher(prompts_root, latent_as))
+    return ds

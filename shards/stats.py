@@ -1,0 +1,151 @@
+"""``stats``: what a dataset holds, from manifests, indexes, the prompt table and quarantine (no tar is opened).
+
+Keys of the returned dict (also ``resim shards stats --json``):
+
+* ``root``; ``num_shards``; ``num_samples``; ``shard_bytes`` (sum of tar sizes);
+  ``uncommitted_shards`` (tars without index, not counted elsewhere);
+  ``schema_versions``, ``config_hashes`` (distinct values over indexes).
+* ``by_source``, ``by_command``, ``by_command_source``: sample counts;
+  ``by_hazard``: counts under ``"true"``/``"false"``/``"null"`` (null: source has no outcomes);
+  ``by_source_command``: ``{source: {command: count}}``.
+* ``turning_share``: fraction of samples whose command is not "Moving forward" (null if no samples).
+* ``quarantine``: ``num_items``, ``by_source``, ``by_stage``, ``by_reason`` (top 20), ``items`` (first 20 rows:
+  item, source, stage, reason, attempts); ``num_items`` 0 when ``DIR/quarantine`` is absent.
+* ``bytes_per_sample``: mean bytes per sample for each member (``meta.json``, ``latent.npy``, ``traj.npy``,
+  ``frames.mp4``, ``dino.npy``; samples without an optional member count 0), ``tar_overhead`` (headers and
+  padding), ``in_shards`` (tar bytes / samples), ``prompt_table_amortised`` (prompt table bytes / samples) and
+  ``total`` (in_shards + prompt_table_amortised).
+* ``member_presence``: how many samples carry each member.
+* ``latent``: ``shapes`` (``"TxCxhxw"`` -> count) and ``dtypes`` (-> count).
+* ``prompt_table``: ``num_prompts``, ``bytes`` (embedding files + prompts.json), ``entries`` (id, role, command,
+  text, shape, dtype, encoder_id, placeholder, num_tokens, bytes).
+"""
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+from shards import layout
+from shards.manifest import read_indexes, read_manifest, read_quarantine
+from shards.prompts import PromptTable
+from shards.schema import MEMBERS
+
+
+def _counts(values) -> dict:
+    return dict(sorted(Counter(values).items(), key=lambda kv: (-kv[1], str(kv[0]))))
+
+
+def compute_stats(root) -> dict:
+    root = Path(root)
+    indexes = [i for i in read_indexes(root) if (layout.shards_dir(root) / i["shard"]).is_file()]
+    man = read_manifest(root).to_pydict()
+    n = len(man["key"])
+    hazard = ["null" if h is None else ("true" if h else "false") for h in man["hazard"]]
+    by_sc: dict[str, Counter] = {}
+    for s, c in zip(man["source"], man["command"]):
+        by_sc.setdefault(s, Counter())[c] += 1
+    member_bytes, member_counts, shapes, dtypes = Counter(), Counter(), Counter(), Counter()
+    shard_bytes = 0
+    for idx in indexes:
+        member_bytes.update(idx.get("member_bytes", {}))
+        member_counts.update(idx.get("member_counts", {}))
+        shapes.update(idx.get("histograms", {}).get("latent_shape", {}))
+        dtypes.update(idx.get("histograms", {}).get("latent_dtype", {}))
+        shard_bytes += idx["bytes"]
+    table = PromptTable(root)
+    entries = table.entries()
+    ptab_bytes = table.total_bytes()
+    bps: dict = {}
+    if n:
+        for ext in MEMBERS:
+            bps[ext] = member_bytes.get(ext, 0) / n
+        bps["tar_overhead"] = (shard_bytes - sum(member_bytes.values())) / n
+        bps["in_shards"] = shard_bytes / n
+        bps["prompt_table_amortised"] = ptab_bytes / n
+        bps["total"] = bps["in_shards"] + bps["prompt_table_amortised"]
+    q = read_quarantine(root)
+    quarantine = {"num_items": 0, "by_source": {}, "by_stage": {}, "by_reason": {}, "items": []}
+    if q is not None:
+        qd = q.to_pydict()
+        quarantine = {
+            "num_items": q.num_rows,
+            "by_source": _counts(qd.get("source", [])),
+            "by_stage": _counts(qd.get("stage", [])),
+            "by_reason": dict(list(_counts(qd.get("reason", [])).items())[:20]),
+            "items": q.slice(0, 20).to_pylist(),
+        }
+    committed = {i["shard"] for i in indexes}
+    return {
+        "root": str(root),
+        "num_shards": len(indexes),
+        "num_samples": n,
+        "shard_bytes": shard_bytes,
+        "uncommitted_shards": sum(p.name not in committed for p in layout.all_shard_files(root)),
+        "schema_versions": sorted({i.get("schema_version") for i in indexes}),
+        "config_hashes": sorted({i.get("config_hash", "") for i in indexes}),
+        "by_source": _counts(man["source"]),
+        "by_command": _counts(man["command"]),
+        "by_command_source": _counts(man["command_source"]),
+        "by_hazard": _counts(hazard),
+        "by_source_command": {s: dict(sorted(c.items())) for s, c in sorted(by_sc.items())},
+        "turning_share": (sum(man["is_turning"]) / n) if n else None,
+        "quarantine": quarantine,
+        "bytes_per_sample": bps,
+        "member_presence": dict(sorted(member_counts.items())),
+        "latent": {"shapes": dict(shapes), "dtypes": dict(dtypes)},
+        "prompt_table": {
+            "num_prompts": len(entries),
+            "bytes": ptab_bytes,
+            "entries": [{"id": pid, **{k: e.get(k) for k in ("role", "command", "text", "shape", "dtype",
+                                                                  "encoder_id", "placeholder", "num_tokens",
+                                                                  "bytes")}}
+                        for pid, e in sorted(entries.items())],
+        },
+    }
+
+
+def _h(nbytes: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(nbytes) < 1024 or unit == "TiB":
+            return f"{nbytes:.0f} {unit}" if unit == "B" else f"{nbytes:.1f} {unit}"
+        nbytes /= 1024
+    return str(nbytes)
+
+
+def format_stats(st: dict) -> str:
+    """Human-readable rendering of :func:`compute_stats`."""
+    n = st["num_samples"]
+    lines = [f"dataset {st['root']}: {n} samples in {st['num_shards']} shards ({_h(st['shard_bytes'])})"]
+    if st["uncommitted_shards"]:
+        lines.append(f"  ! {st['uncommitted_shards']} uncommitted shard(s) (no index; run `resim shards verify`)")
+
+    def block(title, d):
+        lines.append(f"{title}:")
+        for k, v in d.items():
+            lines.append(f"  {str(k):<24} {v:>8}  ({100 * v / n:5.1f}%)" if n else f"  {k}: {v}")
+
+    block("by source", st["by_source"])
+    block("by command", st["by_command"])
+    block("command from", st["by_command_source"])
+    block("hazard", st["by_hazard"])
+    if st["turning_share"] is not None:
+        lines.append(f"turning share: {100 * st['turning_share']:.1f}%")
+    q = st["quarantine"]
+    lines.append(f"quarantined items: {q['num_items']}")
+    for k, v in q["by_stage"].items():
+        lines.append(f"  stage {k}: {v}")
+    for k, v in list(q["by_reason"].items())[:5]:
+        lines.append(f"  {v} x {k}")
+    if st["bytes_per_sample"]:
+        lines.append("bytes per sample:")
+        for k, v in st["bytes_per_sample"].items():
+            lines.append(f"  {k:<24} {_h(v):>10}")
+    lines.append("latent: " + ", ".join(f"{s} ({c})" for s, c in st["latent"]["shapes"].items())
+                 + " | " + ", ".join(f"{d} ({c})" for d, c in st["latent"]["dtypes"].items()))
+    pt = st["prompt_table"]
+    lines.append(f"prompt table: {pt['num_prompts']} prompts, {_h(pt['bytes'])}")
+    for e in pt["entries"]:
+        ph = " PLACEHOLDER" if e["placeholder"] else ""
+        lines.append(f"  {e['id'][:12]} {e['role']:<7} {e['dtype']}{e['shape']} {e['encoder_id']}{ph}: "
+                     f"{e['command'] or '(prefix only)'}")
+    return "\n".join(lines)

@@ -1,0 +1,197 @@
+"""``verify``: check a whole dataset folder; every problem names its shard and key.
+
+Checks, in order:
+* leftovers: temporary files of an interrupted writer, tars without an index
+  (uncommitted), indexes whose tar is missing;
+* prompt table: every entry's ``.npy`` exists, matches its sha256, decodes to the
+  declared dtype/shape, and its id is ``sha256(text)``;
+* per shard: size and sha256 against the index; the tar parses; sample count and
+  keys equal the index's; the manifest has one row per sample with the same keys;
+  the index's label histograms match the samples;
+* per sample: no forbidden member, every member decodes with the safe decoders,
+  the sample matches the schema (members, dtypes, shapes vs meta, meta fields),
+  frames.mp4 decodes to meta.num_frames frames of the declared size, and
+  ``prompt_id``/``null_prompt_id`` resolve in the prompt table (command prompts
+  naming the sample's command);
+* keys are unique across the dataset.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from shards import layout
+from shards.fsio import is_tmp_name, sha256_file
+from shards.npy import NpyError, decode_npy
+from shards.reader import ShardReadError, decode_sample, iter_raw_shard
+from shards.schema import SCHEMA_VERSION, prompt_id
+from shards.validate import sample_problems, video_problems
+
+
+@dataclass(frozen=True)
+class Problem:
+    shard: str | None
+    key: str | None
+    message: str
+
+    def __str__(self) -> str:
+        where = []
+        if self.shard:
+            where.append(f"shard {self.shard}")
+        if self.key:
+            where.append(f"key {self.key}")
+        return f"{' '.join(where) or 'dataset'}: {self.message}"
+
+
+def _check_prompts(root, problems: list[Problem]) -> dict:
+    from shards.prompts import EMBED_DTYPES, PromptTable
+
+    table = PromptTable(root)
+    try:
+        entries = table.entries()
+    except (OSError, ValueError, KeyError) as e:
+        problems.append(Problem(None, None, f"prompt table {table.json_path} unreadable: {e}"))
+        return {}
+    for pid, e in entries.items():
+        where = f"prompt {pid}"
+        if prompt_id(e.get("text", "")) != pid:
+            problems.append(Problem(None, None, f"{where}: id is not sha256 of its text {e.get('text')!r}"))
+        path = table.dir / e.get("file", f"{pid}.npy")
+        if not path.is_file():
+            problems.append(Problem(None, None, f"{where}: embedding file {path} is missing"))
+            continue
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() != e.get("npy_sha256"):
+            problems.append(Problem(None, None, f"{where}: {path.name} does not match its sha256 in prompts.json"))
+            continue
+        try:
+            arr = decode_npy(data)
+        except NpyError as err:
+            problems.append(Problem(None, None, f"{where}: {err}"))
+            continue
+        want = EMBED_DTYPES.get(e.get("dtype"))
+        if want is None or arr.dtype != want or list(arr.shape) != list(e.get("shape", [])):
+            problems.append(Problem(None, None, f"{where}: holds {arr.dtype}{list(arr.shape)}, table says "
+                                                f"{e.get('dtype')}{e.get('shape')}"))
+    return entries
+
+
+def verify(root, decode_video: bool = True, progress: Callable[[str], None] | None = None) -> list[Problem]:
+    """All problems found in dataset ``root`` (empty list: everything holds)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = Path(root)
+    problems: list[Problem] = []
+    if not layout.shards_dir(root).is_dir():
+        return [Problem(None, None, f"{root} has no shards/ folder")]
+    for d in (layout.shards_dir(root), layout.index_dir(root), layout.manifest_dir(root), layout.prompts_dir(root)):
+        for p in sorted(d.iterdir()) if d.is_dir() else []:
+            if is_tmp_name(p.name):
+                problems.append(Problem(None, None, f"leftover temporary file {p} from an interrupted writer "
+                                                    "(rerun that work unit, or delete it)"))
+    prompts = _check_prompts(root, problems)
+    tars = {p.name for p in layout.all_shard_files(root)}
+    idx_files = sorted(p for p in layout.index_dir(root).glob("*.json") if not p.name.startswith(".")) \
+        if layout.index_dir(root).is_dir() else []
+    indexed = {p.stem + ".tar" for p in idx_files}
+    for name in sorted(tars - indexed):
+        problems.append(Problem(name, None, "shard has no index (uncommitted: its writer was interrupted)"))
+    seen_keys: dict[str, str] = {}
+    for ip in idx_files:
+        shard = ip.stem + ".tar"
+        if progress:
+            progress(shard)
+        try:
+            index = json.loads(ip.read_text())
+        except (OSError, ValueError) as e:
+            problems.append(Problem(shard, None, f"index {ip} unreadable: {e}"))
+            continue
+        if index.get("schema_version") != SCHEMA_VERSION:
+            problems.append(Problem(shard, None, f"index schema_version {index.get('schema_version')} "
+                                                 f"!= {SCHEMA_VERSION}"))
+        path = layout.shards_dir(root) / shard
+        if shard not in tars:
+            problems.append(Problem(shard, None, f"index {ip.name} exists but {path} is missing"))
+            continue
+        sha, nbytes = sha256_file(path)
+        if nbytes != index.get("bytes"):
+            problems.append(Problem(shard, None, f"size {nbytes} bytes != index {index.get('bytes')} (truncated?)"))
+        if sha != index.get("sha256"):
+            problems.append(Problem(shard, None, f"sha256 {sha[:16]}... != index {str(index.get('sha256'))[:16]}... "
+                                                 "(corrupted or modified)"))
+        keys: list[str] = []
+        hist = {k: Counter() for k in ("command", "source", "hazard")}
+        try:
+            for raw in iter_raw_shard(path):
+                key = raw["__key__"]
+                keys.append(key)
+                if key in seen_keys:
+                    problems.append(Problem(shard, key, f"key also in shard {seen_keys[key]}"))
+                seen_keys.setdefault(key, shard)
+                try:
+                    s = decode_sample(raw, latent_as="stored")
+                except ShardReadError as e:
+                    problems.append(Problem(shard, key, str(e)))
+                    continue
+                for msg in sample_problems(s):
+                    problems.append(Problem(shard, key, msg))
+                meta = s.get("meta.json")
+                if not isinstance(meta, dict):
+                    continue
+                hist["command"][meta.get("command")] += 1
+                hist["source"][meta.get("source")] += 1
+                h = meta.get("hazard")
+                hist["hazard"]["null" if h is None else ("true" if h else "false")] += 1
+                for field in ("prompt_id", "null_prompt_id"):
+                    pid = meta.get(field)
+                    if pid not in prompts:
+                        problems.append(Problem(shard, key, f"meta.{field} {pid} does not resolve in the prompt table"))
+                    elif field == "prompt_id" and prompts[pid].get("role") == "command" \
+                            and prompts[pid].get("command") not in (None, meta.get("command")):
+                        problems.append(Problem(shard, key, f"prompt {pid} is for {prompts[pid].get('command')!r}, "
+                                                            f"the sample's command is {meta.get('command')!r}"))
+                    elif field == "null_prompt_id" and prompts[pid].get("role") != "null":
+                        problems.append(Problem(shard, key, f"null_prompt_id {pid} has role "
+                                                            f"{prompts[pid].get('role')!r}, not 'null'"))
+                if decode_video and isinstance(s.get("frames.mp4"), bytes):
+                    from shards.video import VideoError, decode_mp4
+
+                    try:
+                        frames = decode_mp4(s["frames.mp4"])
+                    except VideoError as e:
+                        problems.append(Problem(shard, key, f"frames.mp4: {e}"))
+                    else:
+                        if isinstance(meta.get("num_frames"), int):
+                            problems += [Problem(shard, key, m) for m in video_problems(frames, meta)]
+        except ShardReadError as e:
+            problems.append(Problem(shard, None, str(e)))
+        n_index = index.get("num_samples")
+        if len(keys) != n_index:
+            problems.append(Problem(shard, None, f"holds {len(keys)} samples, index says {n_index}"))
+        ikeys = index.get("keys") or []
+        for k in sorted(set(ikeys) - set(keys)):
+            problems.append(Problem(shard, k, "listed in the index but missing from the shard"))
+        for k in sorted(set(keys) - set(ikeys)):
+            problems.append(Problem(shard, k, "in the shard but not listed in the index"))
+        ih = index.get("histograms", {})
+        for name, c in hist.items():
+            if set(ikeys) == set(keys) and dict(c) != ih.get(name):
+                problems.append(Problem(shard, None, f"index histogram {name} {ih.get(name)} != samples {dict(c)}"))
+        mp = layout.manifest_path(root, shard)
+        if not mp.is_file():
+            problems.append(Problem(shard, None, f"manifest {mp} is missing"))
+        else:
+            try:
+                mkeys = pq.read_table(mp, columns=["key"])["key"].to_pylist()
+            except (OSError, pa.ArrowException) as e:
+                problems.append(Problem(shard, None, f"manifest {mp.name} unreadable: {e}"))
+            else:
+                if sorted(mkeys) != sorted(ikeys):
+                    problems.append(Problem(shard, None, f"manifest has {len(mkeys)} rows whose keys differ from "
+                                                         f"the index's {len(ikeys)}"))
+    return problems

@@ -1,0 +1,98 @@
+"""``frames.mp4``: low-resolution RGB frames of a clip as an MPEG-4 Part 2 (``mp4v``) file.
+
+OpenCV's own writer offers ``mp4v`` (not H.264) in the headless wheel, so that is
+the codec; any MP4 reader (ffmpeg, PyAV, browsers with MPEG-4 support) decodes it.
+Encoding is lossy (a few grey levels of error on smooth content) and, for the same
+frames and OpenCV build, deterministic (no timestamps in the container), which the
+writer's idempotent re-runs rely on.
+
+``cv2`` is imported inside the functions only, so ``import shards`` needs nothing
+beyond numpy/pyarrow/webdataset.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+
+class VideoError(ValueError):
+    """Frames could not be encoded, or bytes are not a decodable video."""
+
+
+def _cv2():
+    try:
+        import cv2
+    except ImportError as e:  # the light install has no OpenCV
+        raise VideoError("frames.mp4 needs OpenCV: pip install 'resim[pipeline]' (opencv-python-headless)") from e
+    return cv2
+
+
+def encode_mp4(frames: np.ndarray, fps_hz: float) -> bytes:
+    """Encode ``frames`` (T, H, W, 3) uint8 RGB at ``fps_hz`` into mp4 (mp4v) bytes.
+
+    H and W must be even (MPEG-4 works on 2x2 chroma blocks).
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise VideoError(f"expected (T, H, W, 3) uint8 RGB frames, got {frames.shape} {frames.dtype}")
+    t, h, w, _ = frames.shape
+    if t < 1:
+        raise VideoError("cannot encode zero frames")
+    if h % 2 or w % 2:
+        raise VideoError(f"frame size {h}x{w} must be even for mp4v")
+    if not fps_hz > 0:
+        raise VideoError(f"fps_hz must be > 0, got {fps_hz}")
+    cv2 = _cv2()
+    fd, path = tempfile.mkstemp(suffix=".mp4", prefix="resim-enc-")
+    os.close(fd)
+    try:
+        writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), float(fps_hz), (w, h))
+        if not writer.isOpened():
+            raise VideoError("OpenCV could not open an mp4v writer")
+        try:
+            for f in frames:
+                writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
+        finally:
+            writer.release()
+        with open(path, "rb") as fh:
+            data = fh.read()
+    finally:
+        os.remove(path)
+    if not data:
+        raise VideoError("OpenCV wrote an empty mp4")
+    return data
+
+
+def decode_mp4(data: bytes) -> np.ndarray:
+    """Decode mp4 bytes into (T, H, W, 3) uint8 RGB frames."""
+    if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) == 0:
+        raise VideoError("expected non-empty mp4 bytes")
+    cv2 = _cv2()
+    fd, path = tempfile.mkstemp(suffix=".mp4", prefix="resim-dec-")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(bytes(data))
+        cap = cv2.VideoCapture(path)
+        frames = []
+        try:
+            if not cap.isOpened():
+                raise VideoError("OpenCV cannot open the mp4 bytes (not a valid video)")
+            while True:
+                ok, f = cap.read()
+                if not ok:
+                    break
+                frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
+        finally:
+            cap.release()
+    finally:
+        os.remove(path)
+    if not frames:
+        raise VideoError("the mp4 holds no decodable frames")
+    return np.stack(frames)
+
+
+def mp4_looks_valid(data: bytes) -> bool:
+    """Cheap container check (no decode): an ISO-BMFF file starts with an ``ftyp`` box."""
+    return isinstance(data, (bytes, bytearray)) and len(data) > 12 and bytes(data[4:8]) == b"ftyp"
