@@ -1,0 +1,83 @@
+"""Heading change or trajectory -> driving command (pure functions, issue 4).
+
+Commands are the strings of ``shards.schema.COMMANDS``: "Turning left", "Moving
+forward", "Turning right" (ReSim's three text conditions).
+
+* From flow: the heading change over the future window (degrees, left +) against
+  ``turn_threshold_deg`` (calibrated on the synthetic world, docs/labeling.md).
+* From a trajectory (ego frame at the current frame, x forward, y left, yaw left +):
+  common practice of planning datasets (ST-P3 / UniAD / VAD on nuScenes, cited by
+  ReSim as "following common practice"): the lateral offset of the last waypoint,
+  >= +2 m left, <= -2 m right, else forward. Options in ``CommandConfig`` switch
+  to the heading change at the horizon, or to "either".
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from labeling.config import CommandConfig, LabelerConfig
+from shards.schema import COMMANDS
+
+LEFT, FORWARD, RIGHT = COMMANDS
+
+
+@dataclass(frozen=True)
+class FlowLabel:
+    """The flow labeler's verdict on one window."""
+
+    command: str        # one of shards.schema.COMMANDS
+    yaw_deg: float      # heading change over the window, degrees, left +
+    confidence: float   # 0..1: distance from the threshold x flow quality
+    quality: float = 1.0  # 0..1: share of pairs/points the robust fit kept
+
+
+def _command_cfg(cfg: CommandConfig | LabelerConfig) -> CommandConfig:
+    return cfg.command if isinstance(cfg, LabelerConfig) else cfg
+
+
+def command_from_yaw(yaw_deg: float, cfg: CommandConfig | LabelerConfig) -> tuple[str, float]:
+    """Heading change over the window (deg, left +) -> (command, confidence in [0.5, 1)).
+
+    Confidence is 0.5 exactly at the threshold (a coin flip) and approaches 1 as
+    the heading change moves away from it: ``0.5 + 0.5 * tanh(d / confidence_scale_deg)``.
+    """
+    c = _command_cfg(cfg)
+    y = float(yaw_deg)
+    if not math.isfinite(y):
+        raise ValueError(f"yaw_deg must be finite, got {yaw_deg!r}")
+    thr = c.turn_threshold_deg
+    if y >= thr:
+        cmd = LEFT
+    elif y <= -thr:
+        cmd = RIGHT
+    else:
+        cmd = FORWARD
+    d = abs(abs(y) - thr)
+    return cmd, 0.5 + 0.5 * math.tanh(d / c.confidence_scale_deg)
+
+
+def command_from_trajectory(traj: np.ndarray, cfg: CommandConfig | LabelerConfig) -> tuple[str, float]:
+    """Future trajectory (K, 3) [x fwd m, y left m, yaw rad left +] in the ego frame -> (command, yaw_deg).
+
+    ``yaw_deg`` is the heading change at the last waypoint (degrees, left +).
+    """
+    c = _command_cfg(cfg)
+    t = np.asarray(traj, dtype=np.float64)
+    if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
+        raise ValueError(f"trajectory must have shape (K, 3), got {t.shape}")
+    if not np.isfinite(t).all():
+        raise ValueError("trajectory has non-finite values")
+    lateral = float(t[-1, 1])
+    yaw_deg = math.degrees(float(t[-1, 2]))
+    by_offset = LEFT if lateral >= c.lateral_threshold_m else RIGHT if lateral <= -c.lateral_threshold_m else FORWARD
+    by_heading = command_from_yaw(yaw_deg, c)[0]
+    if c.trajectory_rule == "lateral_offset":
+        cmd = by_offset
+    elif c.trajectory_rule == "heading":
+        cmd = by_heading
+    else:  # "either": a turn by one rule is a turn; contradicting turns fall back to the heading
+        cmd = by_heading if by_heading != FORWARD else by_offset
+    return cmd, yaw_deg

@@ -1,0 +1,97 @@
+"""Typed configuration of the labeler (issue 4): flow estimator + command rules.
+
+Two parts, each validated on load with ``resim.config``:
+
+* ``FlowConfig``: how ego yaw is estimated from video (working resolution, assumed
+  field of view, DIS preset, masks, robust-fit settings).
+* ``CommandConfig``: how a heading change (from flow) or a trajectory (from poses)
+  becomes one of ``shards.schema.COMMANDS``.
+
+Thresholds marked *calibrated* were chosen by ``bench/calibrate_labeler.py`` on the
+synthetic world's ground truth; docs/labeling.md has the numbers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from resim.config import ConfigError, from_dict
+
+
+@dataclass
+class FlowConfig:
+    """Optical-flow yaw estimator (``labeling.flow.FlowLabeler``)."""
+
+    sample_hz: float = 10.0          # frames are sampled at this rate before flow (ReSim: 10 Hz)
+    work_width_px: int = 256         # frames are resized to this width (display aspect kept) before flow
+    hfov_deg: float = 70.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
+    #                                  ~ with tan(hfov/2): 60 deg reads 0.82x, 90 deg 1.43x of 70 deg
+    flow_preset: Literal["ultrafast", "fast", "medium"] = "ultrafast"   # cv2.DISOpticalFlow preset
+    grid_step_px: int = 6            # flow is read on a grid with this spacing (working-resolution pixels)
+    mask_top_frac: float = 0.0       # rows ignored at the top (overlays)
+    mask_bottom_frac: float = 0.12   # rows ignored at the bottom (hood / dashboard)
+    min_texture: float = 5.0         # sqrt(min eigenvalue of the 3x3 structure tensor) x 1000 (OpenCV's
+    #                                  normalisation; ~grey levels per pixel); flat
+    #                                  regions (sky, plain asphalt) give unreliable flow
+    static_flow_px: float = 0.05     # points moving less than this are ignored (burnt-in overlays, hood)
+    max_flow_frac: float = 0.08      # points moving more than this share of the width per pair are dropped
+    max_photo_err: int = 24          # grey-level difference after following the flow (occlusion/bad flow)
+    robust_scale_px: float = 0.3     # lower bound on the Cauchy scale of the IRLS fit (pixels of flow)
+    irls_iters: int = 4
+    foe_iters: int = 2               # alternations between rotation fit and focus-of-expansion fit
+    chunk_pairs: int = 60            # the focus of expansion is re-estimated per chunk of this many pairs
+
+    def __post_init__(self):
+        if self.sample_hz <= 0:
+            raise ConfigError(f"sample_hz must be > 0, got {self.sample_hz}")
+        if not 32 <= self.work_width_px <= 1920:
+            raise ConfigError(f"work_width_px must be in [32, 1920], got {self.work_width_px}")
+        if not 20.0 <= self.hfov_deg <= 150.0:
+            raise ConfigError(f"hfov_deg must be in [20, 150], got {self.hfov_deg}")
+        if self.grid_step_px < 1:
+            raise ConfigError(f"grid_step_px must be >= 1, got {self.grid_step_px}")
+        if not (0 <= self.mask_top_frac < 0.5 and 0 <= self.mask_bottom_frac < 0.5):
+            raise ConfigError("mask_top_frac and mask_bottom_frac must be in [0, 0.5)")
+        if self.irls_iters < 1 or self.foe_iters < 0 or self.chunk_pairs < 2:
+            raise ConfigError("irls_iters >= 1, foe_iters >= 0 and chunk_pairs >= 2 are required")
+
+
+@dataclass
+class CommandConfig:
+    """Heading change / trajectory -> command."""
+
+    window_s: float = 4.0                  # future window a command describes (ReSim: 40 frames at 10 Hz)
+    turn_threshold_deg: float = 12.0       # calibrated: |heading change| >= this over the window is a turn
+    confidence_scale_deg: float = 4.0      # distance from the threshold at which confidence reaches ~0.88
+    # trajectory rule (common practice of nuScenes/NAVSIM planners: ST-P3, UniAD, VAD): the lateral
+    # offset of the last waypoint in the ego frame; >= +2 m left, <= -2 m right. "heading" uses the
+    # heading change at the horizon with turn_threshold_deg (same rule as flow); "either" fires on both.
+    trajectory_rule: Literal["lateral_offset", "heading", "either"] = "lateral_offset"
+    lateral_threshold_m: float = 2.0
+
+    def __post_init__(self):
+        if self.window_s <= 0:
+            raise ConfigError(f"window_s must be > 0, got {self.window_s}")
+        if not 0 < self.turn_threshold_deg < 180:
+            raise ConfigError(f"turn_threshold_deg must be in (0, 180), got {self.turn_threshold_deg}")
+        if self.confidence_scale_deg <= 0 or self.lateral_threshold_m <= 0:
+            raise ConfigError("confidence_scale_deg and lateral_threshold_m must be > 0")
+
+
+@dataclass
+class LabelerConfig:
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    command: CommandConfig = field(default_factory=CommandConfig)
+
+
+PRESETS: dict[str, dict] = {
+    "default": {},
+    # higher-quality flow at about 4x the flow cost (still far below decoding at 720p)
+    "accurate": {"flow": {"work_width_px": 320, "flow_preset": "fast", "grid_step_px": 5}},
+}
+
+
+def preset(name: str = "default") -> LabelerConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown labeler preset {name!r}; known: {sorted(PRESETS)}")
+    return from_dict(LabelerConfig, PRESETS[name])

@@ -1,0 +1,297 @@
+"""Ego yaw from monocular video by dense optical flow (issue 4).
+
+ReSim pseudo-labels OpenDV's uncalibrated YouTube videos with "Turning left / Moving
+forward / Turning right" from OpenCV flow. This module estimates the per-frame-pair
+yaw rate robustly:
+
+1. Frames are resized to ``work_width_px`` (display aspect), greyscale, and DIS flow
+   (OpenCV, ``ultrafast`` by default) is read on a grid of points.
+2. Points are dropped where the image is flat (sky, plain asphalt: unreliable flow),
+   in the masked bottom/top bands (hood, dashboard, overlays), and where nothing
+   moves (burnt-in overlays, the hood).
+3. Pinhole model, principal point at the image centre, focal length from the
+   *assumed* horizontal field of view ``hfov_deg``. For small rotations the flow of
+   a static point p = (x, y) is
+
+       flow = yaw * A(p) + pitch * B(p) + roll * C(p) + s_p * (p - e)
+
+   with the rotation fields A = (f + x^2/f, xy/f) (yaw, left +), B = (xy/f, f + y^2/f)
+   (pitch), C = (-y, x) (roll), and a translational part that is radial from the
+   focus of expansion e with an unknown per-point magnitude s_p = T/Z_p (depth).
+   Taking the flow component perpendicular to (p - e) removes every depth unknown:
+
+       cross(flow, p - e) = yaw * cross(A, p - e) + pitch * cross(B, p - e) + roll * cross(C, p - e)
+
+   so (yaw, pitch, roll) is a 3-parameter linear fit, solved by IRLS with Cauchy
+   weights (other vehicles, bad flow = outliers). Forward motion, however fast, does
+   not leak into yaw as long as e is right; e itself is fitted (linear, given the
+   rotations) jointly over a chunk of pairs, because the camera is fixed to the car.
+   Yaw information comes from points above/below the FOE (road, trees, posts).
+4. Heading change over a window = sum of the per-pair yaw.
+
+The field-of-view assumption scales the estimate roughly by tan(hfov/2): see
+docs/labeling.md for how much it matters.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable
+
+import cv2
+import numpy as np
+
+from labeling.commands import FlowLabel, command_from_yaw
+from labeling.config import FlowConfig, LabelerConfig
+
+_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1.0) -> np.ndarray:
+    """RGB/BGR uint8 (H, W, 3) or grey (H, W) -> grey uint8 at ``work_width_px`` wide, display aspect.
+
+    ``pixel_aspect`` is the sample aspect ratio (width/height of one stored pixel), e.g. 64/45
+    for anamorphic PAL; the output has square pixels so that one focal length fits both axes.
+    """
+    if frame.ndim == 3:
+        h, w = frame.shape[:2]
+    elif frame.ndim == 2:
+        h, w = frame.shape
+    else:
+        raise ValueError(f"frame must be (H, W, 3) or (H, W), got shape {frame.shape}")
+    out_h = max(8, int(round(work_width_px * h / (w * pixel_aspect))))
+    small = cv2.resize(frame, (work_width_px, out_h), interpolation=cv2.INTER_AREA)
+    if small.ndim == 3:
+        # channel order does not matter much for flow; RGB->grey weights are used
+        small = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    return small
+
+
+@dataclass
+class _PairData:
+    """Flow samples of one frame pair (coordinates relative to the principal point, pixels)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray       # prior weight (texture)
+
+
+class FlowLabeler:
+    """Callable labeler: frames -> per-pair yaw rates, or a window -> ``FlowLabel``.
+
+    ``yaw_rates_deg(frames, fps_hz)`` returns (N-1,) yaw *rates* in deg/s (left +),
+    one per consecutive pair of the frames given (the caller samples them, e.g. at
+    10 Hz); the heading change over the frames is ``rates.sum() / fps_hz``.
+    """
+
+    def __init__(self, cfg: LabelerConfig | FlowConfig | None = None):
+        if cfg is None:
+            cfg = LabelerConfig()
+        self.cfg = cfg if isinstance(cfg, LabelerConfig) else LabelerConfig(flow=cfg)
+        fc = self.cfg.flow
+        self.flow_cfg = fc
+        self._dis = cv2.DISOpticalFlow_create(_PRESETS[fc.flow_preset])
+        self._grid_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self.last_quality: np.ndarray | None = None   # per-pair share of points kept by the fit
+        self.last_foe: tuple[float, float] | None = None
+
+    # ---------------------------------------------------------------- per frame / per pair
+    def focal_px(self, width_px: int) -> float:
+        return (width_px / 2.0) / math.tan(math.radians(self.flow_cfg.hfov_deg) / 2.0)
+
+    def _grid(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        key = (h, w)
+        if key not in self._grid_cache:
+            fc = self.flow_cfg
+            s = fc.grid_step_px
+            r0 = max(s // 2, int(math.ceil(fc.mask_top_frac * h)))
+            r1 = min(h - s // 2, int(math.floor((1.0 - fc.mask_bottom_frac) * h)))
+            rows = np.arange(r0, r1, s)
+            cols = np.arange(s // 2, w - s // 2, s)
+            yy, xx = np.meshgrid(rows, cols, indexing="ij")
+            self._grid_cache[key] = (yy.ravel(), xx.ravel())
+        return self._grid_cache[key]
+
+    def _texture(self, grey: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        # Shi-Tomasi measure: the smaller eigenvalue of the structure tensor; flow along an
+        # edge (or in flat regions) is ambiguous, so weak points get low weight.
+        # (OpenCV normalises 8-bit input; sqrt(.)*1000 is ~ a gradient in grey levels per pixel)
+        ev = cv2.cornerMinEigenVal(grey, 3, 3)
+        return np.sqrt(np.maximum(ev[rows, cols], 0.0)) * 1000.0
+
+    def _pair(self, g0: np.ndarray, g1: np.ndarray, tex0: np.ndarray) -> _PairData:
+        fc = self.flow_cfg
+        h, w = g0.shape
+        rows, cols = self._grid(h, w)
+        flow = self._dis.calc(g0, g1, None)
+        uv = flow[rows, cols]
+        u, v = uv[:, 0].astype(np.float64), uv[:, 1].astype(np.float64)
+        # photometric check: g1 sampled where the flow says each grid point went must look like g0 there
+        # (large motions near the bottom and occlusions fail it; DIS has no confidence output)
+        g1s = g1[np.clip(np.rint(rows + v), 0, h - 1).astype(np.intp), np.clip(np.rint(cols + u), 0, w - 1).astype(np.intp)]
+        photo = np.abs(g1s.astype(np.int16) - g0[rows, cols].astype(np.int16))
+        mag2 = u * u + v * v
+        keep = ((tex0 >= fc.min_texture) & (mag2 >= fc.static_flow_px ** 2)
+                & (mag2 <= (fc.max_flow_frac * w) ** 2) & (photo <= fc.max_photo_err))
+        x = cols[keep] - (w - 1) / 2.0
+        y = rows[keep] - (h - 1) / 2.0
+        return _PairData(x=x.astype(np.float64), y=y.astype(np.float64), u=u[keep], v=v[keep],
+                         w=np.maximum(np.minimum(tex0[keep] / (4.0 * fc.min_texture), 1.0), 1e-3))
+
+    # ---------------------------------------------------------------- robust fits
+    @staticmethod
+    def _rot_fields(x, y, f):
+        A = (f + x * x / f, x * y / f)
+        B = (x * y / f, f + y * y / f)
+        C = (-y, x)
+        return A, B, C
+
+    def _fit_rotation(self, X, Y, U, V, W0, e, f, n_grid):
+        """Batched IRLS fit of (yaw, pitch, roll) in rad, FOE fixed. Arrays (P, N), W0 = 0 where padded.
+
+        Returns theta (P, 3), weights (P, N), kept (P,) = share of the grid that the fit kept as inliers.
+        """
+        fc = self.flow_cfg
+        valid = W0 > 0
+        dx, dy = X - e[0], Y - e[1]
+        r = np.maximum(np.hypot(dx, dy), 0.05 * f)
+        A, B, C = self._rot_fields(X, Y, f)
+        # cross(a, d) = a_u * d_y - a_v * d_x, divided by |p - e| -> flow perpendicular to the radial line (px)
+        M = np.stack([(F[0] * dy - F[1] * dx) / r for F in (A, B, C)], axis=-1)      # (P, N, 3)
+        b = (U * dy - V * dx) / r
+        reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2]) * f * f
+        w = W0
+        for _ in range(fc.irls_iters):
+            Mw = M * w[..., None]
+            H = np.einsum("pni,pnj->pij", Mw, M) + reg * np.maximum(w.sum(1), 1.0)[:, None, None]
+            theta = np.linalg.solve(H, np.einsum("pni,pn->pi", Mw, b)[..., None])[..., 0]
+            res = b - np.einsum("pni,pi->pn", M, theta)
+            med = np.nanmedian(np.where(valid, np.abs(res), np.nan), axis=1)
+            scale = np.maximum(1.4826 * np.nan_to_num(med, nan=0.0), fc.robust_scale_px)[:, None]
+            w = W0 / (1.0 + (res / (2.0 * scale)) ** 2)    # Cauchy
+        few = valid.sum(1) < 8
+        theta[few] = 0.0
+        kept = (valid & (np.abs(res) < 3.0 * scale)).sum(1) / max(n_grid, 1)
+        kept[few] = 0.0
+        return theta, w, kept
+
+    def _fit_foe(self, X, Y, U, V, theta, w_rot, f, e0):
+        """Focus of expansion from the translational flow left after removing the rotations.
+
+        T = flow - R(p) is parallel to p - e: T_u (y - ey) - T_v (x - ex) = 0, linear in e.
+        Each row is divided by |T| (distance from e to the flow line, px); weak flow gets low weight.
+        All pairs of the chunk share e (the camera is fixed to the car).
+        """
+        A, B, C = self._rot_fields(X, Y, f)
+        th = theta[:, None, :]
+        tu = U - (th[..., 0] * A[0] + th[..., 1] * B[0] + th[..., 2] * C[0])
+        tv = V - (th[..., 0] * A[1] + th[..., 1] * B[1] + th[..., 2] * C[1])
+        n = np.hypot(tu, tv)
+        ok = (n > 0.3) & (w_rot > 0)
+        if ok.sum() < 16:
+            return e0
+        tu, tv, n, x, y = tu[ok], tv[ok], n[ok], X[ok], Y[ok]
+        M = np.stack([-tv / n, tu / n], axis=1)       # coefficients of (ex, ey)
+        b = (tu * y - tv * x) / n
+        w0 = w_rot[ok] * np.minimum(n / 2.0, 1.0)
+        prior = 1e-3 * max(w0.sum(), 1.0)     # weak pull to the previous estimate (stationary car)
+        e = np.asarray(e0, dtype=np.float64)
+        w = w0
+        for _ in range(3):
+            H = (M * w[:, None]).T @ M + prior * np.eye(2)
+            e = np.linalg.solve(H, (M * w[:, None]).T @ b + prior * np.asarray(e0))
+            res = b - M @ e
+            scale = max(1.4826 * np.median(np.abs(res)), 1.0)
+            w = w0 / (1.0 + (res / (2.0 * scale)) ** 2)
+        lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
+        return float(np.clip(e[0], -lim, lim)), float(np.clip(e[1], -lim, lim))
+
+    def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
+        fc = self.flow_cfg
+        P, N = len(pairs), max(1, max(len(d.x) for d in pairs))
+        X, Y, U, V, W0 = (np.zeros((P, N)) for _ in range(5))
+        for i, d in enumerate(pairs):
+            k = len(d.x)
+            X[i, :k], Y[i, :k], U[i, :k], V[i, :k], W0[i, :k] = d.x, d.y, d.u, d.v, d.w
+        e = e0
+        for it in range(fc.foe_iters + 1):
+            theta, w, kept = self._fit_rotation(X, Y, U, V, W0, e, f, n_grid)
+            if it < fc.foe_iters:
+                e = self._fit_foe(X, Y, U, V, theta, w, f, e)
+        return theta[:, 0].copy(), kept, e
+
+    # ---------------------------------------------------------------- public API
+    def yaw_rates_from_grey(self, greys: Iterable[np.ndarray], fps_hz: float) -> np.ndarray:
+        """Greyscale frames already at working resolution (see ``prepare_frame``) -> (N-1,) deg/s, left +."""
+        if fps_hz <= 0:
+            raise ValueError(f"fps_hz must be > 0, got {fps_hz}")
+        fc = self.flow_cfg
+        out: list[np.ndarray] = []
+        quality: list[np.ndarray] = []
+        chunk: list[_PairData] = []
+        e = (0.0, 0.0)
+        prev = prev_tex = None
+        f = n_grid = None
+        for g in greys:
+            if prev is not None and g.shape != prev.shape:
+                raise ValueError(f"frame size changed from {prev.shape} to {g.shape}")
+            h, w = g.shape
+            rows, cols = self._grid(h, w)
+            if f is None:
+                f, n_grid = self.focal_px(w), len(rows)
+            tex = self._texture(g, rows, cols)
+            if prev is not None:
+                chunk.append(self._pair(prev, g, prev_tex))
+                if len(chunk) >= fc.chunk_pairs:
+                    yaw, kept, e = self._solve_chunk(chunk, n_grid, f, e)
+                    out.append(yaw)
+                    quality.append(kept)
+                    chunk = []
+            prev, prev_tex = g, tex
+        if chunk:
+            yaw, kept, e = self._solve_chunk(chunk, n_grid, f, e)
+            out.append(yaw)
+            quality.append(kept)
+        self.last_foe = e
+        self.last_quality = np.concatenate(quality) if quality else np.zeros(0)
+        if not out:
+            return np.zeros(0)
+        return np.degrees(np.concatenate(out)) * fps_hz
+
+    def yaw_rates_deg(self, frames: Iterable[np.ndarray], fps_hz: float, pixel_aspect: float = 1.0) -> np.ndarray:
+        """RGB uint8 frames (H, W, 3), consecutive at ``fps_hz`` -> (N-1,) yaw rate per pair, deg/s, left +.
+
+        Heading change over the frames = ``rates.sum() / fps_hz`` degrees.
+        """
+        w = self.flow_cfg.work_width_px
+        return self.yaw_rates_from_grey((prepare_frame(fr, w, pixel_aspect) for fr in frames), fps_hz)
+
+    def label(self, frames: Iterable[np.ndarray], fps_hz: float, pixel_aspect: float = 1.0) -> FlowLabel:
+        """One window of frames (RGB uint8, at ``fps_hz``) -> FlowLabel(command, yaw_deg, confidence)."""
+        rates = self.yaw_rates_deg(frames, fps_hz, pixel_aspect)
+        if len(rates) == 0:
+            raise ValueError("label() needs at least two frames")
+        return self.label_from_rates(rates, fps_hz, self.last_quality)
+
+    def label_from_rates(self, rates_deg_s: np.ndarray, fps_hz: float,
+                         quality: np.ndarray | None = None) -> FlowLabel:
+        yaw = float(np.sum(rates_deg_s) / fps_hz)
+        cmd, conf = command_from_yaw(yaw, self.cfg.command)
+        q = window_quality(quality)
+        return FlowLabel(command=cmd, yaw_deg=yaw, confidence=conf * q, quality=q)
+
+
+def window_quality(kept: np.ndarray | None) -> float:
+    """Flow quality of a window in [0, 1] from the per-pair share of grid points kept as inliers.
+
+    A pair keeping >= 25 % of its grid is fully trusted (sky and masks alone remove ~half).
+    """
+    if kept is None or len(kept) == 0:
+        return 1.0
+    return float(np.clip(np.median(kept) / 0.25, 0.0, 1.0))
