@@ -20,11 +20,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
+from labeling.config import LabelerConfig
 from resim.config import ConfigError, from_dict, load, to_dict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-PLACEHOLDER_VAE = REPO_ROOT / "configs" / "models" / "placeholder-cogvideox-vae-tiny"
-PLACEHOLDER_T5 = REPO_ROOT / "configs" / "models" / "placeholder-t5-tiny"
+
+
+def placeholder_dir(name: str) -> Path:
+    """``configs/models/<name>`` of this checkout, else of the working dir (Ray jobs ship it there)."""
+    for base in (REPO_ROOT, Path.cwd()):
+        p = base / "configs" / "models" / name
+        if p.is_dir():
+            return p
+    return REPO_ROOT / "configs" / "models" / name   # check_paths reports it missing
+
+
+PLACEHOLDER_VAE = placeholder_dir("placeholder-cogvideox-vae-tiny")
+PLACEHOLDER_T5 = placeholder_dir("placeholder-t5-tiny")
 
 
 def _positive(name: str, value: float, allow_zero: bool = False) -> None:
@@ -141,17 +153,15 @@ class ClipConfig:
 # -------------------------------------------------------------------------------------------- labels
 @dataclass
 class LabelsConfig:
-    """Command labelling (issue 4). Flow runs on every clip; the trajectory command where poses exist."""
+    """Command labelling (issue 4). Flow runs on every clip; the trajectory command where poses exist.
 
-    turn_threshold_deg: float = 15.0          # |heading change over the future window| above this = turning
-    flow_size_hw: tuple[int, int] = (90, 160) # frames are downscaled to this before optical flow
+    ``labeler`` is ``labeling.config.LabelerConfig`` itself (flow estimator + command rules), so every
+    labeler knob is a config key here: ``labels.labeler.command.turn_threshold_deg``,
+    ``labels.labeler.flow.work_width_px``, ...
+    """
+
+    labeler: LabelerConfig = field(default_factory=LabelerConfig)
     prefer: Literal["trajectory", "flow"] = "trajectory"   # which command wins where both exist
-    max_missing_pose_frac: float = 0.0        # NaN poses tolerated in a window (0: any NaN quarantines it)
-
-    def __post_init__(self):
-        _positive("turn_threshold_deg", self.turn_threshold_deg)
-        if min(self.flow_size_hw) < 16:
-            raise ConfigError(f"flow_size_hw must be >= 16 px per side, got {list(self.flow_size_hw)}")
 
 
 # ------------------------------------------------------------------------------------------- balance
@@ -198,11 +208,11 @@ class EncodeConfig:
 
     @property
     def vae_path(self) -> Path:
-        return Path(self.vae) if self.vae is not None else PLACEHOLDER_VAE
+        return Path(self.vae) if self.vae is not None else placeholder_dir(PLACEHOLDER_VAE.name)
 
     @property
     def text_encoder_path(self) -> Path:
-        return Path(self.text_encoder) if self.text_encoder is not None else PLACEHOLDER_T5
+        return Path(self.text_encoder) if self.text_encoder is not None else placeholder_dir(PLACEHOLDER_T5.name)
 
 
 # -------------------------------------------------------------------------------------------- shards
@@ -282,6 +292,13 @@ class PipelineConfig:
             raise ConfigError(
                 f"balance.turn_factor: clip.stride_frames ({self.clip.stride_frames}) must be divisible by "
                 f"balance.turn_factor ({self.balance.turn_factor}) so turning windows lie on a finer grid")
+        future_s = self.clip.num_future_frames / self.clip.fps_hz
+        if abs(self.labels.labeler.command.window_s - future_s) > 1e-6:
+            raise ConfigError(f"labels.labeler.command.window_s ({self.labels.labeler.command.window_s}) must equal "
+                              f"the clip's future window clip.num_future_frames / clip.fps_hz = {future_s:g} s")
+        if abs(self.labels.labeler.flow.sample_hz - self.clip.fps_hz) > 1e-9:
+            raise ConfigError(f"labels.labeler.flow.sample_hz ({self.labels.labeler.flow.sample_hz}) must equal "
+                              f"clip.fps_hz ({self.clip.fps_hz}): flow runs on the clip-rate frames")
         if not any((self.sources.opendv.root, self.sources.navsim.root, self.sources.carla.root,
                     self.sources.synthetic.root)):
             raise ConfigError("sources: no source configured (set sources.<kind>.root for at least one of "

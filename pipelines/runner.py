@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,9 +101,14 @@ def init_ray(cfg: PipelineConfig) -> bool:
         return False
     kw = dict(include_dashboard=False, log_to_driver=True, logging_level=logging.ERROR,
               configure_logging=True)
-    if cfg.ray.address:
+    if cfg.ray.address:   # join a cluster from a checkout: ship our packages to its workers
+        from pipelines.submit import JOB_ENV, package_dirs
+
         ray.init(address=cfg.ray.address, logging_level=logging.ERROR,
-                 runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path[:1] + [str(Path.cwd())])}})
+                 runtime_env={"py_modules": package_dirs(), "excludes": ["__pycache__", "*.pyc"],
+                              "env_vars": dict(JOB_ENV)})
+    elif os.environ.get("RAY_ADDRESS"):   # inside a Ray job (resim pipeline submit): the job's runtime env
+        ray.init(logging_level=logging.ERROR)
     else:
         # workers inherit this environment; make sure they can import our packages from the checkout
         repo = str(Path(__file__).resolve().parents[1])
