@@ -44,72 +44,6 @@ def _positive(name: str, value: float, allow_zero: bool = False) -> None:
         raise ConfigError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value}")
 
 
-# ------------------------------------------------------------------------------------------- sources
-@dataclass
-class OpenDVSource:
-    """OpenDV-YouTube style: a folder of long dashcam videos (mp4/webm/mkv), resampled to clip.fps_hz.
-
-    ReSim discards the first 90 s and last 60 s of every video (intros, outros) and keeps >= 720p videos.
-    """
-
-    root: Optional[Path] = None               # null: source disabled
-    start_discard_s: float = 90.0
-    end_discard_s: float = 60.0
-    min_height_px: int = 720
-    max_items: Optional[int] = None           # cap for smoke runs
-
-    def __post_init__(self):
-        _positive("start_discard_s", self.start_discard_s, allow_zero=True)
-        _positive("end_discard_s", self.end_discard_s, allow_zero=True)
-        _positive("min_height_px", self.min_height_px)
-
-
-@dataclass
-class NavsimSource:
-    """NAVSIM / OpenScene: ``navsim_logs/<split>/<log>.pkl`` + ``sensor_blobs/<split>/<log>/CAM_F0``."""
-
-    root: Optional[Path] = None
-    split: str = "mini"
-    camera: str = "CAM_F0"
-    max_items: Optional[int] = None
-
-
-@dataclass
-class CarlaSource:
-    """Bench2Drive-style CARLA episodes (``anno/*.json.gz`` + ``camera/rgb_front``), with route outcomes."""
-
-    root: Optional[Path] = None
-    camera: str = "rgb_front"
-    max_items: Optional[int] = None
-
-
-@dataclass
-class SyntheticSource:
-    """A synthetic world (``resim synth``) in the three real layouts, read back through the real readers.
-
-    Generated into ``root`` when ``root`` has no ``ground_truth`` file yet (reused otherwise).
-    """
-
-    root: Optional[Path] = None               # null: disabled; relative paths are relative to the CWD
-    episodes: int = 6
-    seed: int = 0
-    layouts: tuple[str, ...] = ("opendv", "navsim", "carla")
-
-    def __post_init__(self):
-        _positive("episodes", self.episodes)
-        bad = [x for x in self.layouts if x not in ("opendv", "navsim", "carla")]
-        if bad:
-            raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
-
-
-@dataclass
-class SourcesConfig:
-    opendv: OpenDVSource = field(default_factory=OpenDVSource)
-    navsim: NavsimSource = field(default_factory=NavsimSource)
-    carla: CarlaSource = field(default_factory=CarlaSource)
-    synthetic: SyntheticSource = field(default_factory=SyntheticSource)
-
-
 # ---------------------------------------------------------------------------------------------- clip
 @dataclass
 class ClipConfig:
@@ -148,6 +82,77 @@ class ClipConfig:
         return ClipSpec(fps_hz=self.fps_hz, num_history_frames=self.num_history_frames,
                         num_future_frames=self.num_future_frames, num_waypoints=self.num_waypoints,
                         waypoint_dt_s=self.waypoint_dt_s)
+
+
+# ------------------------------------------------------------------------------------------- sources
+@dataclass
+class OpenDVSource:
+    """OpenDV-YouTube style: a folder of long dashcam videos (mp4/webm/mkv), resampled to clip.fps_hz.
+
+    ReSim discards the first 90 s and last 60 s of every video (intros, outros) and keeps >= 720p videos.
+    """
+
+    root: Optional[Path] = None               # null: source disabled
+    start_discard_s: float = 90.0
+    end_discard_s: float = 60.0
+    min_height_px: int = 720
+    max_items: Optional[int] = None           # cap for smoke runs
+    clip: Optional[ClipConfig] = None         # per-source clip geometry (null: the top-level `clip`)
+
+    def __post_init__(self):
+        _positive("start_discard_s", self.start_discard_s, allow_zero=True)
+        _positive("end_discard_s", self.end_discard_s, allow_zero=True)
+        _positive("min_height_px", self.min_height_px)
+
+
+@dataclass
+class NavsimSource:
+    """NAVSIM / OpenScene: ``navsim_logs/<split>/<log>.pkl`` + ``sensor_blobs/<split>/<log>/CAM_F0``."""
+
+    root: Optional[Path] = None
+    split: str = "mini"
+    camera: str = "CAM_F0"
+    max_items: Optional[int] = None
+    clip: Optional[ClipConfig] = None         # NAVSIM logs are 2 Hz: a 10 Hz clip cannot be cut from them
+
+
+@dataclass
+class CarlaSource:
+    """Bench2Drive-style CARLA episodes (``anno/*.json.gz`` + ``camera/rgb_front``), with route outcomes."""
+
+    root: Optional[Path] = None
+    camera: str = "rgb_front"
+    max_items: Optional[int] = None
+    clip: Optional[ClipConfig] = None
+
+
+@dataclass
+class SyntheticSource:
+    """A synthetic world (``resim synth``) in the three real layouts, read back through the real readers.
+
+    Generated into ``root`` when ``root`` has no ``ground_truth`` file yet (reused otherwise).
+    """
+
+    root: Optional[Path] = None               # null: disabled; relative paths are relative to the CWD
+    episodes: int = 6
+    seed: int = 0
+    layouts: tuple[str, ...] = ("opendv", "navsim", "carla")
+    clip: dict[str, ClipConfig] = field(default_factory=dict)   # per-layout clip geometry overrides
+    preset: str = "demo"                      # resim synth preset (demo: 128x224, 16 s episodes)
+
+    def __post_init__(self):
+        _positive("episodes", self.episodes)
+        bad = [x for x in list(self.layouts) + list(self.clip) if x not in ("opendv", "navsim", "carla")]
+        if bad:
+            raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
+
+
+@dataclass
+class SourcesConfig:
+    opendv: OpenDVSource = field(default_factory=OpenDVSource)
+    navsim: NavsimSource = field(default_factory=NavsimSource)
+    carla: CarlaSource = field(default_factory=CarlaSource)
+    synthetic: SyntheticSource = field(default_factory=SyntheticSource)
 
 
 # -------------------------------------------------------------------------------------------- labels
@@ -288,14 +293,16 @@ class PipelineConfig:
     ray: RayConfig = field(default_factory=RayConfig)
 
     def __post_init__(self):
-        if self.balance.enabled and self.clip.stride_frames % self.balance.turn_factor:
-            raise ConfigError(
-                f"balance.turn_factor: clip.stride_frames ({self.clip.stride_frames}) must be divisible by "
-                f"balance.turn_factor ({self.balance.turn_factor}) so turning windows lie on a finer grid")
-        future_s = self.clip.num_future_frames / self.clip.fps_hz
-        if abs(self.labels.labeler.command.window_s - future_s) > 1e-6:
-            raise ConfigError(f"labels.labeler.command.window_s ({self.labels.labeler.command.window_s}) must equal "
-                              f"the clip's future window clip.num_future_frames / clip.fps_hz = {future_s:g} s")
+        for key, clip in self.clip_configs():
+            if self.balance.enabled and clip.stride_frames % self.balance.turn_factor:
+                raise ConfigError(
+                    f"balance.turn_factor: {key}.stride_frames ({clip.stride_frames}) must be divisible by "
+                    f"balance.turn_factor ({self.balance.turn_factor}) so turning windows lie on a finer grid")
+            future_s = clip.num_future_frames / clip.fps_hz
+            if abs(self.labels.labeler.command.window_s - future_s) > 1e-6:
+                raise ConfigError(
+                    f"labels.labeler.command.window_s ({self.labels.labeler.command.window_s}) must equal the "
+                    f"future window of {key} ({key}.num_future_frames / fps_hz = {future_s:g} s)")
         if abs(self.labels.labeler.flow.sample_hz - self.clip.fps_hz) > 1e-9:
             raise ConfigError(f"labels.labeler.flow.sample_hz ({self.labels.labeler.flow.sample_hz}) must equal "
                               f"clip.fps_hz ({self.clip.fps_hz}): flow runs on the clip-rate frames")
@@ -304,12 +311,22 @@ class PipelineConfig:
             raise ConfigError("sources: no source configured (set sources.<kind>.root for at least one of "
                               "opendv, navsim, carla, synthetic)")
 
-    @property
-    def fine_stride_frames(self) -> int:
+    def clip_configs(self) -> list[tuple[str, ClipConfig]]:
+        """Every clip geometry in use, with its config key (top level + per-source overrides)."""
+        out = [("clip", self.clip)]
+        for kind in ("opendv", "navsim", "carla"):
+            c = getattr(self.sources, kind).clip
+            if c is not None:
+                out.append((f"sources.{kind}.clip", c))
+        out += [(f"sources.synthetic.clip.{k}", c) for k, c in self.sources.synthetic.clip.items()]
+        return out
+
+    def fine_stride_frames(self, clip: ClipConfig | None = None) -> int:
         """Start-to-start distance of turning windows (stride / factor)."""
+        clip = clip or self.clip
         if not self.balance.enabled:
-            return self.clip.stride_frames
-        return self.clip.stride_frames // self.balance.turn_factor
+            return clip.stride_frames
+        return clip.stride_frames // self.balance.turn_factor
 
 
 def load_config(path: str | Path | None, overrides=(), out: str | Path | None = None) -> PipelineConfig:

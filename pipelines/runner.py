@@ -76,12 +76,14 @@ def ensure_synthetic(cfg: PipelineConfig) -> None:
     if s.root is None:
         return
     root = Path(s.root)
-    if any((root / f).exists() for f in ("ground_truth.json", "ground_truth.parquet")):
+    if (root / "ground_truth.json").exists():
         return
-    from pipelines.sources.synth import generate
+    from pipelines.sources.synth.generate import generate, preset
 
-    log.info("generating a synthetic world (%d episodes, seed %d) in %s", s.episodes, s.seed, root)
-    generate(root, episodes=s.episodes, seed=s.seed)
+    log.info("generating a synthetic world (%d episodes, seed %d, preset %s) in %s", s.episodes, s.seed,
+             s.preset, root)
+    generate(root, s.episodes, s.seed, preset(s.preset), overwrite=root.exists() and not any(root.iterdir()),
+             progress=cfg.ray.progress_bars)
 
 
 # ------------------------------------------------------------------------------------- executors
@@ -232,6 +234,9 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
         run_prompts_local(cfg)
         run_units_local(cfg, todo, done.append, progress)
 
+    staging = out / "_staging"
+    if staging.is_dir() and not any(staging.iterdir()):
+        staging.rmdir()
     wall = time.perf_counter() - t0
     markers = resume.read_markers(out)
     enumerated_ids = {s["unit_id"] for s in states}

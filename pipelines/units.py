@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipelines.config import PipelineConfig
-from resim.config import ConfigError, from_dict
+from pipelines.config import ClipConfig, PipelineConfig
+from resim.config import ConfigError, from_dict, to_dict
 
 KINDS = ("opendv", "navsim", "carla")
 _SAFE = re.compile(r"[^A-Za-z0-9]+")
@@ -41,6 +41,7 @@ class SourceSpec:
     section: str         # config key, e.g. "sources.opendv" or "sources.synthetic"
     max_items: int | None
     options: tuple       # reader config fields as (key, value) pairs (hashable)
+    clip: dict | None = None   # per-source clip geometry override (plain dict), None = top-level clip
 
     @property
     def origin(self) -> str:
@@ -52,25 +53,43 @@ def source_specs(cfg: PipelineConfig) -> list[SourceSpec]:
     """The readers this config asks for (synthetic root expanded into its three layouts)."""
     specs = []
     s = cfg.sources
+
+    def clip_of(c: ClipConfig | None) -> dict:
+        return to_dict(c if c is not None else cfg.clip)
+
     if s.opendv.root is not None:
+        c = s.opendv.clip or cfg.clip
         specs.append(SourceSpec("opendv", str(s.opendv.root), "sources.opendv", s.opendv.max_items, tuple(sorted({
             "start_discard_s": s.opendv.start_discard_s, "end_discard_s": s.opendv.end_discard_s,
-            "min_height_px": s.opendv.min_height_px, "fps_hz": cfg.clip.fps_hz}.items()))))
+            "min_height_px": s.opendv.min_height_px, "fps_hz": c.fps_hz}.items())), clip_of(c)))
     if s.navsim.root is not None:
         specs.append(SourceSpec("navsim", str(s.navsim.root), "sources.navsim", s.navsim.max_items,
-                                tuple(sorted({"split": s.navsim.split, "camera": s.navsim.camera}.items()))))
+                                tuple(sorted({"split": s.navsim.split, "camera": s.navsim.camera}.items())),
+                                clip_of(s.navsim.clip)))
     if s.carla.root is not None:
         specs.append(SourceSpec("carla", str(s.carla.root), "sources.carla", s.carla.max_items,
-                                tuple(sorted({"camera": s.carla.camera}.items()))))
+                                tuple(sorted({"camera": s.carla.camera}.items())), clip_of(s.carla.clip)))
     if s.synthetic.root is not None:
         for kind in s.synthetic.layouts:
+            c = s.synthetic.clip.get(kind) or cfg.clip
             opts: dict[str, Any] = {}
             if kind == "opendv":  # the synthetic world has no intro/outro and small frames
-                opts = {"start_discard_s": 0.0, "end_discard_s": 0.0, "min_height_px": 32,
-                        "fps_hz": cfg.clip.fps_hz}
+                opts = {"start_discard_s": 0.0, "end_discard_s": 0.0, "min_height_px": 32, "fps_hz": c.fps_hz}
+            if kind == "navsim":
+                opts = {"split": _synth_navsim_split(Path(s.synthetic.root))}
             specs.append(SourceSpec(kind, str(Path(s.synthetic.root) / kind), "sources.synthetic", None,
-                                    tuple(sorted(opts.items()))))
+                                    tuple(sorted(opts.items())), clip_of(c)))
     return specs
+
+
+def _synth_navsim_split(root: Path) -> str:
+    """The split the synthetic world wrote its NAVSIM logs under (``synth_config.json``; default 'synth')."""
+    p = root / "synth_config.json"
+    if p.is_file():
+        return str(json.loads(p.read_text()).get("navsim_split", "synth"))
+    from pipelines.sources.synth.generate import SynthConfig
+
+    return SynthConfig().navsim_split
 
 
 def make_reader(spec: SourceSpec):
@@ -99,6 +118,7 @@ def new_state(spec: SourceSpec, item_id: str) -> dict:
         "item_id": item_id,
         "spec": {"kind": spec.kind, "root": spec.root, "section": spec.section,
                  "max_items": spec.max_items, "options": [list(kv) for kv in spec.options]},
+        "clip": spec.clip,          # clip geometry for this unit (ClipConfig fields)
         "status": "ok",             # ok | quarantined
         "attempts": 1,
         "quarantine": [],           # rows: item, source, stage, reason, attempts
@@ -115,6 +135,11 @@ def new_state(spec: SourceSpec, item_id: str) -> dict:
 def spec_from_state(state: dict) -> SourceSpec:
     s = state["spec"]
     return SourceSpec(s["kind"], s["root"], s["section"], s["max_items"], tuple(tuple(kv) for kv in s["options"]))
+
+
+def clip_of(state: dict) -> ClipConfig:
+    """The unit's clip geometry (top-level ``clip`` or its source's override)."""
+    return from_dict(ClipConfig, state["clip"])
 
 
 def dumps(state: dict) -> str:

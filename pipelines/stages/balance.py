@@ -15,6 +15,7 @@ Counts recorded per unit (summed into stats.json / the report):
 from __future__ import annotations
 
 from pipelines.stages.base import Stage
+from pipelines.units import clip_of
 
 
 def select_windows(windows: list[dict], stride: int, factor: int, enabled: bool) -> tuple[list[dict], dict]:
@@ -37,7 +38,7 @@ class BalanceStage(Stage):
 
     def process(self, state: dict) -> None:
         b = self.cfg.balance
-        kept, counts = select_windows(state["windows"], self.cfg.clip.stride_frames, b.turn_factor, b.enabled)
+        kept, counts = select_windows(state["windows"], clip_of(state).stride_frames, b.turn_factor, b.enabled)
         state["selected"] = kept
         state["balance"] = counts
         state["windows"] = []          # candidates are no longer needed: keep rows small

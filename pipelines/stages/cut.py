@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pipelines.frames import rate_step
 from pipelines.stages.base import BadInput, Stage
-from pipelines.units import make_reader, spec_from_state
+from pipelines.units import clip_of, make_reader, spec_from_state
 
 
 class CutStage(Stage):
@@ -33,17 +33,18 @@ class CutStage(Stage):
         return self.reader(state).open(state["item_id"])
 
     def process(self, state: dict) -> None:
-        cfg = self.cfg
+        cfg, clip = self.cfg, clip_of(state)
         ep = self.open(state)
-        step = rate_step(ep.fps_hz, cfg.clip.fps_hz)
+        step = rate_step(ep.fps_hz, clip.fps_hz)
         if step is None:
-            raise BadInput(f"frame rate {ep.fps_hz:g} Hz cannot be brought to clip.fps_hz {cfg.clip.fps_hz:g} Hz "
-                           "by integer subsampling")
+            raise BadInput(f"frame rate {ep.fps_hz:g} Hz cannot be brought to the clip rate {clip.fps_hz:g} Hz "
+                           "by integer subsampling (set a per-source `clip` in the config to cut clips at the "
+                           "source's own rate)")
         n = (ep.num_frames - 1) // step + 1 if ep.num_frames > 0 else 0     # clip-rate frames available
-        N = cfg.clip.num_frames
+        N = clip.num_frames
         if n < N:
-            raise BadInput(f"too short: {n} frames at {cfg.clip.fps_hz:g} Hz < {N} needed for one clip "
-                           f"({N / cfg.clip.fps_hz:g} s)")
+            raise BadInput(f"too short: {n} frames at {clip.fps_hz:g} Hz < {N} needed for one clip "
+                           f"({N / clip.fps_hz:g} s)")
         h, w = ep.frame_size_hw
         if state["kind"] == "opendv" and state["spec"]["section"] == "sources.opendv" \
                 and h < cfg.sources.opendv.min_height_px:
@@ -52,7 +53,7 @@ class CutStage(Stage):
         if h < cfg.encode.height_px // 2 or w < cfg.encode.width_px // 2:
             raise BadInput(f"too low resolution: {h}x{w} px for encode {cfg.encode.height_px}x{cfg.encode.width_px} "
                            "(more than 2x upscaling)")
-        fine = cfg.fine_stride_frames
+        fine = cfg.fine_stride_frames(clip)
         starts = list(range(0, n - N + 1, fine))
         outcome = ep.outcome
         state["episode"] = {

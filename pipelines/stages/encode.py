@@ -25,6 +25,7 @@ import numpy as np
 from pipelines.frames import center_crop, clip_frames, cover_size, sliding_windows
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
+from pipelines.units import clip_of
 from resim.config import config_hash
 
 
@@ -68,8 +69,8 @@ class EncodeStage(CutStage):
 
         from pipelines.encoders import to_storage
 
-        cfg, e, enc = self.cfg, state["episode"], self.cfg.encode
-        N, H = cfg.clip.num_frames, cfg.clip.num_history_frames
+        cfg, e, enc, clip = self.cfg, state["episode"], self.cfg.encode, clip_of(state)
+        N, H = clip.num_frames, clip.num_history_frames
         out_hw = (enc.height_px, enc.width_px)
         prev_hw = (enc.frames_height_px, enc.frames_width_px)
         sel = sorted(state["selected"], key=lambda w: w["start"])
@@ -112,18 +113,18 @@ class EncodeStage(CutStage):
             t0 = time.perf_counter()
             latents = self.vae.encode(clips, [key_seed(k) for k in ks])
             t_vae += time.perf_counter() - t0
-            for (w, clip), key, lat in zip(pending, ks, latents):
+            for (w, pix), key, lat in zip(pending, ks, latents):
                 t0 = time.perf_counter()
-                small = clip if prev_hw == out_hw else np.stack(
-                    [cv2.resize(f, prev_hw[::-1], interpolation=cv2.INTER_AREA) for f in clip])
-                mp4 = encode_mp4(small, cfg.clip.fps_hz)
+                small = pix if prev_hw == out_hw else np.stack(
+                    [cv2.resize(f, prev_hw[::-1], interpolation=cv2.INTER_AREA) for f in pix])
+                mp4 = encode_mp4(small, clip.fps_hz)
                 t_mp4 += time.perf_counter() - t0
                 stored = to_storage(lat, enc.latent_dtype)
                 meta = {
                     "schema_version": SCHEMA_VERSION, "key": key, "source": e["source"], "item_id": e["item_id"],
-                    "start_frame": int(w["start"]), "start_s": round(w["start"] / cfg.clip.fps_hz, 6),
-                    "fps_hz": cfg.clip.fps_hz, "num_frames": N, "num_history_frames": H,
-                    "num_future_frames": cfg.clip.num_future_frames,
+                    "start_frame": int(w["start"]), "start_s": round(w["start"] / clip.fps_hz, 6),
+                    "fps_hz": clip.fps_hz, "num_frames": N, "num_history_frames": H,
+                    "num_future_frames": clip.num_future_frames,
                     "height_px": enc.height_px, "width_px": enc.width_px,
                     "frames_height_px": prev_hw[0], "frames_width_px": prev_hw[1],
                     "command": w["command"], "command_source": w["command_source"],
@@ -148,9 +149,9 @@ class EncodeStage(CutStage):
                 keys.append(key)
             pending.clear()
 
-        for start, clip in sliding_windows(frames(), first, [w for w in by_start if w >= first], N):
+        for start, pix in sliding_windows(frames(), first, list(by_start), N):
             if start in by_start:
-                pending.append((by_start[start], clip))
+                pending.append((by_start[start], pix))
                 if len(pending) >= enc.batch_size:
                     flush()
         flush()

@@ -14,12 +14,15 @@ unit's other windows go on.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from pipelines import quarantine
 from pipelines.frames import clip_frames
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
+from pipelines.units import clip_of
 from shards.schema import COMMANDS
 
 FORWARD = COMMANDS[1]
@@ -45,15 +48,17 @@ class LabelStage(CutStage):   # shares the reader cache
         from labeling.commands import command_from_trajectory, command_from_yaw
         from labeling.trajectory import trajectory_from_poses
 
-        cfg, e = self.cfg, state["episode"]
-        fps, step = cfg.clip.fps_hz, e["step"]
-        H, N = cfg.clip.num_history_frames, cfg.clip.num_frames
+        cfg, e, clip = self.cfg, state["episode"], clip_of(state)
+        fps, step = clip.fps_hz, e["step"]
+        H, N = clip.num_history_frames, clip.num_frames
         windows = state["windows"]
         end = windows[-1]["start"] + N                                 # frames needed: [0, end)
         ep = self.open(state)
 
         frames = clip_frames(ep, 0, end, step, self.flow_size_hw(e["frame_size_hw"]))
-        rates = self.flow.yaw_rates_deg(frames, fps)                   # (end-1,) deg/s, left +
+        with warnings.catch_warnings():   # all-NaN residual rows on textureless frames: handled inside
+            warnings.simplefilter("ignore", RuntimeWarning)
+            rates = self.flow.yaw_rates_deg(frames, fps)               # (end-1,) deg/s, left +
         if len(rates) != end - 1:
             raise BadInput(f"decoded {len(rates) + 1} of {end} frames (truncated video or missing frames)")
         heading = np.concatenate([[0.0], np.cumsum(rates) / fps])      # heading at frame i, deg
@@ -83,7 +88,7 @@ class LabelStage(CutStage):   # shares the reader cache
                     quarantine.drop_window(state, self.name, s, f"NaN/inf poses at clip frames {idx[0]}..{idx[-1]} "
                                                                f"({int(bad.sum())} of {N})")
                     continue
-                traj = trajectory_from_poses(poses, t, fps, cfg.clip.num_waypoints, cfg.clip.waypoint_dt_s)
+                traj = trajectory_from_poses(poses, t, fps, clip.num_waypoints, clip.waypoint_dt_s)
                 cmd_traj, yaw_traj = command_from_trajectory(traj, self.lcfg)
                 out.update(command_trajectory=cmd_traj, yaw_deg_trajectory=float(yaw_traj),
                            traj=np.round(traj.astype(np.float64), 6).tolist())
