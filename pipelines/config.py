@@ -276,6 +276,7 @@ class RayConfig:
     num_cpus: Optional[int] = None            # embedded Ray only; null = all cores
     executor: Literal["ray", "local"] = "ray" # "local": same stages, sequential, no Ray (debugging, tests)
     progress_bars: bool = True
+    fuse_cpu_stages: bool = True              # cut+label+balance in one actor pool (label's resources)
     stages: StagesResources = field(default_factory=StagesResources)
 
 

@@ -131,32 +131,46 @@ def _quiet_ray_data(progress: bool) -> None:
         logging.getLogger(name).setLevel(logging.ERROR)
 
 
-def run_prompts_ray(cfg: PipelineConfig, have_gpu: bool) -> list[str]:
+def start_prompts_ray(cfg: PipelineConfig, have_gpu: bool):
+    """Encode the prompt table in a Ray task *while* the units run (it needs its own model load)."""
     import ray
 
-    from pipelines.stages.prompts import PromptStage, all_prompts
-
     res = cfg.ray.stages.prompts
-    texts = all_prompts()
-    ds = ray.data.from_items([{"text": t, "role": r} for t, r in texts], override_num_blocks=1)
-    ds = ds.map_batches(PromptStage, fn_constructor_kwargs={"cfg": to_dict(cfg)}, batch_size=len(texts),
-                        compute=ray.data.ActorPoolStrategy(size=1), num_cpus=res.num_cpus,
-                        num_gpus=_gpus(res, have_gpu))
-    return [r["prompt_id"] for r in ds.take_all()]
+
+    @ray.remote(num_cpus=res.num_cpus, num_gpus=_gpus(res, have_gpu), max_retries=0)
+    def encode_prompts(cfg_dict: dict) -> list[str]:
+        from pipelines.stages.prompts import PromptStage, all_prompts
+
+        texts = all_prompts()
+        out = PromptStage(cfg_dict)({"text": [t for t, _ in texts], "role": [r for _, r in texts]})
+        return list(out["prompt_id"])
+
+    return encode_prompts.remote(to_dict(cfg))
+
+
+def unit_pipeline(cfg: PipelineConfig) -> list[tuple[str, object, dict]]:
+    """(pool name, callable class, constructor kwargs) in order; cut+label+balance fused when configured."""
+    from pipelines.stages import UNIT_STAGES
+    from pipelines.stages.base import Chain
+
+    cfg_dict = to_dict(cfg)
+    stages = list(UNIT_STAGES)
+    if cfg.ray.fuse_cpu_stages:
+        light = tuple(cls for name, cls in stages if name in ("cut", "label", "balance"))
+        rest = [(n, c, {"cfg": cfg_dict}) for n, c in stages if n not in ("cut", "label", "balance")]
+        return [("label", Chain, {"cfg": cfg_dict, "stages": light})] + rest
+    return [(n, c, {"cfg": cfg_dict}) for n, c in stages]
 
 
 def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_done) -> None:
     import ray
 
-    from pipelines.stages import UNIT_STAGES
-
     if not states:
         return
-    cfg_dict = to_dict(cfg)
     ds = ray.data.from_items([{"unit": dumps(s)} for s in states], override_num_blocks=len(states))
-    for name, cls in UNIT_STAGES:
+    for name, cls, kwargs in unit_pipeline(cfg):
         res = getattr(cfg.ray.stages, name)
-        ds = ds.map_batches(cls, fn_constructor_kwargs={"cfg": cfg_dict}, batch_size=1, batch_format="numpy",
+        ds = ds.map_batches(cls, fn_constructor_kwargs=kwargs, batch_size=1, batch_format="numpy",
                             compute=ray.data.ActorPoolStrategy(size=res.actors), num_cpus=res.num_cpus,
                             num_gpus=_gpus(res, have_gpu))
     for row in ds.iter_rows():
@@ -223,8 +237,9 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
             _quiet_ray_data(progress)
             have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
             cpus = float(ray.cluster_resources().get("CPU", 1.0))
-            run_prompts_ray(cfg, have_gpu)
+            prompts = start_prompts_ray(cfg, have_gpu)
             run_units_ray(cfg, todo, have_gpu, done.append)
+            ray.get(prompts)
         finally:
             if started:
                 import ray

@@ -83,3 +83,25 @@ class Stage:
     def __call__(self, batch: dict) -> dict:
         out = [dumps(self.run_one(loads(s))) for s in batch["unit"]]
         return {"unit": np.array(out, dtype=object)}
+
+
+class Chain:
+    """Several stages in one actor (``ray.fuse_cpu_stages``): one process, one set-up, no hops between them.
+
+    Used for cut → label → balance, which are cheap to hand over but each cost an actor start-up
+    (seconds: imports) if pooled separately; the encode and write pools stay separate so they scale
+    on their own (GPU vs. I/O).
+    """
+
+    def __init__(self, cfg, stages: tuple = ()):
+        self.stages = [cls(cfg) for cls in stages]
+        self.name = "+".join(s.name for s in self.stages)
+
+    def run_one(self, state: dict) -> dict:
+        for s in self.stages:
+            state = s.run_one(state)
+        return state
+
+    def __call__(self, batch: dict) -> dict:
+        out = [dumps(self.run_one(loads(s))) for s in batch["unit"]]
+        return {"unit": np.array(out, dtype=object)}
