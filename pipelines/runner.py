@@ -125,7 +125,7 @@ def _quiet_ray_data(progress: bool) -> None:
     import ray.data
 
     ctx = ray.data.DataContext.get_current()
-    ctx.enable_progress_bars = progress
+    ctx.enable_progress_bars = False      # our own bar per stage (run_units_ray) instead
     ctx.print_on_execution_start = False
     for name in ("ray.data", "ray"):
         logging.getLogger(name).setLevel(logging.ERROR)
@@ -162,19 +162,66 @@ def unit_pipeline(cfg: PipelineConfig) -> list[tuple[str, object, dict]]:
     return [(n, c, {"cfg": cfg_dict}) for n, c in stages]
 
 
-def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_done) -> None:
+class _Board:
+    """Per-stage unit counters the stages bump (``mark.remote``); the driver polls them for its bars."""
+
+    def __init__(self):
+        self.counts: dict[str, int] = {}
+
+    def mark(self, stage: str, n: int = 1) -> None:
+        self.counts[stage] = self.counts.get(stage, 0) + n
+
+    def get(self) -> dict[str, int]:
+        return dict(self.counts)
+
+
+def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_done, progress: bool = True) -> None:
+    import threading
+
     import ray
+    from tqdm import tqdm
+
+    from pipelines.stages import UNIT_STAGES
 
     if not states:
         return
+    board = ray.remote(num_cpus=0)(_Board).remote() if progress else None
     ds = ray.data.from_items([{"unit": dumps(s)} for s in states], override_num_blocks=len(states))
     for name, cls, kwargs in unit_pipeline(cfg):
         res = getattr(cfg.ray.stages, name)
-        ds = ds.map_batches(cls, fn_constructor_kwargs=kwargs, batch_size=1, batch_format="numpy",
-                            compute=ray.data.ActorPoolStrategy(size=res.actors), num_cpus=res.num_cpus,
-                            num_gpus=_gpus(res, have_gpu))
-    for row in ds.iter_rows():
-        on_done(loads(row["unit"]))
+        ds = ds.map_batches(cls, fn_constructor_kwargs={**kwargs, "progress": board}, batch_size=1,
+                            batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=res.actors),
+                            num_cpus=res.num_cpus, num_gpus=_gpus(res, have_gpu))
+    if board is None:
+        for row in ds.iter_rows():
+            on_done(loads(row["unit"]))
+        return
+    # drain the dataset in a thread; draw one bar per stage here from the board's counters
+    error: list[BaseException] = []
+
+    def drain():
+        try:
+            for row in ds.iter_rows():
+                on_done(loads(row["unit"]))
+        except BaseException as e:  # noqa: BLE001 - re-raised in the main thread below
+            error.append(e)
+
+    t = threading.Thread(target=drain, daemon=True)
+    t.start()
+    bars = {name: tqdm(total=len(states), desc=f"{name:>8}", unit="unit", position=i, leave=True)
+            for i, (name, _) in enumerate(UNIT_STAGES)}
+    try:
+        while t.is_alive():
+            t.join(0.5)
+            counts = ray.get(board.get.remote())
+            for name, bar in bars.items():
+                bar.update(counts.get(name, 0) - bar.n)
+    finally:
+        for bar in bars.values():
+            bar.close()
+        ray.kill(board)
+    if error:
+        raise error[0]
 
 
 def run_prompts_local(cfg: PipelineConfig) -> list[str]:
@@ -238,7 +285,7 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
             have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
             cpus = float(ray.cluster_resources().get("CPU", 1.0))
             prompts = start_prompts_ray(cfg, have_gpu)
-            run_units_ray(cfg, todo, have_gpu, done.append)
+            run_units_ray(cfg, todo, have_gpu, done.append, progress)
             ray.get(prompts)
         finally:
             if started:

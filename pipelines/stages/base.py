@@ -42,9 +42,10 @@ class BadInput(Exception):
 class Stage:
     name = "stage"
 
-    def __init__(self, cfg: dict | PipelineConfig):
+    def __init__(self, cfg: dict | PipelineConfig, progress=None):
         self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
         self._source_error = _source_error()
+        self.progress = progress       # a ProgressBoard actor handle (Ray executor) or None
 
     # --- per unit --------------------------------------------------------------------------------
     def process(self, state: dict) -> None:  # pragma: no cover - abstract
@@ -79,9 +80,14 @@ class Stage:
         state["timings_s"][self.name] = state["timings_s"].get(self.name, 0.0) + time.perf_counter() - t0
         return state
 
+    def _mark(self, n: int) -> None:
+        if self.progress is not None and n:
+            self.progress.mark.remote(self.name, n)   # fire and forget
+
     # --- per batch (what Ray Data calls) -----------------------------------------------------------
     def __call__(self, batch: dict) -> dict:
         out = [dumps(self.run_one(loads(s))) for s in batch["unit"]]
+        self._mark(len(out))
         return {"unit": np.array(out, dtype=object)}
 
 
@@ -93,15 +99,13 @@ class Chain:
     on their own (GPU vs. I/O).
     """
 
-    def __init__(self, cfg, stages: tuple = ()):
-        self.stages = [cls(cfg) for cls in stages]
+    def __init__(self, cfg, stages: tuple = (), progress=None):
+        self.stages = [cls(cfg, progress=progress) for cls in stages]
         self.name = "+".join(s.name for s in self.stages)
 
-    def run_one(self, state: dict) -> dict:
-        for s in self.stages:
-            state = s.run_one(state)
-        return state
-
     def __call__(self, batch: dict) -> dict:
-        out = [dumps(self.run_one(loads(s))) for s in batch["unit"]]
-        return {"unit": np.array(out, dtype=object)}
+        states = [loads(s) for s in batch["unit"]]
+        for stage in self.stages:
+            states = [stage.run_one(st) for st in states]
+            stage._mark(len(states))
+        return {"unit": np.array([dumps(st) for st in states], dtype=object)}

@@ -19,8 +19,8 @@ from pipelines.units import clip_of, make_reader, spec_from_state
 class CutStage(Stage):
     name = "cut"
 
-    def __init__(self, cfg):
-        super().__init__(cfg)
+    def __init__(self, cfg, progress=None):
+        super().__init__(cfg, progress)
         self._readers: dict = {}
 
     def reader(self, state: dict):

@@ -48,8 +48,8 @@ def key_seed(key: str) -> int:
 class EncodeStage(CutStage):
     name = "encode"
 
-    def __init__(self, cfg, device: str | None = None):
-        super().__init__(cfg)
+    def __init__(self, cfg, progress=None, device: str | None = None):
+        super().__init__(cfg, progress)
         import torch
 
         from pipelines.encoders import VideoVAE

@@ -31,8 +31,8 @@ FORWARD = COMMANDS[1]
 class LabelStage(CutStage):   # shares the reader cache
     name = "label"
 
-    def __init__(self, cfg):
-        super().__init__(cfg)
+    def __init__(self, cfg, progress=None):
+        super().__init__(cfg, progress)
         from labeling.flow import FlowLabeler
 
         self.lcfg = self.cfg.labels.labeler

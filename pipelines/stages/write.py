@@ -43,8 +43,8 @@ def remove_unit_files(out: Path, unit_id: str) -> int:
 class WriteStage(Stage):
     name = "write"
 
-    def __init__(self, cfg):
-        super().__init__(cfg)
+    def __init__(self, cfg, progress=None):
+        super().__init__(cfg, progress)
         self.out = Path(self.cfg.out)
         self.config_hash = data_config_hash(self.cfg)
 
