@@ -186,7 +186,8 @@ def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_do
     if not states:
         return
     board = ray.remote(num_cpus=0)(_Board).remote() if progress else None
-    ds = ray.data.from_items([{"unit": dumps(s)} for s in states], override_num_blocks=len(states))
+    # one block per unit up to a cap (blocks are the unit of scheduling; 88 k tiny blocks only cost overhead)
+    ds = ray.data.from_items([{"unit": dumps(s)} for s in states], override_num_blocks=min(len(states), 8192))
     for name, cls, kwargs in unit_pipeline(cfg):
         res = getattr(cfg.ray.stages, name)
         ds = ds.map_batches(cls, fn_constructor_kwargs={**kwargs, "progress": board}, batch_size=1,
@@ -272,7 +273,11 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
     quarantine.write_rows(out, "_enumerate", bad_sources)
     todo, skipped = resume.plan(states, resume.read_markers(out), cfg.quarantine.retry_quarantined)
     log.info("%d units enumerated, %d already committed, %d to run", len(states), len(skipped), len(todo))
-    done: list[dict] = []
+    done = {"units": 0, "clips_written": 0}
+
+    def on_done(summary: dict) -> None:   # the driver keeps counters only (markers hold the rest)
+        done["units"] += 1
+        done["clips_written"] += (summary.get("written") or {}).get("num_samples", 0)
 
     started = False
     cpus = 1.0
@@ -285,7 +290,7 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
             have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
             cpus = float(ray.cluster_resources().get("CPU", 1.0))
             prompts = start_prompts_ray(cfg, have_gpu)
-            run_units_ray(cfg, todo, have_gpu, done.append, progress)
+            run_units_ray(cfg, todo, have_gpu, on_done, progress)
             ray.get(prompts)
         finally:
             if started:
@@ -294,7 +299,7 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
                 ray.shutdown()
     else:
         run_prompts_local(cfg)
-        run_units_local(cfg, todo, done.append, progress)
+        run_units_local(cfg, todo, on_done, progress)
 
     staging = out / "_staging"
     if staging.is_dir() and not any(staging.iterdir()):
@@ -305,8 +310,7 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
     stats = report.compute_stats(out, [m for uid, m in markers.items() if uid in enumerated_ids],
                                  this_run={"units_run": len(todo), "units_skipped": len(skipped), "wall_s": wall,
                                            "executor": cfg.ray.executor,
-                                           "clips_written": sum((d.get("written") or {}).get("num_samples", 0)
-                                                                for d in done),
+                                           "clips_written": done["clips_written"],
                                            "cpus": cpus},
                                  cfg=cfg)
     report.write_stats(out, stats)

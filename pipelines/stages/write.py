@@ -51,6 +51,14 @@ class WriteStage(Stage):
     def wants(self, state: dict) -> bool:
         return True   # quarantined units are committed too (with their rows, and no shards)
 
+    def __call__(self, batch: dict) -> dict:
+        """Rows leaving the pipeline carry only the unit's summary (the driver needs no more)."""
+        from pipelines.units import dumps, loads
+
+        out = [dumps(resume.summary(self.run_one(loads(s)))) for s in batch["unit"]]
+        self._mark(len(out))
+        return {"unit": np.array(out, dtype=object)}
+
     def read_sample(self, stage_dir: Path, key: str) -> dict:
         sample = {"__key__": key, "meta.json": json.loads((stage_dir / f"{key}.meta.json").read_text()),
                   "latent.npy": np.load(stage_dir / f"{key}.latent.npy", allow_pickle=False),
@@ -61,8 +69,11 @@ class WriteStage(Stage):
         return sample
 
     def process(self, state: dict) -> None:
+        import time
+
         from shards.writer import ShardWriter
 
+        t0 = time.perf_counter()
         uid = state["unit_id"]
         remove_unit_files(self.out, uid)
         shards: list[dict] = []
@@ -78,6 +89,8 @@ class WriteStage(Stage):
             shards = [{"name": i.name, "num_samples": int(i.num_samples)} for i in w.close()]
         quarantine.write_rows(self.out, uid, state["quarantine"])
         state["written"] = {"shards": shards, "num_samples": len(keys)}
+        state["timings_s"]["write"] = state["timings_s"].get("write", 0.0) + time.perf_counter() - t0
         resume.write_marker(self.out, state)
+        state["timings_s"]["write"] -= time.perf_counter() - t0    # run_one adds the whole stage time back
         if state.get("staging"):
             shutil.rmtree(state["staging"], ignore_errors=True)

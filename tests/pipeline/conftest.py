@@ -1,6 +1,6 @@
 """Fixtures of the pipeline tests: one local Ray per session, one tiny synthetic world, config builders.
 
-Keep it cheap: the VAE runs at 32x48 here (4x fewer pixels than the demo), 49-frame ReSim clips,
+Keep it cheap: the VAE runs at 16x24 here (16x fewer pixels than the demo), 49-frame ReSim clips,
 a stride of 4 s so each 8 s episode gives at most a handful of windows.
 """
 import logging
@@ -19,9 +19,9 @@ REPO = Path(__file__).resolve().parents[2]
 
 # Overrides every test config shares (small and quick; same code paths as the demo).
 FAST = [
-    "encode.height_px=32", "encode.width_px=48", "encode.frames_height_px=32", "encode.frames_width_px=48",
+    "encode.height_px=16", "encode.width_px=24", "encode.frames_height_px=16", "encode.frames_width_px=24",
     "clip.stride_frames=40", "ray.num_cpus=2", "ray.progress_bars=false",
-    "ray.stages.encode.actors=2", "ray.stages.encode.num_cpus=0.5",
+    "ray.stages.encode.actors=1", "ray.stages.encode.num_cpus=0.5",
 ]
 
 

@@ -54,9 +54,9 @@ def test_bad_videos_are_quarantined_and_the_job_goes_on(ray_session, synth_world
     for i in range(20):                                                                    # 2 s < 4.9 s clip
         w.write(np.full((64, 112, 3), 8 * i, np.uint8))
     w.release()
-    w = cv2.VideoWriter(str(src / "lowres.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (24, 16))
+    w = cv2.VideoWriter(str(src / "lowres.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (12, 8))
     for i in range(80):
-        w.write(np.full((16, 24, 3), 3 * i, np.uint8))
+        w.write(np.full((8, 12, 3), 3 * i, np.uint8))
     w.release()
 
     from resim.cli import main
