@@ -65,16 +65,24 @@ def client(address: str):
     return JobSubmissionClient(address)
 
 
-def submit(cfg: PipelineConfig, address: str, job_id: str | None = None) -> str:
-    """Submit ``cfg`` as a Ray job; returns the job id."""
+def submit(cfg: PipelineConfig, address: str, job_id: str | None = None, agent_wait_s: float = 60.0) -> str:
+    """Submit ``cfg`` as a Ray job; returns the job id (waits up to ``agent_wait_s`` for a fresh head's agent)."""
     with tempfile.TemporaryDirectory(prefix="resim-job-") as tmp:
         wd = build_working_dir(cfg, Path(tmp) / "job")
         runtime_env = {"working_dir": str(wd), "py_modules": package_dirs(),
                        "excludes": ["__pycache__", "*.pyc"], "env_vars": dict(JOB_ENV)}
-        return client(address).submit_job(
-            entrypoint="python -m resim pipeline run job_config.yaml --no-progress",
-            runtime_env=runtime_env, submission_id=job_id,
-            metadata={"resim": "pipeline", "out": str(_abs(cfg.out))})
+        c = client(address)
+        deadline = time.monotonic() + agent_wait_s
+        while True:
+            try:
+                return c.submit_job(
+                    entrypoint="python -m resim pipeline run job_config.yaml --no-progress",
+                    runtime_env=runtime_env, submission_id=job_id,
+                    metadata={"resim": "pipeline", "out": str(_abs(cfg.out))})
+            except RuntimeError as e:   # a head that just started has its dashboard up before its job agent
+                if "No available agent" not in str(e) or time.monotonic() > deadline:
+                    raise
+                time.sleep(1.0)
 
 
 def status(address: str, job_id: str) -> str:
