@@ -134,3 +134,12 @@ def test_pickle_member_refused(dataset, tmp_path, ext):
         list(iter_samples(dataset, shards=[bad]))
     with pytest.raises(ForbiddenMemberError, match=key):
         list(make_webdataset([str(bad)]))
+
+
+def test_resampled_stream_is_endless_and_from_the_dataset(base_dataset):
+    import itertools
+
+    root, written = base_dataset
+    ds = make_webdataset(root, resampled=True, shuffle_samples=4, seed=0)
+    keys = [s["__key__"] for s in itertools.islice(iter(ds), 25)]
+    assert len(keys) == 25 and set(keys) <= {s["__key__"] for s in written}

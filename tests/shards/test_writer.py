@@ -141,3 +141,25 @@ def test_writer_killed_mid_shard_leaves_no_final_shard_and_rerun_completes(tmp_p
     assert not any(p.name.startswith(".") for p in layout.shards_dir(root).iterdir())
     assert len(list(iter_samples(root, attach_prompts=False))) == 8
     assert verify(root) == []
+
+
+def _unit_worker(args):
+    root, unit = args
+    from shards.schema import make_key
+
+    with ShardWriter(root, f"u{unit:03d}", max_samples_per_shard=2) as w:
+        for i in range(3):
+            w.write(make_dummy_sample(item_id=f"unit{unit}/{i}", seed=unit * 10 + i))
+    return [(i.name, i.num_samples) for i in w.close()], make_key("synthetic", f"unit{unit}/0", 0)
+
+
+def test_many_concurrent_writers(tmp_path):
+    import multiprocessing as mp
+
+    add_dummy_prompts(tmp_path)
+    with mp.get_context("fork").Pool(4) as pool:
+        results = pool.map(_unit_worker, [(str(tmp_path), u) for u in range(6)])
+    names = [n for r, _ in results for n, _ in r]
+    assert len(names) == len(set(names)) == 12
+    assert len(list(iter_samples(tmp_path, attach_prompts=False))) == 18
+    assert verify(tmp_path) == []
