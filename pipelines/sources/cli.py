@@ -30,6 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.add_argument("--contact-sheet", default=None, metavar="PNG",
                    help="also write a contact sheet of a few episodes (read back through the readers)")
+    p.add_argument("--workers", type=int, default=1, help="processes rendering episodes in parallel (default 1; "
+                   "the output does not depend on it)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -48,7 +50,8 @@ def run(args) -> int:
     from .synth.generate import generate
 
     t0 = time.perf_counter()
-    summary = generate(args.out, args.episodes, args.seed, cfg, overwrite=args.overwrite, progress=not args.quiet)
+    summary = generate(args.out, args.episodes, args.seed, cfg, overwrite=args.overwrite, progress=not args.quiet,
+                       workers=args.workers)
     summary["seconds"] = round(time.perf_counter() - t0, 2)
     if args.contact_sheet:
         from .synth.contact_sheet import contact_sheet

@@ -146,3 +146,20 @@ def _exists(path) -> bool:
 def unwrap_yaw(yaw: np.ndarray) -> np.ndarray:
     """Remove 2*pi jumps between consecutive yaws (rad)."""
     return np.unwrap(np.asarray(yaw, dtype=np.float64))
+
+
+def scan_items(reader, read_frames: bool = True, size_hw: tuple[int, int] | None = (32, 56)):
+    """Open every item of ``reader`` (and decode its frames when ``read_frames``); bad items are
+    collected, not raised. Returns ``(good_item_ids, problems: list[SourceError])``."""
+    good, problems = [], []
+    for item in reader.list_items():
+        try:
+            ep = reader.open(item)
+            if read_frames:
+                for _ in ep.frames(size_hw=size_hw):
+                    pass
+        except SourceError as e:
+            problems.append(e)
+        else:
+            good.append(item)
+    return good, problems

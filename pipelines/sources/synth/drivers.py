@@ -147,11 +147,11 @@ def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Gene
             idx = int(np.searchsorted(p["changes"], t))
             acc = float(p["rand_a"][idx]) if v > 0.5 or p["rand_a"][idx] > 0 else 0.0
         else:
-            acc = float(np.clip(1.2 * (v_des - v), A_MIN, A_MAX))
+            acc = min(A_MAX, max(A_MIN, 1.2 * (v_des - v)))
         if crashed_at is not None:
             acc = 0.0
             v = 0.0
-        k_cmd = float(np.clip(k_cmd, -K_MAX, K_MAX))
+        k_cmd = min(K_MAX, max(-K_MAX, float(k_cmd)))
         rows.append((t, x, y, yaw, v, k_cmd, acc, world.route.s[j], dev))
         # collisions at the current pose
         if crashed_at is None:

@@ -130,7 +130,7 @@ def _simulate_episode(plan: EpisodePlan, seed: int, cfg: SynthConfig):
 
 
 def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None = None,
-             overwrite: bool = False, progress: bool = True) -> dict:
+             overwrite: bool = False, progress: bool = True, workers: int = 1) -> dict:
     """Write the dataset to ``out`` (atomically: built beside it, then renamed). Returns the summary."""
     cfg = cfg or SynthConfig()
     out = Path(out)
@@ -142,55 +142,33 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    cam = Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg)
-    K = cam.intrinsic()
+    K = Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg).intrinsic()
     plans = plan_episodes(episodes, cfg)
-    gt_eps, csv_rows, records = [], [], []
-    it = plans
+    workers = max(1, min(workers, len(plans)))
+    jobs = [(plan, seed, cfg, tmp) for plan in plans]
+    if workers == 1:
+        results = map(_make_episode, jobs)
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+        results = pool.map(_make_episode, jobs)   # ordered: output does not depend on scheduling
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(plans, desc="synth episodes", unit="ep")
-    for plan in it:
-        rng, world, tr, pattern, score = _simulate_episode(plan, seed, cfg)
-        renderer = Renderer(world, cam, rng)
-        sim_hz = cfg.sim_hz
-        if plan.part == "opendv":
-            step = int(round(sim_hz / cfg.opendv_fps_hz))
-        else:
-            step = int(round(sim_hz / READER_FPS_HZ[plan.part]))
-        steps = list(range(0, len(tr.t_s), step))
-        frames = [renderer.render(tr.poses[s], tr.t_s[s]) for s in steps]
-        turns = turn_labels(world, tr.route_s_m[steps])
-        layout: dict = {}
-        if plan.part == "opendv":
-            rel = f"synth/{plan.name}.mp4"
-            writers.write_opendv_video(tmp / "opendv" / rel, frames, cfg.opendv_fps_hz)
-            csv_rows.append({"video_id": f"synth/{plan.name}", "start_discard_s": 0, "end_discard_s": 0,
-                             "notes": f"synthetic, seed {seed}, {world.appearance.name}"})
-            layout = {"reader": "opendv", "item_id": rel, "reader_stride": int(round(sim_hz / 10.0))}
-        elif plan.part == "navsim":
-            log = f"synth-s{seed}-{plan.name}"
-            writers.write_navsim_log(tmp / "navsim", cfg.navsim_split, log, tr, steps, frames, turns, K,
-                                     cfg.jpeg_quality)
-            layout = {"reader": "navsim", "item_id": log, "reader_stride": step}
-        else:
-            scen = "SynthExpert" if plan.driver == "expert" else f"SynthExplorer{pattern.capitalize()}"
-            wid = writers.WEATHERS[world.appearance.name][0]
-            route_num = 90000 + plan.index
-            folder = f"{scen}_Town90_Route{route_num}_Weather{wid}"
-            lane = world.lane_path()
-            targets = []
-            for s in steps:
-                j = min(len(lane) - 1, int(np.searchsorted(world.route.s, tr.route_s_m[s] + TURN_LOOKAHEAD_M)))
-                targets.append((float(lane[j, 0]), float(lane[j, 1])))
-            options = [t if t != "straight" else "lanefollow" for t in turns]
-            writers.write_carla_route(tmp / "carla" / folder, tr, steps, frames, options, targets,
-                                      world.appearance.name, K, cfg.jpeg_quality)
-            length = float(np.hypot(*np.diff(tr.poses[:, :2], axis=0).T).sum())
-            records.append(writers.route_record(route_num, folder, scen, wid, score, length, float(tr.t_s[-1])))
-            layout = {"reader": "carla", "item_id": folder, "reader_stride": step}
-        gt_eps.append(_gt_entry(plan, pattern, tr, score, layout, world, sim_hz))
+        results = tqdm(results, total=len(plans), desc="synth episodes", unit="ep")
+    gt_eps, csv_rows, records = [], [], []
+    try:
+        for gt_entry, csv_row, record in results:
+            gt_eps.append(gt_entry)
+            if csv_row:
+                csv_rows.append(csv_row)
+            if record:
+                records.append(record)
+    finally:
+        if workers > 1:
+            pool.shutdown()
     if csv_rows:
         writers.write_opendv_csv(tmp / "opendv" / "videos.csv", csv_rows)
     if records:
@@ -214,6 +192,49 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
                                                                  for p in PARTS},
                "hazardous": sum(e["driver"] == "explorer" for e in gt_eps), "command_share": share}
     return summary
+
+
+def _make_episode(job):
+    """Simulate, render and write one episode; returns (ground-truth entry, OpenDV csv row, CARLA record)."""
+    plan, seed, cfg, tmp = job
+    cam = Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg)
+    K = cam.intrinsic()
+    rng, world, tr, pattern, score = _simulate_episode(plan, seed, cfg)
+    renderer = Renderer(world, cam, rng)
+    sim_hz = cfg.sim_hz
+    fps = cfg.opendv_fps_hz if plan.part == "opendv" else READER_FPS_HZ[plan.part]
+    step = int(round(sim_hz / fps))
+    steps = list(range(0, len(tr.t_s), step))
+    frames = [renderer.render(tr.poses[s], tr.t_s[s]) for s in steps]
+    turns = turn_labels(world, tr.route_s_m[steps])
+    csv_row = record = None
+    if plan.part == "opendv":
+        rel = f"synth/{plan.name}.mp4"
+        writers.write_opendv_video(tmp / "opendv" / rel, frames, cfg.opendv_fps_hz)
+        csv_row = {"video_id": f"synth/{plan.name}", "start_discard_s": 0, "end_discard_s": 0,
+                   "notes": f"synthetic, seed {seed}, {world.appearance.name}"}
+        layout = {"reader": "opendv", "item_id": rel, "reader_stride": int(round(sim_hz / 10.0))}
+    elif plan.part == "navsim":
+        log = f"synth-s{seed}-{plan.name}"
+        writers.write_navsim_log(tmp / "navsim", cfg.navsim_split, log, tr, steps, frames, turns, K, cfg.jpeg_quality)
+        layout = {"reader": "navsim", "item_id": log, "reader_stride": step}
+    else:
+        scen = "SynthExpert" if plan.driver == "expert" else f"SynthExplorer{pattern.capitalize()}"
+        wid = writers.WEATHERS[world.appearance.name][0]
+        route_num = 90000 + plan.index
+        folder = f"{scen}_Town90_Route{route_num}_Weather{wid}"
+        lane = world.lane_path()
+        targets = []
+        for s in steps:
+            j = min(len(lane) - 1, int(np.searchsorted(world.route.s, tr.route_s_m[s] + TURN_LOOKAHEAD_M)))
+            targets.append((float(lane[j, 0]), float(lane[j, 1])))
+        options = [t if t != "straight" else "lanefollow" for t in turns]
+        writers.write_carla_route(tmp / "carla" / folder, tr, steps, frames, options, targets,
+                                  world.appearance.name, K, cfg.jpeg_quality)
+        length = float(np.hypot(*np.diff(tr.poses[:, :2], axis=0).T).sum())
+        record = writers.route_record(route_num, folder, scen, wid, score, length, float(tr.t_s[-1]))
+        layout = {"reader": "carla", "item_id": folder, "reader_stride": step}
+    return _gt_entry(plan, pattern, tr, score, layout, world, sim_hz), csv_row, record
 
 
 def _gt_entry(plan: EpisodePlan, pattern, tr: Trace, score: Score, layout: dict, world: World, sim_hz: float) -> dict:

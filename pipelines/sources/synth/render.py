@@ -32,8 +32,8 @@ from .world import (DS_M, INTERSECTION_CLEAR_M, LANE_OFFSET_M, PROP_BUSH, PROP_P
 CAM_HEIGHT_M = 1.5
 CAM_FORWARD_M = 1.0
 NEAR_M = 1.2
-FAR_M = 150.0
-MAP_RES_M = 0.12          # metres per texel of the top-down texture
+FAR_M = 120.0
+MAP_RES_M = 0.2           # metres per texel of the top-down texture
 DETAIL_RES_M = 0.03       # metres per texel of the fine detail tile
 MAP_MARGIN_M = 60.0
 
@@ -96,9 +96,10 @@ class Renderer:
         self.map_lo, self.map_hi, self.map_res = lo, hi, res
         W, H = int(size[0]), int(size[1])
         a = w.appearance
-        n = _noise(rng, H, W, octaves=(64, 16, 4), weights=(0.45, 0.35, 0.2))[..., None]
-        grass = (np.array(a.grass_rgb, np.float32) * n + np.array(a.grass2_rgb, np.float32) * (1 - n))
-        grass *= 0.8 + 0.4 * rng.random((H, W, 1), dtype=np.float32)
+        n = _noise(rng, H, W, octaves=(64, 16, 4), weights=(0.45, 0.35, 0.2))
+        n = (0.85 * n + 0.15 * rng.random((H, W), dtype=np.float32))[..., None]
+        grass = np.array(a.grass2_rgb, np.float32) + (np.array(a.grass_rgb, np.float32)
+                                                      - np.array(a.grass2_rgb, np.float32)) * n
         road_mask = np.zeros((H, W), np.uint8)
         px = lambda xy: np.round(np.c_[(xy[:, 0] - lo[0]) / res, (hi[1] - xy[:, 1]) / res]).astype(np.int32)  # noqa
         self._to_px = px
@@ -106,14 +107,15 @@ class Renderer:
         for r in w.roads:
             cv2.polylines(road_mask, [px(r.xy)], False, 255, thickness=road_w)
         asphalt = a.asphalt_gray * (0.85 + 0.3 * _noise(rng, H, W, octaves=(32, 8, 2), weights=(0.3, 0.3, 0.4)))
-        asphalt = np.repeat(asphalt[..., None], 3, axis=2)
         # a dirt shoulder just outside the road
-        shoulder = cv2.dilate(road_mask, np.ones((int(1.2 / res) * 2 + 1,) * 2, np.uint8))
+        shoulder = np.zeros((H, W), np.uint8)
+        for r in w.roads:
+            cv2.polylines(shoulder, [px(r.xy)], False, 255, thickness=road_w + int(round(2.4 / res)))
         img = grass
         sh = (shoulder > 0) & (road_mask == 0)
         img[sh] = img[sh] * 0.5 + np.array([120, 105, 80], np.float32) * 0.5
         rm = road_mask > 0
-        img[rm] = asphalt[rm]
+        img[rm] = asphalt[rm][:, None]
         # lane markings: solid white edges, dashed centre line, none inside intersections
         thick = max(1, int(round(0.15 / res)))
         centres = w.intersections
@@ -143,11 +145,19 @@ class Renderer:
         z = np.minimum(z, FAR_M)
         z = np.broadcast_to(z, (H, W))
         x = (u - c.cx) * z / c.f_px                      # metres to the right
-        self.ground_mask = np.broadcast_to(ground, (H, W))
-        self.ray_z, self.ray_x = z.astype(np.float32), x.astype(np.float32)
-        self.far_w = np.clip((z - 12.0) / 25.0, 0, 1).astype(np.float32)[..., None]
-        self.detail_w = np.clip(1 - z / 15.0, 0, 1).astype(np.float32)[..., None]
+        self.r0 = int(np.argmax(ground[:, 0]))            # first ground row
+        r0 = self.r0
+        self.ray_z, self.ray_x = z[r0:].astype(np.float32), x[r0:].astype(np.float32)
+        self.far_w = np.clip((self.ray_z - 12.0) / 25.0, 0, 1)[..., None]
+        self.detail_w = np.clip(1 - self.ray_z / 15.0, 0, 1)[..., None]
+        self.fog_w = np.exp(-self.ray_z / self.world.appearance.fog_visibility_m)[..., None]
         self.az = np.arctan2(c.cx - u[0], c.f_px)        # azimuth of each column (left +)
+        a = self.world.appearance
+        rows = np.arange(r0, dtype=np.float32)[:, None]
+        t = np.clip(1 - rows / max(c.cy, 1), 0, 1)[..., None]   # 0 at horizon, 1 at top
+        sky = np.array(a.sky_horizon_rgb, np.float32) * (1 - t) + np.array(a.sky_zenith_rgb, np.float32) * t
+        self.sky = np.ascontiguousarray(np.broadcast_to(sky, (r0, W, 3)))
+        self.rows_sky = rows
 
     # -- per frame ------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, t_s: float) -> np.ndarray:
@@ -168,29 +178,23 @@ class Renderer:
         dv = (wy / DETAIL_RES_M).astype(np.float32) % 256
         det = cv2.remap(self.detail, du, dv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)[..., None]
         img *= 1 + (det - 1) * self.detail_w
-        fog = np.exp(-self.ray_z / a.fog_visibility_m)[..., None]
-        img = img * fog + self.horizon_rgb * (1 - fog)
-        img = self._sky(img, yaw)
+        img = img * self.fog_w + self.horizon_rgb * (1 - self.fog_w)
+        img = np.concatenate([self._sky(yaw), img], axis=0)
         img = np.clip(img, 0, 255).astype(np.uint8)
         self._draw_objects(img, camx, camy, yaw, t_s)
         out = img.astype(np.float32) * a.brightness
         return np.clip(out, 0, 255).astype(np.uint8)
 
-    def _sky(self, img: np.ndarray, yaw: float) -> np.ndarray:
+    def _sky(self, yaw: float) -> np.ndarray:
+        """Sky rows (above the first ground row): gradient plus an azimuth-fixed hill silhouette."""
         c, a = self.cam, self.world.appearance
-        H = c.height_px
-        rows = np.arange(H, dtype=np.float32)[:, None]
-        t = np.clip(1 - rows / max(c.cy, 1), 0, 1)[..., None]            # 0 at horizon, 1 at top
-        sky = np.array(a.sky_horizon_rgb, np.float32) * (1 - t) + np.array(a.sky_zenith_rgb, np.float32) * t
-        sky = np.broadcast_to(sky, (H, c.width_px, 3))
         phases, amps = self._hills
         az = yaw + self.az                                                  # world azimuth of each column
         elev = sum(amps[i] * (1 + np.sin((i + 2) * az + phases[i])) for i in range(4)) * 0.9  # degrees
         top = c.cy - c.f_px * np.tan(np.radians(elev))                      # hill top row per column
-        hill = (rows >= top[None, :]) & ~self.ground_mask
+        hill = self.rows_sky >= top[None, :]
         hills_rgb = np.array(a.hills_rgb, np.float32) * 0.6 + self.horizon_rgb * 0.4
-        out = np.where(self.ground_mask[..., None], img, sky)
-        return np.where(hill[..., None], hills_rgb, out)
+        return np.where(hill[..., None], hills_rgb, self.sky)
 
     def _project(self, pts_xy: np.ndarray, camx, camy, yaw):
         """World ground points (N, 2) -> camera depth z (fwd) and lateral x (right)."""
@@ -206,7 +210,8 @@ class Renderer:
         p = w.props
         if len(p.xy):
             z, x = self._project(p.xy, camx, camy, yaw)
-            vis = (z > NEAR_M) & (z < FAR_M) & (np.abs(x) < z * 1.5 + 10)
+            far = min(FAR_M, 3.0 * fogv)
+            vis = (z > NEAR_M) & (z < far) & (np.abs(x) < z * 1.3 + 5) & (p.height_m * c.f_px > 1.5 * z)
             for i in np.flatnonzero(vis):
                 items.append((float(z[i]), 0, i, float(x[i])))
         poses = w.car_poses(t_s)

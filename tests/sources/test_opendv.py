@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+
+from pipelines.sources.episode import SourceError, scan_items
+from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
+from resim.config import ConfigError
+
+
+def reader(root, **kw):
+    return OpenDVReader(OpenDVConfig.preset("synthetic", root=str(root), **kw))
+
+
+def test_lists_videos_recursively(opendv_root):
+    items = reader(opendv_root).list_items()
+    assert items == ["chanA/good.mp4", "chanA/with_csv.mp4", "chanB/empty.mkv", "chanB/small.mp4",
+                     "chanB/truncated.mp4"]
+
+
+def test_resamples_30fps_to_10hz_nearest_frame(opendv_root):
+    ep = reader(opendv_root).open("chanA/good.mp4")
+    assert (ep.fps_hz, ep.num_frames, ep.frame_size_hw) == (10.0, 10, (48, 80))
+    frames = list(ep.frames())
+    assert len(frames) == 10 and frames[0].dtype == np.uint8 and frames[0].shape == (48, 80, 3)
+    # fixture frame i has brightness 7*i: output k must be source frame 3k
+    got = [int(round(f.mean() / 7)) for f in frames]
+    assert got == [3 * k for k in range(10)]
+    sub = list(ep.frames(4, 7, size_hw=(24, 40)))
+    assert [f.shape for f in sub] == [(24, 40, 3)] * 3 and int(round(sub[0].mean() / 7)) == 12
+
+
+def test_csv_discards_override_config(opendv_root):
+    ep = reader(opendv_root).open("chanA/with_csv.mp4")   # 2 s at 20 fps, 0.5 s cut at each end
+    assert ep.num_frames == 10
+    first = next(ep.frames())
+    assert int(round(first.mean() / 7)) == 10             # t = 0.5 s -> source frame 10
+
+
+def test_defaults_are_opendv_youtube():
+    cfg = OpenDVConfig()
+    assert (cfg.fps_hz, cfg.start_discard_s, cfg.end_discard_s, cfg.min_height_px) == (10.0, 90.0, 60.0, 720)
+    with pytest.raises(ConfigError):
+        OpenDVConfig(fps_hz=0)
+
+
+def test_broken_items_reported_with_reason(opendv_root):
+    good, problems = scan_items(reader(opendv_root, min_height_px=32))
+    assert good == ["chanA/good.mp4", "chanA/with_csv.mp4"]
+    reasons = {e.item: e.reason for e in problems}
+    assert set(reasons) == {"chanB/empty.mkv", "chanB/small.mp4", "chanB/truncated.mp4"}
+    assert "min_height_px" in reasons["chanB/small.mp4"]
+    assert "cannot open" in reasons["chanB/truncated.mp4"] or "truncated" in reasons["chanB/truncated.mp4"]
+
+
+def test_default_discards_make_short_videos_too_short(opendv_root):
+    r = OpenDVReader(OpenDVConfig(root=opendv_root, min_height_px=16))
+    with pytest.raises(SourceError, match="too short"):
+        r.open("chanA/good.mp4")
+
+
+def test_real_dashcam_clip(shared_dashcam):
+    r = OpenDVReader(OpenDVConfig(root=shared_dashcam))
+    with pytest.raises(SourceError, match="540 px < min_height_px 720"):
+        r.open("solidWhiteRight.mp4")
+    r = OpenDVReader(OpenDVConfig(root=shared_dashcam, start_discard_s=0, end_discard_s=0, min_height_px=480))
+    ep = r.open("solidWhiteRight.mp4")                 # 221 frames at 25 fps = 8.84 s
+    assert ep.num_frames == 88 and ep.frame_size_hw == (540, 960)
+    fr = list(ep.frames(0, 3, size_hw=(90, 160)))
+    assert len(fr) == 3 and fr[0].shape == (90, 160, 3) and fr[0].std() > 10

@@ -1,0 +1,116 @@
+import hashlib
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pipelines.sources.carla import CarlaConfig, CarlaReader
+from pipelines.sources.episode import scan_items
+from pipelines.sources.navsim import NavsimConfig, NavsimReader
+from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
+from pipelines.sources.synth.generate import generate, preset
+from pipelines.sources.synth.ground_truth import GroundTruth, window_commands
+
+
+def readers(d):
+    return {"opendv": OpenDVReader(OpenDVConfig.preset("synthetic", root=str(d / "opendv"))),
+            "navsim": NavsimReader(NavsimConfig(root=d / "navsim", split="synth")),
+            "carla": CarlaReader(CarlaConfig(root=d / "carla"))}
+
+
+def test_read_back_by_the_three_readers(synth_dir):
+    gt = GroundTruth.load(synth_dir)
+    rs = readers(synth_dir)
+    seen = set()
+    for name, r in rs.items():
+        good, problems = scan_items(r, read_frames=True, size_hw=(32, 56))
+        assert problems == [] and good
+        for item in good:
+            ep = r.open(item)
+            e = gt.entry(name, item)
+            assert ep.num_frames == len(gt.yaw_for(name, item))
+            assert ep.frame_size_hw == (64, 112)
+            f = next(ep.frames())
+            assert f.shape == (64, 112, 3) and f.std() > 5       # a textured picture, not a blank frame
+            if name == "carla":
+                assert ep.outcome.infraction_score == e["outcome"]["infraction_score"]
+                assert ep.outcome.hazard == e["outcome"]["hazard"]
+            seen.add(name)
+    assert seen == {"opendv", "navsim", "carla"}
+
+
+def test_ground_truth_heading_agrees_with_poses(synth_dir):
+    gt = GroundTruth.load(synth_dir)
+    rs = readers(synth_dir)
+    for e in gt.episodes:
+        lay = e["layout"]
+        # (1) readers' poses == ground truth (NAVSIM quaternions, CARLA compass + flipped y)
+        if lay["reader"] != "opendv":
+            ep = rs[lay["reader"]].open(lay["item_id"])
+            ref = gt.poses_for(lay["reader"], lay["item_id"])
+            assert np.allclose(ep.poses[:, :2], ref[:, :2], atol=1e-9)
+            assert np.allclose(ep.poses[:, 2], ref[:, 2], atol=1e-9)
+        # (2) the heading is the direction of motion: chord between steps points along the mean yaw
+        x, y, yaw, v = (np.asarray(e[k]) for k in ("x_m", "y_m", "yaw_rad", "speed_mps"))
+        moving = v[:-1] > 0.5
+        chord = np.arctan2(np.diff(y), np.diff(x))
+        err = np.angle(np.exp(1j * (chord - 0.5 * (yaw[1:] + yaw[:-1]))))
+        assert np.abs(err[moving]).max() < 1e-6
+        assert np.abs(np.diff(yaw)).max() < 0.2           # unwrapped, no jumps
+
+
+def test_left_straight_right_all_occur(synth_dir):
+    gt = GroundTruth.load(synth_dir)
+    share = gt.data["command_share"]
+    assert share["left"] > 0.05 and share["right"] > 0.05 and share["straight"] > 0.05
+    assert math.isclose(share["left"] + share["straight"] + share["right"], 1.0)
+    cmds = np.concatenate([window_commands(np.asarray(e["yaw_rad"])[::2], 10.0) for e in gt.episodes])
+    assert {"left", "straight", "right"} <= set(cmds.tolist())
+
+
+def test_hazardous_episodes_score_below_clean_ones(synth_dir):
+    gt = GroundTruth.load(synth_dir)
+    haz = [e["outcome"]["infraction_score"] for e in gt.episodes if e["driver"] == "explorer"]
+    clean = [e["outcome"]["infraction_score"] for e in gt.episodes if e["driver"] == "expert"]
+    assert haz and clean
+    assert max(haz) < min(clean) == 1.0
+    res = json.loads((synth_dir / "carla" / "simulation_results.json").read_text())
+    assert {r["status"] for r in res["_checkpoint"]["records"]} >= {"Perfect"}
+
+
+def _digest(root):
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            h.update(p.relative_to(root).as_posix().encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def test_same_seed_same_bytes(tmp_path):
+    cfg = preset("tiny", episode_s=4.0, height_px=32, width_px=56)
+    generate(tmp_path / "a", 3, seed=5, cfg=cfg, progress=False)
+    generate(tmp_path / "b", 3, seed=5, cfg=cfg, progress=False)
+    generate(tmp_path / "c", 3, seed=6, cfg=cfg, progress=False)
+    assert _digest(tmp_path / "a") == _digest(tmp_path / "b") != _digest(tmp_path / "c")
+
+
+def test_refuses_to_overwrite(tmp_path):
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "keep.txt").write_text("mine")
+    with pytest.raises(FileExistsError):
+        generate(tmp_path / "x", 1, seed=0, cfg=preset("tiny", episode_s=3.0), progress=False)
+    assert (tmp_path / "x" / "keep.txt").read_text() == "mine"
+
+
+def test_cli_writes_dataset_and_contact_sheet(tmp_path, capsys):
+    from resim.cli import main
+
+    rc = main(["synth", "--out", str(tmp_path / "w"), "--episodes", "3", "--seed", "1", "--preset", "tiny",
+               "--set", "episode_s=3.0", "--quiet", "--contact-sheet", str(tmp_path / "sheet.png")])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["parts"] == {"opendv": 1, "navsim": 1, "carla": 1}
+    assert (tmp_path / "sheet.png").stat().st_size > 1000
+    assert (tmp_path / "w" / "ground_truth.json").is_file() and not (tmp_path / "w.partial").exists()
