@@ -24,8 +24,8 @@ class FlowConfig:
 
     sample_hz: float = 10.0          # frames are sampled at this rate before flow (ReSim: 10 Hz)
     work_width_px: int = 256         # frames are resized to this width (display aspect kept) before flow
-    hfov_deg: float = 70.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
-    #                                  ~ with tan(hfov/2): 60 deg reads 0.82x, 90 deg 1.43x of 70 deg
+    hfov_deg: float = 80.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
+    #                                  ~ with tan(hfov/2): reads tan(true/2)/tan(80/2) x the truth
     flow_preset: Literal["ultrafast", "fast", "medium"] = "ultrafast"   # cv2.DISOpticalFlow preset
     grid_step_px: int = 6            # flow is read on a grid with this spacing (working-resolution pixels)
     mask_top_frac: float = 0.0       # rows ignored at the top (overlays)
@@ -37,8 +37,9 @@ class FlowConfig:
     max_flow_frac: float = 0.08      # points moving more than this share of the width per pair are dropped
     max_photo_err: int = 24          # grey-level difference after following the flow (occlusion/bad flow)
     robust_scale_px: float = 0.3     # lower bound on the Cauchy scale of the IRLS fit (pixels of flow)
-    irls_iters: int = 4
-    foe_iters: int = 2               # alternations between rotation fit and focus-of-expansion fit
+    irls_iters: int = 3
+    foe_iters: int = 1               # alternations between rotation fit and focus-of-expansion fit
+    foe_x_prior: float = 0.05        # relative weight pulling the FOE's x to its previous value (see flow.py)
     chunk_pairs: int = 60            # the focus of expansion is re-estimated per chunk of this many pairs
 
     def __post_init__(self):
@@ -61,7 +62,7 @@ class CommandConfig:
     """Heading change / trajectory -> command."""
 
     window_s: float = 4.0                  # future window a command describes (ReSim: 40 frames at 10 Hz)
-    turn_threshold_deg: float = 12.0       # calibrated: |heading change| >= this over the window is a turn
+    turn_threshold_deg: float = 18.0       # calibrated (bench/calibrate_labeler.py, 24 synthetic episodes): |heading change| >= this over the window is a turn
     confidence_scale_deg: float = 4.0      # distance from the threshold at which confidence reaches ~0.88
     # trajectory rule (common practice of nuScenes/NAVSIM planners: ST-P3, UniAD, VAD): the lateral
     # offset of the last waypoint in the ego frame; >= +2 m left, <= -2 m right. "heading" uses the

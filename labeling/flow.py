@@ -51,11 +51,13 @@ _PRESETS = {
 }
 
 
-def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1.0) -> np.ndarray:
-    """RGB/BGR uint8 (H, W, 3) or grey (H, W) -> grey uint8 at ``work_width_px`` wide, display aspect.
+def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1.0, bgr: bool = False) -> np.ndarray:
+    """RGB (or BGR with ``bgr=True``) uint8 (H, W, 3), or grey (H, W) -> grey uint8, ``work_width_px`` wide.
 
     ``pixel_aspect`` is the sample aspect ratio (width/height of one stored pixel), e.g. 64/45
     for anamorphic PAL; the output has square pixels so that one focal length fits both axes.
+    Large reductions go linear to twice the target, then area-average (cheaper than one area
+    resize of a 720p frame, and still averages 2x2 at the end).
     """
     if frame.ndim == 3:
         h, w = frame.shape[:2]
@@ -64,10 +66,11 @@ def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1
     else:
         raise ValueError(f"frame must be (H, W, 3) or (H, W), got shape {frame.shape}")
     out_h = max(8, int(round(work_width_px * h / (w * pixel_aspect))))
+    if w > 3 * work_width_px:
+        frame = cv2.resize(frame, (2 * work_width_px, 2 * out_h), interpolation=cv2.INTER_LINEAR)
     small = cv2.resize(frame, (work_width_px, out_h), interpolation=cv2.INTER_AREA)
     if small.ndim == 3:
-        # channel order does not matter much for flow; RGB->grey weights are used
-        small = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+        small = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY if bgr else cv2.COLOR_RGB2GRAY)
     return small
 
 
@@ -166,14 +169,17 @@ class FlowLabeler:
         M = np.stack([(F[0] * dy - F[1] * dx) / r for F in (A, B, C)], axis=-1)      # (P, N, 3)
         b = (U * dy - V * dx) / r
         reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2]) * f * f
+        pad = np.where(np.arange(X.shape[1]) % 2 == 0, 0.0, np.inf)[None, :]
         w = W0
         for _ in range(fc.irls_iters):
-            Mw = M * w[..., None]
-            H = np.einsum("pni,pnj->pij", Mw, M) + reg * np.maximum(w.sum(1), 1.0)[:, None, None]
-            theta = np.linalg.solve(H, np.einsum("pni,pn->pi", Mw, b)[..., None])[..., 0]
-            res = b - np.einsum("pni,pi->pn", M, theta)
-            med = np.nanmedian(np.where(valid, np.abs(res), np.nan), axis=1)
-            scale = np.maximum(1.4826 * np.nan_to_num(med, nan=0.0), fc.robust_scale_px)[:, None]
+            MwT = (M * w[..., None]).transpose(0, 2, 1)                      # (P, 3, N)
+            H = MwT @ M + reg * np.maximum(w.sum(1), 1.0)[:, None, None]
+            theta = np.linalg.solve(H, MwT @ b[..., None])[..., 0]
+            res = b - (M @ theta[..., None])[..., 0]
+            # median |res| over the valid points of each pair: padding alternates 0 and +inf, which
+            # leaves the median in place (to within one pad) and keeps np.median's fast partition
+            med = np.median(np.where(valid, np.abs(res), pad), axis=1)
+            scale = np.maximum(1.4826 * np.where(np.isfinite(med), med, 0.0), fc.robust_scale_px)[:, None]
             w = W0 / (1.0 + (res / (2.0 * scale)) ** 2)    # Cauchy
         few = valid.sum(1) < 8
         theta[few] = 0.0
@@ -200,12 +206,15 @@ class FlowLabeler:
         M = np.stack([-tv / n, tu / n], axis=1)       # coefficients of (ex, ey)
         b = (tu * y - tv * x) / n
         w0 = w_rot[ok] * np.minimum(n / 2.0, 1.0)
-        prior = 1e-3 * max(w0.sum(), 1.0)     # weak pull to the previous estimate (stationary car)
+        # Pull towards the previous estimate (a stationary car says nothing about e). The pull is
+        # stronger on ex: on ground points a lateral FOE shift and yaw make the same flow (both
+        # horizontal and proportional to the row), so ex is only weakly identified within a chunk.
+        prior = np.diag([self.flow_cfg.foe_x_prior, 1e-3]) * max(w0.sum(), 1.0)
         e = np.asarray(e0, dtype=np.float64)
         w = w0
         for _ in range(3):
-            H = (M * w[:, None]).T @ M + prior * np.eye(2)
-            e = np.linalg.solve(H, (M * w[:, None]).T @ b + prior * np.asarray(e0))
+            H = (M * w[:, None]).T @ M + prior
+            e = np.linalg.solve(H, (M * w[:, None]).T @ b + prior @ np.asarray(e0))
             res = b - M @ e
             scale = max(1.4826 * np.median(np.abs(res)), 1.0)
             w = w0 / (1.0 + (res / (2.0 * scale)) ** 2)

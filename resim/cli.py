@@ -15,6 +15,7 @@ import sys
 COMMANDS: list[str] = [
     "shards.cli",
     "pipelines.sources.cli",
+    "labeling.cli",
     "pipelines.cli",
 ]
 

@@ -1,0 +1,161 @@
+"""Calibrate the flow labeler's turn threshold on the synthetic world and measure it (issue 4).
+
+1. Makes (or reads, --data) a synthetic world (``resim synth``) and reads its video episodes
+   back through the real readers: OpenDV (mp4, resampled to 10 Hz) and CARLA (10 Hz jpg).
+2. Runs ``FlowLabeler`` over every episode (per-pair yaw at 10 Hz) and cuts 4 s windows every
+   1 s; the truth is the exact heading change from ``ground_truth.json``.
+3. The *definition* of a turn is the true heading change over 4 s against --ref-threshold-deg
+   (15 deg, the synthetic world's own definition); the flow threshold is then chosen on the
+   calibration episodes (even index) to reproduce it best, and everything is reported on the
+   held-out episodes (odd index): confusion matrix, accuracy, yaw error median / p90.
+4. Flow-vs-trajectory agreement: on episodes with poses (CARLA), the command from flow against
+   ``command_from_trajectory`` (lateral-offset rule, the default, and the heading rule).
+
+    PYTHONPATH=. python bench/calibrate_labeler.py [--data DIR | --episodes 48 --seed 11] [--hfov-deg 80]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from labeling.commands import command_from_trajectory, command_from_yaw  # noqa: E402
+from labeling.config import CommandConfig, FlowConfig, LabelerConfig  # noqa: E402
+from labeling.flow import FlowLabeler  # noqa: E402
+from labeling.trajectory import trajectory_from_poses  # noqa: E402
+from shards.schema import COMMANDS  # noqa: E402
+
+WIN, STRIDE, FPS = 40, 10, 10.0
+
+
+def episodes(root: Path):
+    from pipelines.sources.carla import CarlaConfig, CarlaReader
+    from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
+
+    for name, reader in (("opendv", OpenDVReader(OpenDVConfig.preset("synthetic", root=root / "opendv"))),
+                         ("carla", CarlaReader(CarlaConfig(root=root / "carla")))):
+        for item in reader.list_items():
+            yield name, item, reader.open(item)
+
+
+def cmd_of(yaw, thr):
+    return command_from_yaw(yaw, CommandConfig(turn_threshold_deg=thr))[0]
+
+
+def confusion(true, pred):
+    m = np.zeros((3, 3), int)
+    for t, p in zip(true, pred):
+        m[COMMANDS.index(t), COMMANDS.index(p)] += 1
+    return m
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", help="an existing `resim synth` output folder")
+    ap.add_argument("--episodes", type=int, default=48)
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--hfov-deg", type=float, default=None, help="labeler's assumed FOV (default: config's)")
+    ap.add_argument("--ref-threshold-deg", type=float, default=15.0)
+    ap.add_argument("--json-out", help="write the numbers here")
+    args = ap.parse_args()
+    from pipelines.sources.synth.ground_truth import GroundTruth
+
+    tmp = tempfile.TemporaryDirectory()
+    root = Path(args.data) if args.data else Path(tmp.name) / "synth"
+    if not args.data:
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "resim", "synth", "--out", str(root), "--episodes", str(args.episodes),
+                        "--seed", str(args.seed), "--quiet"], check=True, cwd=REPO, stdout=subprocess.DEVNULL,
+                       env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+        print(f"synthetic world: {args.episodes} episodes, seed {args.seed}, {time.perf_counter() - t0:.0f} s")
+    gt = GroundTruth.load(root)
+    cam = gt.data.get("camera", {})
+    flow_cfg = FlowConfig() if args.hfov_deg is None else FlowConfig(hfov_deg=args.hfov_deg)
+    cfg = LabelerConfig(flow=flow_cfg)
+    print(f"labeler: hfov assumed {flow_cfg.hfov_deg:g} deg (synthetic camera: {cam}), "
+          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset}")
+    rows = []   # (split, reader, item, start, true_deg, est_deg, traj_cmd_offset, traj_cmd_heading, quality)
+    t_flow = 0.0
+    for k, (name, item, ep) in enumerate(episodes(root)):
+        if abs(ep.fps_hz - FPS) > 1e-6:
+            continue
+        t0 = time.process_time()
+        lab = FlowLabeler(cfg)
+        inc = lab.yaw_rates_deg(ep.frames(), ep.fps_hz) / ep.fps_hz
+        t_flow += time.process_time() - t0
+        yaw_true = gt.yaw_for(name, item)
+        n = min(len(yaw_true), len(inc) + 1)
+        gt_poses = gt.poses_for(name, item)
+        split = "cal" if k % 2 == 0 else "test"
+        for s in range(0, n - WIN, STRIDE):
+            true = float(np.degrees(yaw_true[s + WIN] - yaw_true[s]))
+            est = float(inc[s:s + WIN].sum())
+            tc = th = None
+            poses = ep.poses if ep.poses is not None else None
+            if poses is not None and s + WIN < len(poses):
+                traj = trajectory_from_poses(poses, s, ep.fps_hz)
+                tc = command_from_trajectory(traj, CommandConfig())[0]
+                th = command_from_trajectory(traj, CommandConfig(trajectory_rule="heading"))[0]
+            rows.append((split, name, item, s, true, est, tc, th, float(np.median(lab.last_quality[s:s + WIN]))))
+    if not rows:
+        sys.exit("no 10 Hz episodes found")
+    true = np.array([r[4] for r in rows])
+    est = np.array([r[5] for r in rows])
+    split = np.array([r[0] for r in rows])
+    ref = [cmd_of(t, args.ref_threshold_deg) for t in true]
+    cal, test = split == "cal", split == "test"
+    cands = np.arange(5.0, 30.01, 0.5)
+    acc_cal = [np.mean([cmd_of(e, c) == r for e, r, m in zip(est, ref, cal) if m]) for c in cands]
+    best = float(cands[int(np.argmax(acc_cal))])
+    # ties: take the middle of the best plateau
+    plateau = cands[np.isclose(acc_cal, max(acc_cal))]
+    best = float(plateau[len(plateau) // 2])
+    pred = [cmd_of(e, best) for e in est]
+    m = confusion([r for r, t in zip(ref, test) if t], [p for p, t in zip(pred, test) if t])
+    err = np.abs(est - true)
+    acc = float(np.trace(m) / m.sum())
+    out = {
+        "windows": {"calibration": int(cal.sum()), "held_out": int(test.sum())},
+        "hfov_assumed_deg": flow_cfg.hfov_deg, "reference_threshold_deg": args.ref_threshold_deg,
+        "calibrated_threshold_deg": best, "calibration_accuracy": float(max(acc_cal)),
+        "held_out_accuracy": acc, "confusion_held_out": m.tolist(),
+        "yaw_err_deg_held_out": {"median": float(np.median(err[test])), "p90": float(np.percentile(err[test], 90)),
+                                 "max": float(err[test].max())},
+        "true_abs_yaw_deg_held_out": {"median": float(np.median(np.abs(true[test]))),
+                                      "max": float(np.abs(true[test]).max())},
+        "scale_fit": float(np.sum(est * true) / np.sum(true * true)),
+        "flow_cpu_s": round(t_flow, 1),
+    }
+    for rule, idx in (("lateral_offset", 6), ("heading", 7)):
+        pairs = [(p, r[idx]) for p, r in zip(pred, rows) if r[idx] is not None]
+        if pairs:
+            out[f"agreement_flow_vs_trajectory_{rule}"] = {
+                "windows": len(pairs), "agree": float(np.mean([a == b for a, b in pairs]))}
+    print(f"windows: {out['windows']}; calibrated flow threshold: {best:g} deg "
+          f"(calibration accuracy {out['calibration_accuracy']:.3f})")
+    print(f"held-out accuracy: {acc:.3f}   yaw error (deg / 4 s window): median {out['yaw_err_deg_held_out']['median']:.2f}, "
+          f"p90 {out['yaw_err_deg_held_out']['p90']:.2f}, max {out['yaw_err_deg_held_out']['max']:.2f}; "
+          f"est/true scale {out['scale_fit']:.3f}")
+    print("confusion (rows true, cols flow; left / forward / right):")
+    for name, row in zip(("left", "forward", "right"), m):
+        print(f"  {name:>8} " + " ".join(f"{v:6d}" for v in row))
+    for k in ("agreement_flow_vs_trajectory_lateral_offset", "agreement_flow_vs_trajectory_heading"):
+        if k in out:
+            print(f"{k}: {out[k]['agree']:.3f} of {out[k]['windows']} windows")
+    if args.json_out:
+        Path(args.json_out).write_text(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

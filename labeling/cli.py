@@ -1,0 +1,82 @@
+"""`resim label VIDEO`: driving commands from optical flow, one line per window (issue 4).
+
+Light module: cv2/numpy are imported inside the handler.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+EPILOG = """\
+output (one line per window):
+  start_s end_s command yaw_deg confidence
+  yaw_deg is the heading change over the window in degrees, positive = left;
+  command is "Turning left" / "Moving forward" / "Turning right" (|yaw_deg| >= turn threshold is a turn);
+  confidence (0..1) is 0.5 at the threshold, near 1 far from it, times the flow quality.
+
+The yaw estimate assumes a horizontal field of view (--hfov-deg, default 80): uncalibrated video
+reads roughly tan(true/2)/tan(assumed/2) times the true heading change (docs/labeling.md).
+
+examples:
+  resim label clip.mp4
+  resim label clip.mp4 --window-s 4 --stride-s 2 --json > labels.jsonl
+  resim label clip.mp4 --set flow.flow_preset=fast --set command.turn_threshold_deg=10
+"""
+
+
+def _run(args: argparse.Namespace) -> int:
+    from resim.config import ConfigError, apply_overrides, from_dict, to_dict
+    from labeling.config import LabelerConfig, PRESETS
+    from labeling.video import VideoError
+    from labeling.windows import label_video
+
+    try:
+        if args.preset not in PRESETS:
+            raise ConfigError(f"unknown preset {args.preset!r}; known: {sorted(PRESETS)}")
+        raw = to_dict(from_dict(LabelerConfig, PRESETS[args.preset]))
+        if args.hfov_deg is not None:
+            raw["flow"]["hfov_deg"] = args.hfov_deg
+        cfg = from_dict(LabelerConfig, apply_overrides(raw, args.set))
+        if args.window_s <= 0 or args.stride_s <= 0:
+            raise ConfigError("--window-s and --stride-s must be > 0")
+    except ConfigError as e:
+        print(f"resim label: bad configuration: {e}", file=sys.stderr)
+        return 2
+    try:
+        res = label_video(args.video, cfg, window_s=args.window_s, stride_s=args.stride_s)
+    except VideoError as e:
+        print(f"resim label: cannot label {e.path}: {e.reason}", file=sys.stderr)
+        return 1
+    if args.json:
+        for w in res.windows:
+            print(json.dumps({"start_s": w.start_s, "end_s": w.end_s, "command": w.command,
+                              "yaw_deg": round(w.yaw_deg, 3), "confidence": round(w.confidence, 3)}))
+    else:
+        print(f"{'start_s':>8} {'end_s':>7}  {'command':<15} {'yaw_deg':>8} {'confidence':>10}")
+        for w in res.windows:
+            print(f"{w.start_s:8.2f} {w.end_s:7.2f}  {w.command:<15} {w.yaw_deg:8.2f} {w.confidence:10.3f}")
+    info = res.info
+    full = [w for w in res.windows if w.end_s - w.start_s + 1e-6 >= args.window_s]
+    note = "" if full else f" (shorter than --window-s {args.window_s:g}: one short window)"
+    print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
+          f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
+          f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {cfg.flow.hfov_deg:g} deg", file=sys.stderr)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "label", help="driving commands (left/forward/right) of a video from optical flow",
+        description="Estimate ego yaw from optical flow and print one driving command per window "
+                    "(start_s, end_s, command, yaw_deg [left +], confidence).",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("video", help="any video file OpenCV/FFmpeg can decode")
+    p.add_argument("--window-s", type=float, default=4.0, help="window length in seconds (default 4, ReSim's future)")
+    p.add_argument("--stride-s", type=float, default=2.0, help="step between window starts in seconds (default 2)")
+    p.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
+    p.add_argument("--hfov-deg", type=float, default=None, help="assumed horizontal field of view (default 80)")
+    p.add_argument("--preset", default="default", help="labeler preset: default | accurate")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config field, e.g. --set command.turn_threshold_deg=10")
+    p.set_defaults(func=_run)

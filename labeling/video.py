@@ -1,0 +1,143 @@
+"""Read a video file for labeling: decode only what is needed, shrink as early as possible.
+
+Every frame must pass through the H.264 decoder (``grab``), but only the frames
+sampled at ``sample_hz`` are converted (``retrieve``). Where the stream is 8-bit
+YUV, OpenCV is asked not to convert to BGR (``CAP_PROP_CONVERT_RGB = 0``) and the
+luma plane it returns *is* the greyscale image the flow needs; this is verified on
+the first frame against a normal BGR decode, and the reader falls back to BGR
+otherwise. The sample aspect ratio (anamorphic video) is applied when resizing.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from labeling.flow import prepare_frame
+
+
+class VideoError(Exception):
+    """A video that cannot be labeled: ``path`` and ``reason``."""
+
+    def __init__(self, path: str | Path, reason: str):
+        self.path, self.reason = str(path), reason
+        super().__init__(f"{path}: {reason}")
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    path: str
+    fps_hz: float
+    num_frames: int          # as the container reports it (may be approximate)
+    width_px: int
+    height_px: int
+    pixel_aspect: float      # sample aspect ratio (1.0 = square pixels)
+
+    @property
+    def duration_s(self) -> float:
+        return self.num_frames / self.fps_hz
+
+
+def _open(path: str, convert_rgb: bool = True) -> cv2.VideoCapture:
+    cap = cv2.VideoCapture(path, cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, 1])
+    if cap.isOpened() and not convert_rgb:
+        cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
+    return cap
+
+
+def probe(path: str | Path) -> VideoInfo:
+    """Open ``path`` and read its geometry; raises VideoError naming the file and the reason."""
+    p = Path(path)
+    if not p.exists():
+        raise VideoError(p, "no such file")
+    if p.is_dir():
+        raise VideoError(p, "is a directory, not a video file")
+    try:
+        with open(p, "rb") as fh:
+            fh.read(1)
+    except OSError as e:
+        raise VideoError(p, f"cannot be read ({e.strerror})") from None
+    prev = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # we report the failure ourselves
+    cap = _open(str(p))
+    cv2.utils.logging.setLogLevel(prev)
+    try:
+        if not cap.isOpened():
+            raise VideoError(p, "OpenCV/FFmpeg cannot open it (not a video, or an unsupported container/codec)")
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        num, den = cap.get(cv2.CAP_PROP_SAR_NUM), cap.get(cv2.CAP_PROP_SAR_DEN)
+        if not math.isfinite(fps) or fps <= 0 or w <= 0 or h <= 0:
+            raise VideoError(p, f"no usable video stream (fps={fps}, size={w}x{h})")
+        if not cap.grab():
+            raise VideoError(p, "no decodable video frame")
+    finally:
+        cap.release()
+    sar = (num / den) if (num and den and num > 0 and den > 0) else 1.0
+    return VideoInfo(str(p), fps, n, w, h, float(sar))
+
+
+def _luma_plane_ok(path: str, h: int, w: int) -> bool:
+    """True when a CONVERT_RGB=0 decode returns the 8-bit luma plane (checked against BGR->grey)."""
+    prev = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # "treated as 8UC1" warning per frame
+    try:
+        a, b = _open(path, convert_rgb=False), _open(path)
+        ok_a, ya = a.read()
+        ok_b, bgr = b.read()
+        a.release()
+        b.release()
+    finally:
+        cv2.utils.logging.setLogLevel(prev)
+    if not (ok_a and ok_b) or ya is None or ya.dtype != np.uint8 or ya.ndim != 2:
+        return False
+    if ya.shape[0] < h or ya.shape[1] != w:
+        return False
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    # BT.601 limited-range luma vs OpenCV's full-range grey: allow the range difference
+    return float(np.mean(np.abs(ya[:h].astype(np.float32) * (219 / 255) + 16 - grey.astype(np.float32)))) < 12.0 \
+        or float(np.mean(np.abs(ya[:h].astype(np.float32) - grey.astype(np.float32)))) < 12.0
+
+
+def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
+                      info: VideoInfo | None = None, use_luma: bool = True) -> Iterator[tuple[float, np.ndarray]]:
+    """Yield (t_s, grey uint8 at working width, square pixels) for frames sampled at ``sample_hz``.
+
+    Frames are taken at the first decoded frame at or after each tick k / sample_hz (all
+    frames when the video is slower than ``sample_hz``). Raises VideoError on undecodable input.
+    """
+    info = info or probe(path)
+    luma = use_luma and _luma_plane_ok(info.path, info.height_px, info.width_px)
+    prev_level = cv2.utils.logging.getLogLevel()
+    if luma:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    cap = _open(info.path, convert_rgb=not luma)
+    try:
+        if not cap.isOpened():
+            raise VideoError(info.path, "OpenCV/FFmpeg cannot open it")
+        period = 1.0 / sample_hz
+        half = 0.5 / info.fps_hz
+        nxt, i = 0.0, 0
+        while cap.grab():
+            t = i / info.fps_hz
+            i += 1
+            if t + half < nxt:
+                continue
+            ok, img = cap.retrieve()
+            if not ok or img is None:
+                raise VideoError(info.path, f"frame {i - 1} could not be decoded")
+            if luma:
+                img = img[: info.height_px]
+            yield t, prepare_frame(img, work_width_px, info.pixel_aspect, bgr=True)
+            while nxt <= t + half:
+                nxt += period
+        if i == 0:
+            raise VideoError(info.path, "no decodable video frame")
+    finally:
+        cap.release()
+        cv2.utils.logging.setLogLevel(prev_level)

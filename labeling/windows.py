@@ -1,0 +1,80 @@
+"""Label a whole video in (overlapping) windows: the engine behind ``resim label``."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from labeling.commands import command_from_yaw
+from labeling.config import LabelerConfig
+from labeling.flow import FlowLabeler, window_quality
+from labeling.video import VideoError, VideoInfo, iter_grey_samples, probe
+
+
+@dataclass(frozen=True)
+class WindowLabel:
+    start_s: float
+    end_s: float
+    command: str
+    yaw_deg: float        # heading change over [start_s, end_s], degrees, left +
+    confidence: float     # command confidence x flow quality, 0..1
+    quality: float        # flow quality of the window, 0..1
+
+
+@dataclass
+class VideoLabels:
+    info: VideoInfo
+    sample_hz: float          # effective sampling rate (min of the config's and the video's)
+    times_s: np.ndarray       # (S,) sample times
+    yaw_inc_deg: np.ndarray   # (S-1,) yaw change per sample pair, degrees, left +
+    quality: np.ndarray       # (S-1,) per-pair share of grid points kept
+    windows: list[WindowLabel]
+
+
+def window_starts(duration_s: float, window_s: float, stride_s: float, tol_s: float) -> list[tuple[float, float]]:
+    """Windows [start, start + window_s] that fit in the video; one shorter window when none fits."""
+    if duration_s + tol_s < window_s:
+        return [(0.0, duration_s)]
+    out, k = [], 0
+    while k * stride_s + window_s <= duration_s + tol_s:
+        out.append((k * stride_s, k * stride_s + window_s))
+        k += 1
+    return out
+
+
+def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: float | None = None,
+                stride_s: float = 2.0) -> VideoLabels:
+    """Per-pair yaw over the whole video, then one label per window. Raises VideoError on bad input."""
+    cfg = cfg or LabelerConfig()
+    if stride_s <= 0:
+        raise ValueError(f"stride_s must be > 0, got {stride_s}")
+    window_s = cfg.command.window_s if window_s is None else window_s
+    if window_s <= 0:
+        raise ValueError(f"window_s must be > 0, got {window_s}")
+    info = probe(path)
+    fc = cfg.flow
+    times: list[float] = []
+
+    def greys():
+        for t, g in iter_grey_samples(path, fc.sample_hz, fc.work_width_px, info):
+            times.append(t)
+            yield g
+
+    labeler = FlowLabeler(cfg)
+    eff_hz = min(fc.sample_hz, info.fps_hz)
+    rates = labeler.yaw_rates_from_grey(greys(), eff_hz)
+    t = np.asarray(times)
+    if len(t) < 2:
+        raise VideoError(path, f"too short: {len(t)} frame(s) at {eff_hz:g} Hz, at least 2 are needed")
+    inc = rates / eff_hz
+    quality = labeler.last_quality
+    windows = []
+    tol = 0.5 / eff_hz
+    for s, e in window_starts(float(t[-1]), window_s, stride_s, tol):
+        sel = (t[:-1] >= s - tol) & (t[1:] <= e + tol)
+        yaw = float(inc[sel].sum())
+        cmd, conf = command_from_yaw(yaw, cfg.command)
+        q = window_quality(quality[sel])
+        windows.append(WindowLabel(round(s, 3), round(min(e, float(t[-1])), 3), cmd, yaw, conf * q, q))
+    return VideoLabels(info, eff_hz, t, inc, quality, windows)

@@ -1,0 +1,56 @@
+"""`resim label`: output per window, and clear errors on unreadable input."""
+import json
+
+import cv2
+import pytest
+
+from resim.cli import main
+
+
+@pytest.fixture(scope="module")
+def left_turn_video(tmp_path_factory, render):
+    frames, _ = render(61, 10.0, 8.0, speed_mps=6.0, hfov_deg=80.0, seed=5)   # 6 s, +48 deg
+    path = tmp_path_factory.mktemp("vid") / "left.mp4"
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (frames.shape[2], frames.shape[1]))
+    assert wr.isOpened()
+    for f in frames:
+        wr.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    wr.release()
+    return path
+
+
+def test_label_json_lines(left_turn_video, capsys):
+    assert main(["label", str(left_turn_video), "--json", "--window-s", "4", "--stride-s", "1"]) == 0
+    out = capsys.readouterr()
+    rows = [json.loads(line) for line in out.out.splitlines()]
+    assert [(r["start_s"], r["end_s"]) for r in rows] == [(0.0, 4.0), (1.0, 5.0), (2.0, 6.0)]
+    for r in rows:
+        assert set(r) == {"start_s", "end_s", "command", "yaw_deg", "confidence"}
+        assert r["command"] == "Turning left"
+        assert 28 < r["yaw_deg"] < 36                          # 8 deg/s x 4 s = 32
+        assert 0.5 < r["confidence"] <= 1
+    assert "left.mp4" in out.err and "10 Hz" in out.err
+
+
+def test_label_table_and_short_video(left_turn_video, capsys):
+    assert main(["label", str(left_turn_video), "--window-s", "10"]) == 0
+    out = capsys.readouterr()
+    lines = out.out.splitlines()
+    assert lines[0].split() == ["start_s", "end_s", "command", "yaw_deg", "confidence"]
+    assert len(lines) == 2 and "Turning left" in lines[1]    # one short window for a 6 s video
+    assert "one short window" in out.err
+
+
+@pytest.mark.parametrize("content,reason", [(None, "no such file"), (b"not a video at all\n" * 10, "cannot open")])
+def test_unreadable_input_names_file_and_reason(tmp_path, capsys, content, reason):
+    p = tmp_path / "broken.mp4"
+    if content is not None:
+        p.write_bytes(content)
+    assert main(["label", str(p)]) == 1
+    err = capsys.readouterr().err
+    assert str(p) in err and reason in err
+
+
+def test_bad_override_is_a_config_error(left_turn_video, capsys):
+    assert main(["label", str(left_turn_video), "--set", "flow.hfov_deg=500"]) == 2
+    assert "hfov_deg" in capsys.readouterr().err

@@ -1,0 +1,94 @@
+"""Commands from yaw and from trajectories; trajectories from poses (closed forms)."""
+import math
+
+import numpy as np
+import pytest
+
+from labeling.commands import command_from_trajectory, command_from_yaw
+from labeling.config import CommandConfig, LabelerConfig, preset
+from labeling.trajectory import trajectory_from_poses
+from resim.config import ConfigError, from_dict
+
+L, F, R = "Turning left", "Moving forward", "Turning right"
+
+
+def test_command_from_yaw_thresholds_and_confidence():
+    c = CommandConfig(turn_threshold_deg=10.0, confidence_scale_deg=4.0)
+    assert command_from_yaw(25.0, c)[0] == L
+    assert command_from_yaw(-25.0, c)[0] == R
+    assert command_from_yaw(3.0, c)[0] == F
+    assert command_from_yaw(10.0, c) == (L, 0.5)            # at the threshold: a coin flip
+    assert command_from_yaw(-9.99, c)[0] == F
+    confs = [command_from_yaw(y, c)[1] for y in (10.5, 12, 16, 30)]
+    assert confs == sorted(confs) and confs[-1] > 0.99
+    assert command_from_yaw(0.0, c)[1] == pytest.approx(0.5 + 0.5 * math.tanh(10 / 4))
+    assert command_from_yaw(20.0, LabelerConfig(command=c))[0] == L
+    with pytest.raises(ValueError):
+        command_from_yaw(float("nan"), c)
+
+
+def _arc(v, omega, n, fps, x0=3.0, y0=-2.0, a0=0.7):
+    t = np.arange(n) / fps
+    if omega == 0:
+        xl, yl = v * t, 0 * t
+    else:
+        xl, yl = v / omega * np.sin(omega * t), v / omega * (1 - np.cos(omega * t))
+    c, s = math.cos(a0), math.sin(a0)
+    return np.stack([x0 + c * xl - s * yl, y0 + s * xl + c * yl, a0 + omega * t], 1), t
+
+
+def test_trajectory_from_poses_matches_circular_arc():
+    fps, v, om = 10.0, 8.0, math.radians(12)
+    poses, _ = _arc(v, om, 80, fps)
+    traj = trajectory_from_poses(poses, 10, fps)
+    assert traj.shape == (8, 3) and traj.dtype == np.float32
+    tw = np.arange(1, 9) * 0.5
+    np.testing.assert_allclose(traj[:, 0], v / om * np.sin(om * tw), atol=1e-3)
+    np.testing.assert_allclose(traj[:, 1], v / om * (1 - np.cos(om * tw)), atol=1e-3)
+    np.testing.assert_allclose(traj[:, 2], om * tw, atol=1e-5)
+
+
+def test_trajectory_interpolates_between_frames_and_wraps_yaw():
+    poses, _ = _arc(5.0, 0.0, 60, 4.0, a0=math.pi - 0.01)     # 4 Hz: 0.5 s = 2 frames; yaw near +pi
+    poses[:, 2] = np.where(np.arange(60) % 2, poses[:, 2] - 2 * np.pi, poses[:, 2])   # wrapped input
+    traj = trajectory_from_poses(poses, 0, 4.0)
+    np.testing.assert_allclose(traj[:, 0], 5.0 * 0.5 * np.arange(1, 9), atol=1e-4)
+    np.testing.assert_allclose(traj[:, 1:], 0.0, atol=1e-4)
+    poses3, _ = _arc(5.0, 0.0, 30, 3.0)                       # 3 Hz: waypoints between frames
+    traj3 = trajectory_from_poses(poses3, 0, 3.0)
+    np.testing.assert_allclose(traj3[:, 0], 2.5 * np.arange(1, 9), atol=1e-4)
+
+
+def test_trajectory_errors():
+    poses, _ = _arc(5.0, 0.0, 20, 10.0)
+    with pytest.raises(ValueError, match="last waypoint"):
+        trajectory_from_poses(poses, 0, 10.0)
+    with pytest.raises(ValueError, match="shape"):
+        trajectory_from_poses(poses[:, :2], 0, 10.0)
+
+
+def test_command_from_trajectory_rules():
+    c = CommandConfig()                                       # lateral offset, 2 m
+    fps = 10.0
+    for om, v, expect in [(math.radians(10), 8.0, L), (-math.radians(10), 8.0, R), (0.0, 15.0, F)]:
+        poses, _ = _arc(v, om, 60, fps)
+        cmd, yaw = command_from_trajectory(trajectory_from_poses(poses, 0, fps), c)
+        assert cmd == expect and yaw == pytest.approx(math.degrees(om) * 4, abs=1e-3)
+    lane_change = np.zeros((8, 3), np.float32)
+    lane_change[:, 0] = np.arange(1, 9) * 12
+    lane_change[-1, 1] = 3.5                                   # +3.5 m, heading back to 0
+    assert command_from_trajectory(lane_change, c)[0] == L
+    assert command_from_trajectory(lane_change, CommandConfig(trajectory_rule="heading"))[0] == F
+    assert command_from_trajectory(lane_change, CommandConfig(trajectory_rule="either"))[0] == L
+    with pytest.raises(ValueError):
+        command_from_trajectory(np.zeros((8, 2)), c)
+
+
+def test_config_validation_and_presets():
+    assert preset("accurate").flow.flow_preset == "fast"
+    with pytest.raises(ConfigError, match="hfov_deg"):
+        from_dict(LabelerConfig, {"flow": {"hfov_deg": 200}})
+    with pytest.raises(ConfigError, match="flow.nope"):
+        from_dict(LabelerConfig, {"flow": {"nope": 1}})
+    with pytest.raises(ConfigError, match="unknown labeler preset"):
+        preset("nope")
