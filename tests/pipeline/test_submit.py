@@ -25,6 +25,12 @@ def _free_port() -> int:
 @pytest.fixture
 def ray_head(tmp_path_factory):
     port, dport = _free_port(), _free_port()
+    # every port explicit: the session's embedded Ray (and other users' clusters) hold the defaults, and a
+    # head whose dashboard agent cannot bind its port answers "No available agent to submit job"
+    extra = [f"--{k}={_free_port()}" for k in ("dashboard-agent-listen-port", "dashboard-agent-grpc-port",
+                                                "metrics-export-port", "runtime-env-agent-port",
+                                                "ray-client-server-port", "node-manager-port",
+                                                "object-manager-port")]
     temp = Path(f"/tmp/rsp{os.getpid()}")      # short: Ray's unix socket paths must stay < 108 chars
     bindir = str(Path(sys.executable).parent)
     env = dict(os.environ, RAY_AUTH_MODE="disabled", RAY_USAGE_STATS_ENABLED="0",
@@ -34,7 +40,7 @@ def ray_head(tmp_path_factory):
     proc = subprocess.Popen(
         [os.path.join(bindir, "ray"), "start", "--head", "--block", f"--port={port}", f"--dashboard-port={dport}",
          "--dashboard-host=127.0.0.1", "--num-cpus=2", "--include-dashboard=true", f"--temp-dir={temp}",
-         "--disable-usage-stats"],
+         "--disable-usage-stats", *extra],
         env=env, start_new_session=True, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{dport}"
     try:
