@@ -20,82 +20,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
+from labeling.config import LabelerConfig
 from resim.config import ConfigError, from_dict, load, to_dict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-PLACEHOLDER_VAE = REPO_ROOT / "configs" / "models" / "placeholder-cogvideox-vae-tiny"
-PLACEHOLDER_T5 = REPO_ROOT / "configs" / "models" / "placeholder-t5-tiny"
+
+
+def placeholder_dir(name: str) -> Path:
+    """``configs/models/<name>`` of this checkout, else of the working dir (Ray jobs ship it there)."""
+    for base in (REPO_ROOT, Path.cwd()):
+        p = base / "configs" / "models" / name
+        if p.is_dir():
+            return p
+    return REPO_ROOT / "configs" / "models" / name   # check_paths reports it missing
+
+
+PLACEHOLDER_VAE = placeholder_dir("placeholder-cogvideox-vae-tiny")
+PLACEHOLDER_T5 = placeholder_dir("placeholder-t5-tiny")
 
 
 def _positive(name: str, value: float, allow_zero: bool = False) -> None:
     if value < 0 or (value == 0 and not allow_zero):
         raise ConfigError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value}")
-
-
-# ------------------------------------------------------------------------------------------- sources
-@dataclass
-class OpenDVSource:
-    """OpenDV-YouTube style: a folder of long dashcam videos (mp4/webm/mkv), resampled to clip.fps_hz.
-
-    ReSim discards the first 90 s and last 60 s of every video (intros, outros) and keeps >= 720p videos.
-    """
-
-    root: Optional[Path] = None               # null: source disabled
-    start_discard_s: float = 90.0
-    end_discard_s: float = 60.0
-    min_height_px: int = 720
-    max_items: Optional[int] = None           # cap for smoke runs
-
-    def __post_init__(self):
-        _positive("start_discard_s", self.start_discard_s, allow_zero=True)
-        _positive("end_discard_s", self.end_discard_s, allow_zero=True)
-        _positive("min_height_px", self.min_height_px)
-
-
-@dataclass
-class NavsimSource:
-    """NAVSIM / OpenScene: ``navsim_logs/<split>/<log>.pkl`` + ``sensor_blobs/<split>/<log>/CAM_F0``."""
-
-    root: Optional[Path] = None
-    split: str = "mini"
-    camera: str = "CAM_F0"
-    max_items: Optional[int] = None
-
-
-@dataclass
-class CarlaSource:
-    """Bench2Drive-style CARLA episodes (``anno/*.json.gz`` + ``camera/rgb_front``), with route outcomes."""
-
-    root: Optional[Path] = None
-    camera: str = "rgb_front"
-    max_items: Optional[int] = None
-
-
-@dataclass
-class SyntheticSource:
-    """A synthetic world (``resim synth``) in the three real layouts, read back through the real readers.
-
-    Generated into ``root`` when ``root`` has no ``ground_truth`` file yet (reused otherwise).
-    """
-
-    root: Optional[Path] = None               # null: disabled; relative paths are relative to the CWD
-    episodes: int = 6
-    seed: int = 0
-    layouts: tuple[str, ...] = ("opendv", "navsim", "carla")
-
-    def __post_init__(self):
-        _positive("episodes", self.episodes)
-        bad = [x for x in self.layouts if x not in ("opendv", "navsim", "carla")]
-        if bad:
-            raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
-
-
-@dataclass
-class SourcesConfig:
-    opendv: OpenDVSource = field(default_factory=OpenDVSource)
-    navsim: NavsimSource = field(default_factory=NavsimSource)
-    carla: CarlaSource = field(default_factory=CarlaSource)
-    synthetic: SyntheticSource = field(default_factory=SyntheticSource)
 
 
 # ---------------------------------------------------------------------------------------------- clip
@@ -138,20 +84,89 @@ class ClipConfig:
                         waypoint_dt_s=self.waypoint_dt_s)
 
 
+# ------------------------------------------------------------------------------------------- sources
+@dataclass
+class OpenDVSource:
+    """OpenDV-YouTube style: a folder of long dashcam videos (mp4/webm/mkv), resampled to clip.fps_hz.
+
+    ReSim discards the first 90 s and last 60 s of every video (intros, outros) and keeps >= 720p videos.
+    """
+
+    root: Optional[Path] = None               # null: source disabled
+    start_discard_s: float = 90.0
+    end_discard_s: float = 60.0
+    min_height_px: int = 720
+    max_items: Optional[int] = None           # cap for smoke runs
+    clip: Optional[ClipConfig] = None         # per-source clip geometry (null: the top-level `clip`)
+
+    def __post_init__(self):
+        _positive("start_discard_s", self.start_discard_s, allow_zero=True)
+        _positive("end_discard_s", self.end_discard_s, allow_zero=True)
+        _positive("min_height_px", self.min_height_px)
+
+
+@dataclass
+class NavsimSource:
+    """NAVSIM / OpenScene: ``navsim_logs/<split>/<log>.pkl`` + ``sensor_blobs/<split>/<log>/CAM_F0``."""
+
+    root: Optional[Path] = None
+    split: str = "mini"
+    camera: str = "CAM_F0"
+    max_items: Optional[int] = None
+    clip: Optional[ClipConfig] = None         # NAVSIM logs are 2 Hz: a 10 Hz clip cannot be cut from them
+
+
+@dataclass
+class CarlaSource:
+    """Bench2Drive-style CARLA episodes (``anno/*.json.gz`` + ``camera/rgb_front``), with route outcomes."""
+
+    root: Optional[Path] = None
+    camera: str = "rgb_front"
+    max_items: Optional[int] = None
+    clip: Optional[ClipConfig] = None
+
+
+@dataclass
+class SyntheticSource:
+    """A synthetic world (``resim synth``) in the three real layouts, read back through the real readers.
+
+    Generated into ``root`` when ``root`` has no ``ground_truth`` file yet (reused otherwise).
+    """
+
+    root: Optional[Path] = None               # null: disabled; relative paths are relative to the CWD
+    episodes: int = 6
+    seed: int = 0
+    layouts: tuple[str, ...] = ("opendv", "navsim", "carla")
+    clip: dict[str, ClipConfig] = field(default_factory=dict)   # per-layout clip geometry overrides
+    preset: str = "demo"                      # resim synth preset (demo: 128x224, 16 s episodes)
+
+    def __post_init__(self):
+        _positive("episodes", self.episodes)
+        bad = [x for x in list(self.layouts) + list(self.clip) if x not in ("opendv", "navsim", "carla")]
+        if bad:
+            raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
+
+
+@dataclass
+class SourcesConfig:
+    opendv: OpenDVSource = field(default_factory=OpenDVSource)
+    navsim: NavsimSource = field(default_factory=NavsimSource)
+    carla: CarlaSource = field(default_factory=CarlaSource)
+    synthetic: SyntheticSource = field(default_factory=SyntheticSource)
+
+
 # -------------------------------------------------------------------------------------------- labels
 @dataclass
 class LabelsConfig:
-    """Command labelling (issue 4). Flow runs on every clip; the trajectory command where poses exist."""
+    """Command labelling (issue 4). Flow runs on every clip; the trajectory command where poses exist.
 
-    turn_threshold_deg: float = 15.0          # |heading change over the future window| above this = turning
-    flow_size_hw: tuple[int, int] = (90, 160) # frames are downscaled to this before optical flow
+    ``labeler`` is ``labeling.config.LabelerConfig`` itself (flow estimator + command rules), so every
+    labeler knob is a config key here: ``labels.labeler.command.turn_threshold_deg``,
+    ``labels.labeler.flow.work_width_px``, ...
+    """
+
+    labeler: LabelerConfig = field(default_factory=LabelerConfig)
     prefer: Literal["trajectory", "flow"] = "trajectory"   # which command wins where both exist
-    max_missing_pose_frac: float = 0.0        # NaN poses tolerated in a window (0: any NaN quarantines it)
-
-    def __post_init__(self):
-        _positive("turn_threshold_deg", self.turn_threshold_deg)
-        if min(self.flow_size_hw) < 16:
-            raise ConfigError(f"flow_size_hw must be >= 16 px per side, got {list(self.flow_size_hw)}")
 
 
 # ------------------------------------------------------------------------------------------- balance
@@ -198,11 +213,11 @@ class EncodeConfig:
 
     @property
     def vae_path(self) -> Path:
-        return Path(self.vae) if self.vae is not None else PLACEHOLDER_VAE
+        return Path(self.vae) if self.vae is not None else placeholder_dir(PLACEHOLDER_VAE.name)
 
     @property
     def text_encoder_path(self) -> Path:
-        return Path(self.text_encoder) if self.text_encoder is not None else PLACEHOLDER_T5
+        return Path(self.text_encoder) if self.text_encoder is not None else placeholder_dir(PLACEHOLDER_T5.name)
 
 
 # -------------------------------------------------------------------------------------------- shards
@@ -261,6 +276,7 @@ class RayConfig:
     num_cpus: Optional[int] = None            # embedded Ray only; null = all cores
     executor: Literal["ray", "local"] = "ray" # "local": same stages, sequential, no Ray (debugging, tests)
     progress_bars: bool = True
+    fuse_cpu_stages: bool = True              # cut+label+balance in one actor pool (label's resources)
     stages: StagesResources = field(default_factory=StagesResources)
 
 
@@ -278,21 +294,40 @@ class PipelineConfig:
     ray: RayConfig = field(default_factory=RayConfig)
 
     def __post_init__(self):
-        if self.balance.enabled and self.clip.stride_frames % self.balance.turn_factor:
-            raise ConfigError(
-                f"balance.turn_factor: clip.stride_frames ({self.clip.stride_frames}) must be divisible by "
-                f"balance.turn_factor ({self.balance.turn_factor}) so turning windows lie on a finer grid")
+        for key, clip in self.clip_configs():
+            if self.balance.enabled and clip.stride_frames % self.balance.turn_factor:
+                raise ConfigError(
+                    f"balance.turn_factor: {key}.stride_frames ({clip.stride_frames}) must be divisible by "
+                    f"balance.turn_factor ({self.balance.turn_factor}) so turning windows lie on a finer grid")
+            future_s = clip.num_future_frames / clip.fps_hz
+            if abs(self.labels.labeler.command.window_s - future_s) > 1e-6:
+                raise ConfigError(
+                    f"labels.labeler.command.window_s ({self.labels.labeler.command.window_s}) must equal the "
+                    f"future window of {key} ({key}.num_future_frames / fps_hz = {future_s:g} s)")
+        if abs(self.labels.labeler.flow.sample_hz - self.clip.fps_hz) > 1e-9:
+            raise ConfigError(f"labels.labeler.flow.sample_hz ({self.labels.labeler.flow.sample_hz}) must equal "
+                              f"clip.fps_hz ({self.clip.fps_hz}): flow runs on the clip-rate frames")
         if not any((self.sources.opendv.root, self.sources.navsim.root, self.sources.carla.root,
                     self.sources.synthetic.root)):
             raise ConfigError("sources: no source configured (set sources.<kind>.root for at least one of "
                               "opendv, navsim, carla, synthetic)")
 
-    @property
-    def fine_stride_frames(self) -> int:
+    def clip_configs(self) -> list[tuple[str, ClipConfig]]:
+        """Every clip geometry in use, with its config key (top level + per-source overrides)."""
+        out = [("clip", self.clip)]
+        for kind in ("opendv", "navsim", "carla"):
+            c = getattr(self.sources, kind).clip
+            if c is not None:
+                out.append((f"sources.{kind}.clip", c))
+        out += [(f"sources.synthetic.clip.{k}", c) for k, c in self.sources.synthetic.clip.items()]
+        return out
+
+    def fine_stride_frames(self, clip: ClipConfig | None = None) -> int:
         """Start-to-start distance of turning windows (stride / factor)."""
+        clip = clip or self.clip
         if not self.balance.enabled:
-            return self.clip.stride_frames
-        return self.clip.stride_frames // self.balance.turn_factor
+            return clip.stride_frames
+        return clip.stride_frames // self.balance.turn_factor
 
 
 def load_config(path: str | Path | None, overrides=(), out: str | Path | None = None) -> PipelineConfig:

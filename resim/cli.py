@@ -20,6 +20,7 @@ COMMANDS: list[str] = [
     "training.sampling.cli",
     "labeling.cli",
     "training.eval.cli",
+    "pipelines.cli",
 ]
 
 EPILOG = """\

@@ -1,0 +1,320 @@
+"""Run the pipeline: enumerate → (skip committed units) → prompts → cut → label → balance → encode → write.
+
+Two executors over the *same* stage classes:
+
+* ``ray`` (default): Ray Data over work units; every stage is an actor pool
+  (``compute=ActorPoolStrategy(size=ray.stages.<stage>.actors)``) with the CPUs/GPUs declared once in
+  ``ray.stages``; the encode and prompt pools get a GPU each when the cluster has GPUs
+  (``num_gpus: auto``). Starts an embedded local Ray when ``ray.address`` is null, joins a cluster
+  otherwise (or reuses a Ray already initialised in this process).
+* ``local``: a sequential loop, stage by stage, in this process (unit tests, debugging).
+
+Rows are unit states (JSON strings of paths and labels); only the encode stage touches pixels at
+training resolution, one clip-deep buffer at a time.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipelines import quarantine, resume
+from pipelines.config import PipelineConfig, to_dict
+from pipelines.units import dumps, loads, make_reader, new_state, source_specs
+from resim.config import ConfigError, save
+
+log = logging.getLogger("resim.pipeline")
+
+
+@dataclass
+class RunResult:
+    out: Path
+    stats: dict
+    enumerated: int
+    ran: int
+    skipped: int
+    wall_s: float
+    report_png: Path | None = None
+    extra: dict = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------- enumerate
+class EnumerateStage:
+    """Stage 1: the configured sources → one initial state per item (driver side; listing is cheap)."""
+
+    name = "enumerate"
+
+    def __init__(self, cfg: PipelineConfig):
+        self.cfg = cfg
+
+    def __call__(self) -> tuple[list[dict], list[dict]]:
+        from pipelines.sources.episode import SourceError
+
+        states, bad = [], []
+        for spec in source_specs(self.cfg):
+            try:
+                items = make_reader(spec).list_items()
+            except SourceError as e:   # e.g. an unreadable results file: the whole source is unusable
+                bad.append({"item": spec.root, "unit_id": f"_source-{spec.origin.replace('/', '-')}",
+                            "source": spec.origin, "stage": self.name, "status": "quarantined",
+                            "reason": f"{e.item}: {e.reason}", "attempts": 1})
+                continue
+            if spec.max_items is not None:
+                items = items[:spec.max_items]
+            states.extend(new_state(spec, item) for item in items)
+        ids = [s["unit_id"] for s in states]
+        if len(set(ids)) != len(ids):
+            raise RuntimeError("two work units share an id")   # our bug (unit ids hash kind + item id)
+        return states, bad
+
+
+def ensure_synthetic(cfg: PipelineConfig) -> None:
+    """Generate the synthetic world into ``sources.synthetic.root`` unless one is already there."""
+    s = cfg.sources.synthetic
+    if s.root is None:
+        return
+    root = Path(s.root)
+    if (root / "ground_truth.json").exists():
+        return
+    from pipelines.sources.synth.generate import generate, preset
+
+    log.info("generating a synthetic world (%d episodes, seed %d, preset %s) in %s", s.episodes, s.seed,
+             s.preset, root)
+    generate(root, s.episodes, s.seed, preset(s.preset), overwrite=root.exists() and not any(root.iterdir()),
+             progress=cfg.ray.progress_bars)
+
+
+# ------------------------------------------------------------------------------------- executors
+def _gpus(res, have_gpu: bool) -> float:
+    if res.num_gpus == "auto":
+        return 1.0 if have_gpu else 0.0
+    return float(res.num_gpus)
+
+
+def init_ray(cfg: PipelineConfig) -> bool:
+    """Start or join Ray; returns True when this call started it (and so should shut it down)."""
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    import ray
+
+    if ray.is_initialized():
+        return False
+    kw = dict(include_dashboard=False, log_to_driver=True, logging_level=logging.ERROR,
+              configure_logging=True)
+    if cfg.ray.address:   # join a cluster from a checkout: ship our packages to its workers
+        from pipelines.submit import JOB_ENV, package_dirs
+
+        ray.init(address=cfg.ray.address, logging_level=logging.ERROR,
+                 runtime_env={"py_modules": package_dirs(), "excludes": ["__pycache__", "*.pyc"],
+                              "env_vars": dict(JOB_ENV)})
+    elif os.environ.get("RAY_ADDRESS"):   # inside a Ray job (resim pipeline submit): the job's runtime env
+        ray.init(logging_level=logging.ERROR)
+    else:
+        # workers inherit this environment; make sure they can import our packages from the checkout
+        repo = str(Path(__file__).resolve().parents[1])
+        pp = os.environ.get("PYTHONPATH", "")
+        if repo not in pp.split(os.pathsep):
+            os.environ["PYTHONPATH"] = os.pathsep.join([repo] + ([pp] if pp else []))
+        ray.init(num_cpus=cfg.ray.num_cpus, **kw)
+    return True
+
+
+def _quiet_ray_data(progress: bool) -> None:
+    import ray.data
+
+    ctx = ray.data.DataContext.get_current()
+    ctx.enable_progress_bars = False      # our own bar per stage (run_units_ray) instead
+    ctx.print_on_execution_start = False
+    for name in ("ray.data", "ray"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+
+
+def start_prompts_ray(cfg: PipelineConfig, have_gpu: bool):
+    """Encode the prompt table in a Ray task *while* the units run (it needs its own model load)."""
+    import ray
+
+    res = cfg.ray.stages.prompts
+
+    @ray.remote(num_cpus=res.num_cpus, num_gpus=_gpus(res, have_gpu), max_retries=0)
+    def encode_prompts(cfg_dict: dict) -> list[str]:
+        from pipelines.stages.prompts import PromptStage, all_prompts
+
+        texts = all_prompts()
+        out = PromptStage(cfg_dict)({"text": [t for t, _ in texts], "role": [r for _, r in texts]})
+        return list(out["prompt_id"])
+
+    return encode_prompts.remote(to_dict(cfg))
+
+
+def unit_pipeline(cfg: PipelineConfig) -> list[tuple[str, object, dict]]:
+    """(pool name, callable class, constructor kwargs) in order; cut+label+balance fused when configured."""
+    from pipelines.stages import UNIT_STAGES
+    from pipelines.stages.base import Chain
+
+    cfg_dict = to_dict(cfg)
+    stages = list(UNIT_STAGES)
+    if cfg.ray.fuse_cpu_stages:
+        light = tuple(cls for name, cls in stages if name in ("cut", "label", "balance"))
+        rest = [(n, c, {"cfg": cfg_dict}) for n, c in stages if n not in ("cut", "label", "balance")]
+        return [("label", Chain, {"cfg": cfg_dict, "stages": light})] + rest
+    return [(n, c, {"cfg": cfg_dict}) for n, c in stages]
+
+
+class _Board:
+    """Per-stage unit counters the stages bump (``mark.remote``); the driver polls them for its bars."""
+
+    def __init__(self):
+        self.counts: dict[str, int] = {}
+
+    def mark(self, stage: str, n: int = 1) -> None:
+        self.counts[stage] = self.counts.get(stage, 0) + n
+
+    def get(self) -> dict[str, int]:
+        return dict(self.counts)
+
+
+def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_done, progress: bool = True) -> None:
+    import threading
+
+    import ray
+    from tqdm import tqdm
+
+    from pipelines.stages import UNIT_STAGES
+
+    if not states:
+        return
+    board = ray.remote(num_cpus=0)(_Board).remote() if progress else None
+    # one block per unit up to a cap (blocks are the unit of scheduling; 88 k tiny blocks only cost overhead)
+    ds = ray.data.from_items([{"unit": dumps(s)} for s in states], override_num_blocks=min(len(states), 8192))
+    for name, cls, kwargs in unit_pipeline(cfg):
+        res = getattr(cfg.ray.stages, name)
+        ds = ds.map_batches(cls, fn_constructor_kwargs={**kwargs, "progress": board}, batch_size=1,
+                            batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=res.actors),
+                            num_cpus=res.num_cpus, num_gpus=_gpus(res, have_gpu))
+    if board is None:
+        for row in ds.iter_rows():
+            on_done(loads(row["unit"]))
+        return
+    # drain the dataset in a thread; draw one bar per stage here from the board's counters
+    error: list[BaseException] = []
+
+    def drain():
+        try:
+            for row in ds.iter_rows():
+                on_done(loads(row["unit"]))
+        except BaseException as e:  # noqa: BLE001 - re-raised in the main thread below
+            error.append(e)
+
+    t = threading.Thread(target=drain, daemon=True)
+    t.start()
+    bars = {name: tqdm(total=len(states), desc=f"{name:>8}", unit="unit", position=i, leave=True)
+            for i, (name, _) in enumerate(UNIT_STAGES)}
+    try:
+        while t.is_alive():
+            t.join(0.5)
+            counts = ray.get(board.get.remote())
+            for name, bar in bars.items():
+                bar.update(counts.get(name, 0) - bar.n)
+    finally:
+        for bar in bars.values():
+            bar.close()
+        ray.kill(board)
+    if error:
+        raise error[0]
+
+
+def run_prompts_local(cfg: PipelineConfig) -> list[str]:
+    from pipelines.stages.prompts import PromptStage, all_prompts
+
+    texts = all_prompts()
+    out = PromptStage(cfg)({"text": [t for t, _ in texts], "role": [r for _, r in texts]})
+    return list(out["prompt_id"])
+
+
+def run_units_local(cfg: PipelineConfig, states: list[dict], on_done, progress: bool = True) -> None:
+    from tqdm import tqdm
+
+    from pipelines.stages import UNIT_STAGES
+
+    for name, cls in UNIT_STAGES:
+        stage = cls(cfg)
+        states = [stage.run_one(s) for s in tqdm(states, desc=f"{name:>8}", disable=not progress, unit="unit")]
+    for s in states:
+        on_done(s)
+
+
+# ------------------------------------------------------------------------------------------- run
+def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
+    """Create OUT, refuse to mix two configs in one dataset, save the resolved config."""
+    from pipelines.stages.encode import data_config_hash
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = out / "config_hash.txt"
+    h = data_config_hash(cfg)
+    if stamp.exists() and stamp.read_text().strip() != h and not force:
+        raise ConfigError(f"out: {out} already holds a dataset made with a different config "
+                          f"(data hash {stamp.read_text().strip()} != {h}); use another --out (or --force)")
+    save(cfg, out / "config.yaml")
+    stamp.write_text(h + "\n")
+    return out
+
+
+def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = None) -> RunResult:
+    from pipelines import report
+
+    t0 = time.perf_counter()
+    progress = cfg.ray.progress_bars if progress is None else progress
+    out = prepare_out(cfg, force)
+    ensure_synthetic(cfg)
+    states, bad_sources = EnumerateStage(cfg)()
+    quarantine.write_rows(out, "_enumerate", bad_sources)
+    todo, skipped = resume.plan(states, resume.read_markers(out), cfg.quarantine.retry_quarantined)
+    log.info("%d units enumerated, %d already committed, %d to run", len(states), len(skipped), len(todo))
+    done = {"units": 0, "clips_written": 0}
+
+    def on_done(summary: dict) -> None:   # the driver keeps counters only (markers hold the rest)
+        done["units"] += 1
+        done["clips_written"] += (summary.get("written") or {}).get("num_samples", 0)
+
+    started = False
+    cpus = 1.0
+    if cfg.ray.executor == "ray":
+        started = init_ray(cfg)
+        try:
+            import ray
+
+            _quiet_ray_data(progress)
+            have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
+            cpus = float(ray.cluster_resources().get("CPU", 1.0))
+            prompts = start_prompts_ray(cfg, have_gpu)
+            run_units_ray(cfg, todo, have_gpu, on_done, progress)
+            ray.get(prompts)
+        finally:
+            if started:
+                import ray
+
+                ray.shutdown()
+    else:
+        run_prompts_local(cfg)
+        run_units_local(cfg, todo, on_done, progress)
+
+    staging = out / "_staging"
+    if staging.is_dir() and not any(staging.iterdir()):
+        staging.rmdir()
+    wall = time.perf_counter() - t0
+    markers = resume.read_markers(out)
+    enumerated_ids = {s["unit_id"] for s in states}
+    stats = report.compute_stats(out, [m for uid, m in markers.items() if uid in enumerated_ids],
+                                 this_run={"units_run": len(todo), "units_skipped": len(skipped), "wall_s": wall,
+                                           "executor": cfg.ray.executor,
+                                           "clips_written": done["clips_written"],
+                                           "cpus": cpus},
+                                 cfg=cfg)
+    report.write_stats(out, stats)
+    png = report.write_report_png(out, stats)
+    return RunResult(out=out, stats=stats, enumerated=len(states), ran=len(todo), skipped=len(skipped),
+                     wall_s=wall, report_png=png)
+

@@ -1,0 +1,111 @@
+"""What every pipeline stage shares: a callable class over batches of unit states.
+
+Ray Data calls ``Stage(cfg_dict)`` once per actor (heavy set-up: models, readers) and then
+``stage(batch)`` for each batch of rows ``{"unit": array of JSON strings}``; the local executor calls the
+same two things without Ray. ``__call__`` is pure with respect to the batch (it returns new rows);
+side effects are confined to the unit's own staging folder and, in the writer, the unit's own shard
+prefix — which is what makes a redo after a crash safe.
+
+Bad input is turned into quarantine rows here, once, for all stages:
+
+* ``SourceError`` (the readers' "this item is bad"): quarantined on the first attempt — retrying a
+  corrupt file does not help;
+* ``OSError`` (a file vanished, an NFS hiccup): retried ``quarantine.max_attempts`` times, then
+  quarantined with the attempt count;
+* anything else is our bug and propagates: the job fails loudly.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pipelines import quarantine
+from pipelines.config import PipelineConfig, config_from_dict
+from pipelines.units import dumps, loads
+
+
+def _source_error():
+    from pipelines.sources.episode import SourceError
+
+    return SourceError
+
+
+class BadInput(Exception):
+    """Raised by our own checks on input data (too short, too low-res, NaN poses...)."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+class Stage:
+    name = "stage"
+
+    def __init__(self, cfg: dict | PipelineConfig, progress=None):
+        self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
+        self._source_error = _source_error()
+        self.progress = progress       # a ProgressBoard actor handle (Ray executor) or None
+
+    # --- per unit --------------------------------------------------------------------------------
+    def process(self, state: dict) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def wants(self, state: dict) -> bool:
+        """Whether this stage has work for the unit (quarantined units pass straight through)."""
+        return state["status"] == "ok"
+
+    def run_one(self, state: dict) -> dict:
+        if not self.wants(state):
+            return state
+        t0 = time.perf_counter()
+        attempts = 0
+        while True:
+            attempts += 1
+            try:
+                self.process(state)
+                break
+            except self._source_error as e:
+                quarantine.quarantine_unit(state, self.name, e.reason, attempts=state["attempts"])
+                break
+            except BadInput as e:
+                quarantine.quarantine_unit(state, self.name, e.reason, attempts=state["attempts"])
+                break
+            except OSError as e:  # transient I/O: retry, then quarantine with the count
+                if attempts < self.cfg.quarantine.max_attempts:
+                    continue
+                quarantine.quarantine_unit(state, self.name, f"I/O error after {attempts} attempts: {e}",
+                                           attempts=state["attempts"] - 1 + attempts)
+                break
+        state["timings_s"][self.name] = state["timings_s"].get(self.name, 0.0) + time.perf_counter() - t0
+        return state
+
+    def _mark(self, n: int) -> None:
+        if self.progress is not None and n:
+            self.progress.mark.remote(self.name, n)   # fire and forget
+
+    # --- per batch (what Ray Data calls) -----------------------------------------------------------
+    def __call__(self, batch: dict) -> dict:
+        out = [dumps(self.run_one(loads(s))) for s in batch["unit"]]
+        self._mark(len(out))
+        return {"unit": np.array(out, dtype=object)}
+
+
+class Chain:
+    """Several stages in one actor (``ray.fuse_cpu_stages``): one process, one set-up, no hops between them.
+
+    Used for cut → label → balance, which are cheap to hand over but each cost an actor start-up
+    (seconds: imports) if pooled separately; the encode and write pools stay separate so they scale
+    on their own (GPU vs. I/O).
+    """
+
+    def __init__(self, cfg, stages: tuple = (), progress=None):
+        self.stages = [cls(cfg, progress=progress) for cls in stages]
+        self.name = "+".join(s.name for s in self.stages)
+
+    def __call__(self, batch: dict) -> dict:
+        states = [loads(s) for s in batch["unit"]]
+        for stage in self.stages:
+            states = [stage.run_one(st) for st in states]
+            stage._mark(len(states))
+        return {"unit": np.array([dumps(st) for st in states], dtype=object)}

@@ -1,0 +1,72 @@
+"""Stage 2: open a unit's episode, check it is usable, and cut it into candidate clip windows.
+
+Cutting is index arithmetic: a window is ``[start, start + num_frames)`` in clip-rate frames. Candidates
+lie on the *fine* grid (``clip.stride_frames / balance.turn_factor``) so the balance stage can keep
+every turning window there and only the coarse-grid ones elsewhere. Pixels are decoded later by the
+stages that need them, each at its own size (flow: tiny; VAE: the training resolution).
+
+Quarantined here (bad input, not our bug): unreadable / zero-byte / truncated items (the reader's
+``SourceError``), a frame rate that cannot be brought to ``clip.fps_hz``, fewer frames than one clip,
+frames lower than ``sources.opendv.min_height_px`` (OpenDV) or smaller than the VAE input.
+"""
+from __future__ import annotations
+
+from pipelines.frames import rate_step
+from pipelines.stages.base import BadInput, Stage
+from pipelines.units import clip_of, make_reader, spec_from_state
+
+
+class CutStage(Stage):
+    name = "cut"
+
+    def __init__(self, cfg, progress=None):
+        super().__init__(cfg, progress)
+        self._readers: dict = {}
+
+    def reader(self, state: dict):
+        spec = spec_from_state(state)
+        if spec not in self._readers:
+            self._readers[spec] = make_reader(spec)
+        return self._readers[spec]
+
+    def open(self, state: dict):
+        return self.reader(state).open(state["item_id"])
+
+    def process(self, state: dict) -> None:
+        cfg, clip = self.cfg, clip_of(state)
+        ep = self.open(state)
+        step = rate_step(ep.fps_hz, clip.fps_hz)
+        if step is None:
+            raise BadInput(f"frame rate {ep.fps_hz:g} Hz cannot be brought to the clip rate {clip.fps_hz:g} Hz "
+                           "by integer subsampling (set a per-source `clip` in the config to cut clips at the "
+                           "source's own rate)")
+        n = (ep.num_frames - 1) // step + 1 if ep.num_frames > 0 else 0     # clip-rate frames available
+        N = clip.num_frames
+        if n < N:
+            raise BadInput(f"too short: {n} frames at {clip.fps_hz:g} Hz < {N} needed for one clip "
+                           f"({N / clip.fps_hz:g} s)")
+        h, w = ep.frame_size_hw
+        if state["kind"] == "opendv" and state["spec"]["section"] == "sources.opendv" \
+                and h < cfg.sources.opendv.min_height_px:
+            raise BadInput(f"too low resolution: {h} px high < sources.opendv.min_height_px "
+                           f"{cfg.sources.opendv.min_height_px}")
+        if h < cfg.encode.height_px // 2 or w < cfg.encode.width_px // 2:
+            raise BadInput(f"too low resolution: {h}x{w} px for encode {cfg.encode.height_px}x{cfg.encode.width_px} "
+                           "(more than 2x upscaling)")
+        fine = cfg.fine_stride_frames(clip)
+        starts = list(range(0, n - N + 1, fine))
+        outcome = ep.outcome
+        state["episode"] = {
+            "source": ep.source,
+            "item_id": ep.item_id,
+            "fps_hz": float(ep.fps_hz),
+            "step": step,
+            "num_frames": n,
+            "frame_size_hw": [int(h), int(w)],
+            "has_poses": ep.poses is not None,
+            "hazard": None if outcome is None else bool(outcome.hazard),
+            "infraction_score": None if outcome is None else float(outcome.infraction_score),
+            "infractions": None if outcome is None else [str(x) for x in outcome.infractions],
+            "warnings": [str(x) for x in getattr(ep, "warnings", [])],
+        }
+        state["windows"] = [{"start": s} for s in starts]

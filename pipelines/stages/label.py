@@ -1,0 +1,104 @@
+"""Stage 3: label every candidate window (issue 4's labeler).
+
+* **Flow command, every clip.** One streaming pass over the episode at the labeler's working width
+  gives per-pair yaw rates (deg/s); a window's heading change is the sum over its *future* pairs
+  (from the last history frame to the last frame) / fps — the same number ``FlowLabeler.label``
+  computes for that window alone, without decoding overlapping windows five times.
+* **Trajectory command + 8x(x, y, yaw), where the source has poses**: ego frame at the last history
+  frame (``labeling.trajectory_from_poses``), command from ``command_from_trajectory``.
+* **Outcome** (CARLA-like): hazard flag and infraction score come from the episode record.
+
+``command`` is the trajectory command where poses exist (``labels.prefer``), else the flow command.
+A window whose poses have NaNs is dropped into the quarantine table (status ``dropped``); the
+unit's other windows go on.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from pipelines import quarantine
+from pipelines.frames import clip_frames
+from pipelines.stages.base import BadInput
+from pipelines.stages.cut import CutStage
+from pipelines.units import clip_of
+from shards.schema import COMMANDS
+
+FORWARD = COMMANDS[1]
+
+
+class LabelStage(CutStage):   # shares the reader cache
+    name = "label"
+
+    def __init__(self, cfg, progress=None):
+        super().__init__(cfg, progress)
+        from labeling.flow import FlowLabeler
+
+        self.lcfg = self.cfg.labels.labeler
+        self.flow = FlowLabeler(self.lcfg)
+
+    def flow_size_hw(self, frame_size_hw) -> tuple[int, int]:
+        """Decode straight to the labeler's working width (aspect kept): no full-size frame is kept."""
+        h, w = frame_size_hw
+        ww = self.lcfg.flow.work_width_px
+        return max(2, int(round(h * ww / w))), ww
+
+    def process(self, state: dict) -> None:
+        from labeling.commands import command_from_trajectory, command_from_yaw
+        from labeling.trajectory import trajectory_from_poses
+
+        cfg, e, clip = self.cfg, state["episode"], clip_of(state)
+        fps, step = clip.fps_hz, e["step"]
+        H, N = clip.num_history_frames, clip.num_frames
+        windows = state["windows"]
+        end = windows[-1]["start"] + N                                 # frames needed: [0, end)
+        ep = self.open(state)
+
+        frames = clip_frames(ep, 0, end, step, self.flow_size_hw(e["frame_size_hw"]))
+        with warnings.catch_warnings():   # all-NaN residual rows on textureless frames: handled inside
+            warnings.simplefilter("ignore", RuntimeWarning)
+            rates = self.flow.yaw_rates_deg(frames, fps)               # (end-1,) deg/s, left +
+        if len(rates) != end - 1:
+            raise BadInput(f"decoded {len(rates) + 1} of {end} frames (truncated video or missing frames)")
+        heading = np.concatenate([[0.0], np.cumsum(rates) / fps])      # heading at frame i, deg
+        quality = getattr(self.flow, "last_quality", None)
+
+        poses = None
+        if ep.poses is not None:
+            poses = np.asarray(ep.poses, dtype=np.float64)[::step][:e["num_frames"]]
+
+        labelled = []
+        for w in windows:
+            s = w["start"]
+            t, last = s + H - 1, s + N - 1
+            yaw_flow = float(heading[last] - heading[t])
+            cmd_flow, conf_flow = command_from_yaw(yaw_flow, self.lcfg)
+            if quality is not None and len(quality) == len(rates):
+                from labeling.flow import window_quality
+
+                conf_flow *= window_quality(quality[t:last])
+            out = {"start": s, "command_flow": cmd_flow, "yaw_deg_flow": yaw_flow, "confidence_flow": conf_flow,
+                   "command_trajectory": None, "yaw_deg_trajectory": None, "traj": None}
+            if poses is not None:
+                win = poses[s:s + N]
+                bad = ~np.isfinite(win).all(axis=1)
+                if bad.any():
+                    idx = np.flatnonzero(bad) + s
+                    quarantine.drop_window(state, self.name, s, f"NaN/inf poses at clip frames {idx[0]}..{idx[-1]} "
+                                                               f"({int(bad.sum())} of {N})")
+                    continue
+                traj = trajectory_from_poses(poses, t, fps, clip.num_waypoints, clip.waypoint_dt_s)
+                cmd_traj, yaw_traj = command_from_trajectory(traj, self.lcfg)
+                out.update(command_trajectory=cmd_traj, yaw_deg_trajectory=float(yaw_traj),
+                           traj=np.round(traj.astype(np.float64), 6).tolist())
+            if out["command_trajectory"] is not None and cfg.labels.prefer == "trajectory":
+                out.update(command=out["command_trajectory"], command_source="trajectory",
+                           yaw_deg=out["yaw_deg_trajectory"], confidence=1.0)  # ground-truth poses
+            else:
+                out.update(command=cmd_flow, command_source="flow", yaw_deg=yaw_flow, confidence=conf_flow)
+            out["is_turning"] = out["command"] != FORWARD
+            labelled.append(out)
+        if not labelled:
+            raise BadInput(f"all {len(windows)} windows dropped (NaN poses)")
+        state["windows"] = labelled

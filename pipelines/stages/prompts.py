@@ -1,0 +1,53 @@
+"""Stage 6: encode every distinct prompt once with T5 into the dataset's prompt table.
+
+ReSim conditions on the fixed CogVideoX prefix joined with the driving command, and drops the command
+(prefix alone) for classifier-free guidance. So a dataset has exactly ``len(COMMANDS) + 1`` distinct
+prompts, whatever its size: they are encoded once here (226 padded tokens, the full last hidden state)
+and samples carry only ``prompt_id`` / ``null_prompt_id`` (sha256 of the text).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from shards.schema import COMMANDS, prompt_id, prompt_text
+
+
+def all_prompts() -> list[tuple[str, str]]:
+    """(text, role) of every prompt a dataset can reference."""
+    return [(prompt_text(c), "command") for c in COMMANDS] + [(prompt_text(None), "null")]
+
+
+class PromptStage:
+    """Callable over batches ``{"text": [...], "role": [...]}`` → ``{"prompt_id": [...]}``; writes the table."""
+
+    name = "prompts"
+
+    def __init__(self, cfg, device: str | None = None):
+        from pipelines.config import PipelineConfig, config_from_dict
+        from pipelines.encoders import TextEncoder
+
+        self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
+        e = self.cfg.encode
+        import torch
+
+        torch.set_num_threads(e.torch_threads)
+        self.encoder = TextEncoder(e.text_encoder_path, max_tokens=e.max_text_tokens,
+                                   placeholder_seed=e.placeholder_seed, device=device)
+
+    def __call__(self, batch: dict) -> dict:
+        from shards.prompts import PromptTable
+
+        table = PromptTable(Path(self.cfg.out))
+        have = set(table.ids())
+        texts = [str(t) for t in batch["text"]]
+        roles = [str(r) for r in batch["role"]]
+        todo = [i for i, t in enumerate(texts) if prompt_id(t) not in have]
+        if todo:
+            emb = self.encoder.encode([texts[i] for i in todo])
+            info = self.encoder.info
+            for j, i in enumerate(todo):
+                table.add(texts[i], emb[j].astype(np.float16), roles[i], info.encoder_id,
+                          placeholder=info.placeholder, num_tokens=info.max_tokens)
+        return {"prompt_id": np.array([prompt_id(t) for t in texts], dtype=object)}

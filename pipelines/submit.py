@@ -1,0 +1,114 @@
+"""Submit the pipeline to a running Ray cluster through the Ray Jobs API (``resim pipeline submit``).
+
+What travels with the job (its runtime env):
+
+* ``working_dir``: a small folder made here holding ``job_config.yaml`` (the resolved, validated config,
+  with relative paths made absolute) and the placeholder model configs (``configs/models/placeholder-*``),
+  so the job runs exactly what was checked on the submitting machine;
+* ``py_modules``: resim's packages (``resim``, ``shards``, ``labeling``, ``pipelines``) from this checkout or
+  install — the cluster needs only the third-party dependencies (``pip install 'resim[pipeline]'``).
+
+The job's entrypoint is ``python -m resim pipeline run job_config.yaml --no-progress``; inside a job
+``ray.init()`` joins the cluster (``RAY_ADDRESS`` is set by the job supervisor).
+"""
+from __future__ import annotations
+
+import asyncio
+import shutil
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from pipelines.config import PLACEHOLDER_T5, PLACEHOLDER_VAE, PipelineConfig
+from resim.config import save
+
+PACKAGES = ("resim", "shards", "labeling", "pipelines")
+JOB_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0", "HF_HUB_OFFLINE": "1",
+           "TRANSFORMERS_OFFLINE": "1", "HF_HUB_DISABLE_PROGRESS_BARS": "1", "TOKENIZERS_PARALLELISM": "false"}
+TERMINAL = ("SUCCEEDED", "FAILED", "STOPPED")
+
+
+def _abs(p):
+    return None if p is None else Path(p).expanduser().resolve()
+
+
+def absolutize(cfg: PipelineConfig) -> PipelineConfig:
+    """Relative paths are relative to where the user typed the command, not to the job's working dir."""
+    s = cfg.sources
+    sources = replace(s, opendv=replace(s.opendv, root=_abs(s.opendv.root)),
+                      navsim=replace(s.navsim, root=_abs(s.navsim.root)),
+                      carla=replace(s.carla, root=_abs(s.carla.root)),
+                      synthetic=replace(s.synthetic, root=_abs(s.synthetic.root)))
+    enc = replace(cfg.encode, vae=_abs(cfg.encode.vae), text_encoder=_abs(cfg.encode.text_encoder))
+    return replace(cfg, out=_abs(cfg.out), sources=sources, encode=enc,
+                   ray=replace(cfg.ray, address=None, executor="ray"))
+
+
+def package_dirs() -> list[str]:
+    import importlib
+
+    return [str(Path(importlib.import_module(p).__file__).resolve().parent) for p in PACKAGES]
+
+
+def build_working_dir(cfg: PipelineConfig, dest: Path) -> Path:
+    dest.mkdir(parents=True, exist_ok=True)
+    save(absolutize(cfg), dest / "job_config.yaml")
+    for src in (PLACEHOLDER_VAE, PLACEHOLDER_T5):
+        shutil.copytree(src, dest / "configs" / "models" / src.name, dirs_exist_ok=True)
+    return dest
+
+
+def client(address: str):
+    from ray.job_submission import JobSubmissionClient
+
+    return JobSubmissionClient(address)
+
+
+def submit(cfg: PipelineConfig, address: str, job_id: str | None = None, agent_wait_s: float = 60.0) -> str:
+    """Submit ``cfg`` as a Ray job; returns the job id (waits up to ``agent_wait_s`` for a fresh head's agent)."""
+    with tempfile.TemporaryDirectory(prefix="resim-job-") as tmp:
+        wd = build_working_dir(cfg, Path(tmp) / "job")
+        runtime_env = {"working_dir": str(wd), "py_modules": package_dirs(),
+                       "excludes": ["__pycache__", "*.pyc"], "env_vars": dict(JOB_ENV)}
+        c = client(address)
+        deadline = time.monotonic() + agent_wait_s
+        while True:
+            try:
+                return c.submit_job(
+                    entrypoint="python -m resim pipeline run job_config.yaml --no-progress",
+                    runtime_env=runtime_env, submission_id=job_id,
+                    metadata={"resim": "pipeline", "out": str(_abs(cfg.out))})
+            except RuntimeError as e:   # a head that just started has its dashboard up before its job agent
+                if "No available agent" not in str(e) or time.monotonic() > deadline:
+                    raise
+                time.sleep(1.0)
+
+
+def status(address: str, job_id: str) -> str:
+    return str(client(address).get_job_status(job_id).value)
+
+
+def logs(address: str, job_id: str) -> str:
+    return client(address).get_job_logs(job_id)
+
+
+def follow_logs(address: str, job_id: str) -> None:
+    """Print the job's log lines as they arrive, until the job ends."""
+    c = client(address)
+
+    async def _tail():
+        async for chunk in c.tail_job_logs(job_id):
+            print(chunk, end="", flush=True)
+
+    asyncio.run(_tail())
+
+
+def wait(address: str, job_id: str, timeout_s: float | None = None, poll_s: float = 1.0) -> str:
+    c = client(address)
+    t0 = time.monotonic()
+    while True:
+        st = str(c.get_job_status(job_id).value)
+        if st in TERMINAL or (timeout_s is not None and time.monotonic() - t0 > timeout_s):
+            return st
+        time.sleep(poll_s)
