@@ -167,9 +167,9 @@ def test_position_of_another_sample_order_is_refused(world_dataset):
 
 
 # ---------------------------------------------------------------- mixed clip geometries (OpenDV 13 / NAVSIM 3)
-def _mixed(root, **kw):
-    return write_world_dataset(root, num_samples=16, per_shard=4, sources=("opendv", "navsim"),
-                               specs={"navsim": navsim_spec()}, **kw)
+def _mixed(root, per_shard=4):
+    return write_world_dataset(root, num_samples=16, per_shard=per_shard, sources=("opendv", "navsim"),
+                               specs={"navsim": navsim_spec()})
 
 
 def _shape(b):
@@ -177,7 +177,7 @@ def _shape(b):
 
 
 def test_mixed_geometries_give_homogeneous_batches_equal_per_rank(tmp_path):
-    root = _mixed(tmp_path / "mix")
+    root = _mixed(tmp_path / "mix", per_shard=8)  # 2 shards < 2 ranks x 2 workers
     counts, shapes = [], set()
     for rank in (0, 1):
         loader = StreamLoader(_cfg(root, batch_size_per_gpu=3, num_workers=2, samples_per_epoch=60),
