@@ -89,6 +89,7 @@ class DataConfig:
     open_shards_per_worker: int = 4        # shards interleaved per worker (shuffling without a buffer)
     strict: bool = False                   # a corrupt sample / unreadable shard is an error instead of skipped
     max_consecutive_failures: int = 64     # unreadable draws in a row before giving up (every shard bad)
+    max_shape_buckets: int = 16            # distinct sample geometries (latent shape, clip length, ...) per worker
     load_frames: bool = False              # decode frames.mp4 into Batch.frames (reward model)
     load_dino: bool = False                # Batch.dino from dino.npy (reward model)
     seed: int = 0
@@ -103,6 +104,8 @@ class DataConfig:
             raise ConfigError(f"data.samples_per_epoch must be >= 1, got {self.samples_per_epoch}")
         if self.open_shards_per_worker < 1:
             raise ConfigError("data.open_shards_per_worker must be >= 1")
+        if self.max_shape_buckets < 1:
+            raise ConfigError("data.max_shape_buckets must be >= 1")
         for k, v in self.source_weights.items():
             if v < 0:
                 raise ConfigError(f"data.source_weights.{k} must be >= 0, got {v}")

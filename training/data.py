@@ -90,6 +90,28 @@ class Batch:
         """History (conditioning) pixel frames of the clips (from the metadata; equal across the batch)."""
         return int(self.meta[0]["num_history_frames"]) if self.meta else 0
 
+    def _temporal_compression(self) -> int | None:
+        """Pixel frames per latent frame after the first (CogVideoX: 4), from num_frames and T_lat."""
+        if not self.meta or "num_frames" not in self.meta[0]:
+            return None
+        t_lat, n = int(self.latents.shape[1]), int(self.meta[0]["num_frames"])
+        return (n - 1) // (t_lat - 1) if t_lat > 1 and n > 1 else None
+
+    @property
+    def num_history_latent_frames(self) -> int | None:
+        """Latent frames made of history pixel frames only: ``1 + (H - 1) // 4`` for the causal VAE (9 -> 3,
+        NAVSIM's 1 -> 1); None when the metadata does not say. Equal across the batch (the stream's buckets)."""
+        c = self._temporal_compression()
+        h = self.num_history_frames
+        return 1 + (h - 1) // c if c and h >= 1 else None
+
+    @property
+    def latent_frame_dt_s(self) -> float | None:
+        """Seconds one latent frame spans: 4 pixel frames / fps (0.4 s at 10 Hz, 2 s at NAVSIM's 2 Hz)."""
+        c = self._temporal_compression()
+        fps = float(self.meta[0].get("fps_hz") or 0.0) if self.meta else 0.0
+        return c / fps if c and fps > 0 else None
+
     def to(self, device: torch.device | str, non_blocking: bool = True) -> "Batch":
         """Move tensors to ``device``; float16/bfloat16 latents and features become float32 there."""
         def mv(name, v):
@@ -112,8 +134,9 @@ def _stack(arrays: list[np.ndarray], name: str, keys: list[str]) -> torch.Tensor
     shapes = {a.shape for a in arrays}
     if len(shapes) > 1:
         detail = ", ".join(f"{k}: {a.shape}" for k, a in zip(keys, arrays))
-        raise DataError(f"cannot batch {name}: samples differ in shape ({detail}); train one resolution / clip "
-                        "length per run (or one per data source with batch_size_per_gpu=1)")
+        # the stream buckets samples by shape (WorkerStream.batch_key): reaching this is our bug
+        raise DataError(f"cannot batch {name}: samples differ in shape ({detail}); the stream's shape buckets "
+                        "should have kept them apart (training.stream.WorkerStream.batch_key)")
     return torch.from_numpy(np.stack(arrays))
 
 
@@ -212,7 +235,7 @@ class StreamLoader:
             batches_per_worker=batches_per_worker(spe, cfg.batch_size_per_gpu, world_size, W), num_workers=W,
             world_size=world_size, seed=cfg.seed, open_shards=cfg.open_shards_per_worker, strict=cfg.strict,
             max_consecutive_failures=cfg.max_consecutive_failures, load_frames=cfg.load_frames,
-            load_dino=cfg.load_dino, mixing=share)
+            load_dino=cfg.load_dino, mixing=share, max_shape_buckets=cfg.max_shape_buckets)
         self.cfg, self.rank, self.world_size, self.pin_memory = cfg, rank, world_size, pin_memory
         self.epoch = 0
         self.batches_in_epoch = 0

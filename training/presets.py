@@ -11,7 +11,7 @@ World model stages follow ReSim's Table S.1 (appendix of arXiv 2506.09981): 40 A
 Values the paper does not give are ours and marked ``# ours``: LoRA rank 64, warmup 500 steps, equal
 source weights in stages 2-3, batch 2 or 4 per GPU (80 = 2 x 40 GPUs, 160 = 4 x 40), bf16 + FSDP2 +
 activation checkpointing. Resolution is the pixel size the latents were encoded at (the VAE makes
-512x896 -> 64x112 latents); the data must have been encoded at it (the loader refuses mixed shapes).
+512x896 -> 64x112 latents); the data should have been encoded at it (mixed shapes train, one shape per batch).
 Stage 2/3 start from the previous stage: ``--set model.init_weights=RUN1/final/model.safetensors``;
 stage 1 from CogVideoX-2B: ``--set model.pretrained=/path/to/CogVideoX-2b/transformer``.
 """

@@ -14,11 +14,17 @@ over the integers; no RNG object is built per sample, which cost ~0.1-0.3 ms eac
 * raw sample ``i`` of a worker is taken from slot ``hash(seed, epoch, rank, worker, i, 2) mod S``:
   each worker interleaves ``S`` open shards (``data.open_shards_per_worker``), which shuffles across
   shards without a buffer;
-* a slot's shard is read front to back; when it ends the slot takes the next draw.
+* a slot's shard is read front to back; when it ends the slot takes the next draw;
+* shape buckets: decoded samples go, in that order, into the bucket of their ``batch_key`` (latent shape,
+  clip geometry, trajectory shape, ...: what collation and the objective need equal across a batch); a
+  bucket that reaches ``batch_size`` is emitted as a batch. Mixed datasets (OpenDV 13 latent frames,
+  NAVSIM 3) thus train together, every batch homogeneous, each shape in proportion to its share of the
+  mixed sample stream. Partial buckets at an epoch's end are dropped (issue 7, mixed geometries).
 
-The position of a worker (``Cursor``) is: draws made, raw samples taken, and per slot (draw
-index, shard index, samples read). Resuming reopens each slot's shard and seeks over the samples
-read (tar headers only, nothing decoded). Reading uses ``shards.tario.open_records`` (a lean tar
+The position of a worker (``Cursor``) is: draws made, raw samples taken, per slot (draw index,
+shard index, samples read), and per partial bucket the (shard, record) of each sample it holds.
+Resuming reopens each slot's shard and seeks over the samples read (tar headers only, nothing
+decoded), and re-reads the few buffered samples by seeking to their records. Reading uses ``shards.tario.open_records`` (a lean tar
 reader for local shards that seeks over members the model does not use; WebDataset's ``gopen`` +
 tar iterator for other URLs), decoding ``shards.reader.decode_sample`` with zero-copy npy views.
 
@@ -67,6 +73,7 @@ class StreamPlan:
     load_dino: bool = False
     mixing: dict = field(default_factory=dict)  # source -> effective share of draws (for the log)
     read_unused_members: bool = False      # read frames.mp4/dino.npy bytes even when not loaded (benchmarks)
+    max_shape_buckets: int = 16            # distinct batch keys (latent shapes, clip geometries) a worker buffers
 
     @property
     def batches_per_rank(self) -> int:
@@ -83,6 +90,7 @@ class Cursor:
     slots: list = field(default_factory=list)  # per slot: [draw k, shard index, samples read] or None
     skipped_samples: int = 0
     bad_shards: int = 0
+    pending: list = field(default_factory=list)  # partial shape buckets: per bucket [[shard, record], ...]
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "Cursor":
@@ -256,7 +264,8 @@ class WorkerStream:
             raise ValueError("data.load_dino is set but the sample has no dino.npy")
         return s
 
-    def samples(self) -> Iterator[dict]:
+    def samples(self) -> Iterator[tuple[dict, int, int]]:
+        """Decoded samples in stream order, each with (shard index, record index in the shard)."""
         from shards.reader import ForbiddenMemberError, ShardReadError
 
         S = self.plan.open_shards
@@ -264,9 +273,10 @@ class WorkerStream:
             i = self.cur.index
             slot = _mix64(_mix64(self._h ^ i) ^ _SLOT) % S if S > 1 else 0  # = _hash(*self.key, i, _SLOT) % S
             raw, shard = self._next_raw(slot)
+            rec = self.cur.slots[slot][2] - 1  # record index in the shard: how a buffered sample is re-read
             self.cur.index += 1
             try:
-                yield self._decode(raw)
+                yield self._decode(raw), shard, rec
             except ForbiddenMemberError as e:  # the whole shard is refused
                 self._bad_shard(shard, e)
                 self.cur.slots[slot] = None
@@ -278,16 +288,80 @@ class WorkerStream:
                 self.cur.skipped_samples += 1
                 _warn(f"skipping corrupt {where}: {e} (skipped on this worker: {self.cur.skipped_samples})")
 
+    def batch_key(self, s: dict) -> tuple:
+        """What must be equal across a batch: the latent shape (T_lat, C, h, w), the clip geometry the
+        objective reads per batch (history frames, frame rate -> history latent frames, latent frame duration),
+        the trajectory shape (None when absent), and frames/dino shapes when they are loaded."""
+        meta, traj = s["meta.json"], s.get("traj.npy")
+        key = (tuple(s["latent.npy"].shape), int(meta.get("num_history_frames", 0)), float(meta.get("fps_hz", 0.0)),
+               None if traj is None else tuple(traj.shape))
+        if self.plan.load_frames:
+            key += (tuple(s["frames"].shape),)
+        if self.plan.load_dino:
+            key += (tuple(s["dino.npy"].shape),)
+        return key
+
+    def _add(self, buckets: dict, item: tuple[dict, int, int]) -> list:
+        k = self.batch_key(item[0])
+        b = buckets.get(k)
+        if b is None:
+            if len(buckets) >= self.plan.max_shape_buckets:
+                raise DataError(
+                    f"more than data.max_shape_buckets={self.plan.max_shape_buckets} distinct sample geometries "
+                    f"(latent shape, history frames, fps, trajectory) on one worker: {sorted(map(str, buckets))} "
+                    f"and now {k} from {self.plan.urls[item[1]]}; is the dataset meant to mix this many "
+                    "resolutions / clip lengths? (raise the limit if so)")
+            b = buckets[k] = []
+        b.append(item)
+        return b
+
+    def _restore(self, pending: list) -> dict:
+        """Partial buckets of a saved position: re-read each buffered sample at its (shard, record)."""
+        from shards.reader import ShardReadError
+        from shards.tario import open_records
+
+        buckets: dict = {}
+        for bucket in pending:
+            for shard, rec in bucket:
+                url = self.plan.urls[shard]
+                try:
+                    it = open_records(url, start=rec, skip_exts=self._skip_exts)
+                    try:
+                        raw = next(it)
+                    finally:
+                        it.close()
+                    s = self._decode(raw)
+                except (StopIteration, OSError, EOFError, tarfile.TarError, ShardReadError, ValueError, KeyError,
+                        TypeError) as e:
+                    # the sample was read fine when the position was saved: the shard changed since
+                    where = f"buffered sample (record {rec}) of shard {url}"
+                    if self.plan.strict:
+                        raise DataError(f"resume: cannot re-read {where}: {e!r}") from e
+                    self.cur.skipped_samples += 1
+                    _warn(f"resume: cannot re-read {where}: {e!r}; skipped (the resumed order is no longer exact)")
+                    continue
+                self._add(buckets, (s, shard, rec))
+        return buckets
+
     def batches(self) -> Iterator[tuple[list[dict], dict]]:
-        """Up to ``batches_per_worker`` batches (fewer if resumed), each with the cursor after it (as a dict)."""
+        """Up to ``batches_per_worker`` shape-homogeneous batches (fewer if resumed), each with the cursor
+        after it (as a dict). With one geometry in the data this is plain consecutive grouping."""
         it = self.samples()
+        B = self.plan.batch_size
+        buckets = self._restore(self.cur.pending)
         while self.cur.batches < self.plan.batches_per_worker:
-            items = [next(it) for _ in range(self.plan.batch_size)]
+            item = next(it)
+            b = self._add(buckets, item)
+            if len(b) < B:
+                continue
+            del buckets[self.batch_key(item[0])]
             self.cur.batches += 1
             c = self.cur  # a JSON-able snapshot (dataclasses.asdict per batch was ~0.5 ms)
-            yield items, {"batches": c.batches, "index": c.index, "draws": c.draws,
-                          "slots": [list(s) if s else None for s in c.slots],
-                          "skipped_samples": c.skipped_samples, "bad_shards": c.bad_shards}
+            c.pending = [[[sh, r] for _, sh, r in v] for v in buckets.values()]
+            yield [x[0] for x in b], {"batches": c.batches, "index": c.index, "draws": c.draws,
+                                      "slots": [list(s) if s else None for s in c.slots],
+                                      "skipped_samples": c.skipped_samples, "bad_shards": c.bad_shards,
+                                      "pending": c.pending}
 
 
 def batches_per_worker(samples_per_epoch: int, batch_size: int, world_size: int, num_workers: int) -> int:

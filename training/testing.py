@@ -4,9 +4,17 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def write_world_dataset(root, num_samples=12, per_shard=4, sources=("synthetic",), seed=0):
+def navsim_spec():
+    """NAVSIM-style clip geometry: 2 Hz logs, 1 history + 8 future frames = 3 latent frames (1 of history)."""
+    from shards.schema import ClipSpec
+    return ClipSpec(fps_hz=2.0, num_history_frames=1, num_future_frames=8, num_waypoints=8, waypoint_dt_s=0.5)
+
+
+def write_world_dataset(root, num_samples=12, per_shard=4, sources=("synthetic",), seed=0, specs=None):
     """Shards the tiny world model can train on: 16-channel 8x12 latents, (16, 64) prompt embeddings.
-    Commands cycle; sources cycle per shard (one source per shard, as the pipeline writes them)."""
+    Commands cycle; sources cycle per shard (one source per shard, as the pipeline writes them).
+    ``specs``: optional ``{source: ClipSpec}`` (clip geometry per source; default ReSim's 9 + 40 frames
+    at 10 Hz = 13 latent frames), e.g. ``{"navsim": navsim_spec()}`` for a mixed-geometry dataset."""
     from shards.schema import COMMANDS
     from shards.testing import add_dummy_prompts, make_dummy_sample
     from shards.writer import ShardWriter
@@ -20,6 +28,6 @@ def write_world_dataset(root, num_samples=12, per_shard=4, sources=("synthetic",
             for _ in range(min(per_shard, num_samples - i)):
                 w.write(make_dummy_sample(source=src, item_id=f"ep-{s}-{i // 3}", start_frame=(i % 3) * 10,
                                           command=COMMANDS[i % 3], seed=seed * 1000 + i, latent_channels=16,
-                                          latent_hw=(8, 12), frames_hw=(16, 24)))
+                                          latent_hw=(8, 12), frames_hw=(16, 24), spec=(specs or {}).get(src)))
                 i += 1
     return Path(root)

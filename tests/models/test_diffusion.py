@@ -154,3 +154,46 @@ def test_world_model_loss_trains(tiny_model):
     assert float(loss.detach()) < 0.8 * first
     loss2, _ = model.loss(batch)  # the Trainer's entry point
     assert torch.isfinite(loss2)
+
+
+def test_batch_clip_geometry_overrides_config():
+    """Mixed datasets (issue 7): a NAVSIM-style batch (T=3 latent frames, 1 of history, 2 s each) under a config
+    written for OpenDV (3 history latent frames, 0.4 s) takes its history and frame duration from the batch."""
+    from training.models.conditioning import actions_from_trajectory
+    from training.models.config import preset
+    cfg = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3, text_drop_prob=0.0,
+                          trajectory_drop_prob=0.0, action_drop_prob=0.0)
+    batch = {**_batch(8, 3), "num_history_latent_frames": 1, "latent_frame_dt_s": 2.0}
+    spy = _Spy(preset("tiny"))
+    loss, _ = training_losses(spy, batch, cfg, torch.Generator().manual_seed(0))
+    c = spy.calls[-1]
+    t = c["t"]
+    assert bool((t[:, 1] == t[:, 2]).all())  # one future level; history = frame 0 only
+    g = torch.Generator().manual_seed(0)
+    sample_noise_levels(cfg, 8, 3, g, num_history_frames=1)
+    v = v_target(batch["latents"], torch.randn(batch["latents"].shape, generator=g), t, alphas_cumprod())
+    assert torch.allclose(loss, (v[:, 1:] ** 2).mean(), atol=1e-6)  # loss on the 2 future frames
+    acts, valid = actions_from_trajectory(batch["trajectory"], 3, 1, 2.0, 0.5)
+    assert torch.equal(c["actions"], acts) and valid[0].tolist() == [False, True, True]
+    assert torch.equal(c["keep_act"], valid)
+    with pytest.raises(ValueError, match="resim_cond_aug needs"):  # the config alone does not fit T=3
+        training_losses(spy, batch, ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3,
+                                                    geometry_from_batch=False))
+
+
+def test_world_model_trains_on_alternating_clip_lengths(tiny_model):
+    """T_latent changes from step to step (13 then 3): sin-cos positions per T, gradients everywhere finite."""
+    torch.manual_seed(0)
+    model = tiny_model.train()
+    model.objective = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    for nf, hist, dt in ((13, 3, 0.4), (3, 1, 2.0), (13, 3, 0.4)):
+        batch = {"latents": torch.randn(2, nf, 16, 8, 12), "text": torch.randn(2, 16, 64),
+                 "null_text": torch.randn(2, 16, 64), "trajectory": torch.randn(2, 8, 3), "source": ["navsim"] * 2,
+                 "num_history_latent_frames": hist, "latent_frame_dt_s": dt}
+        loss, _ = model.loss(batch)
+        opt.zero_grad()
+        loss.backward()
+        assert torch.isfinite(loss)
+        assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
+        opt.step()

@@ -11,7 +11,7 @@ from training.config import DataConfig
 from training.data import Batch, StreamLoader
 from training.stream import DataError, shard_mixing
 
-from training.testing import write_world_dataset
+from training.testing import navsim_spec, write_world_dataset
 
 
 def _cfg(root, **kw):
@@ -164,3 +164,95 @@ def test_position_of_another_sample_order_is_refused(world_dataset):
     del state["plan"]["sample_order"]  # a position saved by the loader before the counter-based hash
     with pytest.raises(DataError, match="cannot resume the data position"):
         StreamLoader(_cfg(world_dataset), verbose=False).load_state_dict(state)
+
+
+# ---------------------------------------------------------------- mixed clip geometries (OpenDV 13 / NAVSIM 3)
+def _mixed(root, per_shard=4):
+    return write_world_dataset(root, num_samples=16, per_shard=per_shard, sources=("opendv", "navsim"),
+                               specs={"navsim": navsim_spec()})
+
+
+def _shape(b):
+    return tuple(b.latents.shape[1:])
+
+
+def test_mixed_geometries_give_homogeneous_batches_equal_per_rank(tmp_path):
+    root = _mixed(tmp_path / "mix", per_shard=8)  # 2 shards < 2 ranks x 2 workers
+    counts, shapes = [], set()
+    for rank in (0, 1):
+        loader = StreamLoader(_cfg(root, batch_size_per_gpu=3, num_workers=2, samples_per_epoch=60),
+                              rank=rank, world_size=2, verbose=False)
+        batches = list(loader)
+        counts.append(len(batches))
+        assert len(batches) == len(loader) == 10  # ceil(60 / (3 x 2 ranks x 2 workers)) x 2 workers
+        for b in batches:
+            assert len(b) == 3 and len({m["latent_shape"][0] for m in b.meta}) == 1  # one geometry per batch
+            if b.latents.shape[1] == 13:
+                assert set(b.source) == {"opendv"} and b.num_history_latent_frames == 3
+                assert b.latent_frame_dt_s == pytest.approx(0.4)
+            else:
+                assert set(b.source) == {"navsim"} and b.latents.shape[1] == 3
+                assert b.num_history_latent_frames == 1 and b.latent_frame_dt_s == pytest.approx(2.0)
+            shapes.add(_shape(b))
+    assert counts[0] == counts[1]
+    assert shapes == {(13, 16, 8, 12), (3, 16, 8, 12)}
+
+
+def test_mixed_geometries_follow_source_weights(tmp_path):
+    root = write_world_dataset(tmp_path / "mix", num_samples=16, per_shard=4,
+                               sources=("opendv", "opendv", "opendv", "navsim"), specs={"navsim": navsim_spec()})
+    loader = StreamLoader(_cfg(root, samples_per_epoch=400, source_weights={"opendv": 1.0, "navsim": 1.0}),
+                          verbose=False)
+    src = [s for b in loader for s in b.source]
+    assert 0.4 < src.count("navsim") / len(src) < 0.6  # 1:1 in samples, whatever the bucket order
+
+
+def test_mixed_geometries_position_round_trip(tmp_path):
+    root = _mixed(tmp_path / "mix")
+    cfg = _cfg(root, batch_size_per_gpu=3, num_workers=2, samples_per_epoch=36)
+    full = _keys(StreamLoader(cfg, verbose=False), epochs=2)
+    pending_seen = False
+    for cut in range(1, 7):
+        a = StreamLoader(cfg, verbose=False)
+        it = iter(a)
+        head = [tuple(next(it).keys) for _ in range(cut)]
+        state = json.loads(json.dumps(a.state_dict()))
+        pending_seen |= any(c["pending"] for c in state["cursors"].values())
+        b = StreamLoader(cfg, verbose=False)
+        b.load_state_dict(state)
+        tail = _keys(b, epochs=2)
+        assert head + tail[: len(full) - cut] == full
+    assert pending_seen  # some cut fell where a bucket was partly filled
+
+
+def test_buffered_sample_that_cannot_be_reread_is_skipped_or_strict(tmp_path, capfd):
+    root = _mixed(tmp_path / "mix")
+    cfg = _cfg(root, batch_size_per_gpu=3, samples_per_epoch=36)
+    a = StreamLoader(cfg, verbose=False)
+    it = iter(a)
+    state = None
+    for _ in range(6):
+        next(it)
+        if a.state_dict()["cursors"]["0"]["pending"]:
+            state = json.loads(json.dumps(a.state_dict()))
+            break
+    assert state is not None
+    shard, rec = state["cursors"]["0"]["pending"][0][0]
+    state["cursors"]["0"]["pending"][0][0] = [shard, 10_000]  # past the end: as if the shard had changed
+    b = StreamLoader(cfg, verbose=False)
+    b.load_state_dict(state)
+    before = b.skipped
+    assert all(len(x) == 3 for x in b)
+    assert b.skipped == before + 1 and "cannot re-read buffered sample" in capfd.readouterr().err
+    s = StreamLoader(_cfg(root, batch_size_per_gpu=3, samples_per_epoch=36, strict=True), verbose=False)
+    s.load_state_dict(state)
+    with pytest.raises(DataError, match="cannot re-read"):
+        next(iter(s))
+
+
+def test_too_many_geometries_is_an_error(tmp_path):
+    root = _mixed(tmp_path / "mix")
+    with pytest.raises(DataError, match="max_shape_buckets=1"):
+        for _ in StreamLoader(_cfg(root, batch_size_per_gpu=3, samples_per_epoch=36, max_shape_buckets=1),
+                              verbose=False):
+            pass

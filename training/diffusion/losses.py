@@ -14,6 +14,11 @@ Batch (a mapping or an object with these attributes; tensors already on the mode
   inferred from the history (ReSim App. B.2);
 * ``actions`` (B, T, A) / (B, T) optional, ``action_valid`` (B, T) bool optional. Without actions but with a
   trajectory (and ``cfg.actions_from_trajectory``) per-frame ego motion is derived from the trajectory.
+* ``num_history_latent_frames`` (int) and ``latent_frame_dt_s`` (float) optional: the batch's clip geometry
+  (``training.data.Batch`` derives them from the shard metadata). With ``cfg.geometry_from_batch`` they
+  replace ``cfg.num_history_frames`` / ``cfg.latent_frame_dt_s``, so batches of different clip lengths (NAVSIM
+  2 Hz: 3 latent frames, 1 of history; OpenDV: 13, 3 of history) train under one config. T may differ from
+  step to step (the DiT's sin-cos positions are computed for each T).
 
 Per-sample condition dropout (classifier-free guidance): text p=0.5, trajectory p=0.5 (not for CARLA), each
 frame's action p=0.2 (Vid2World's causal action guidance). Actions derived from a trajectory are dropped
@@ -66,8 +71,13 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
     if text is None:
         raise ValueError("batch.text (B, L, D_text) is required")
 
+    hist, frame_dt = cfg.num_history_frames, cfg.latent_frame_dt_s
+    if cfg.geometry_from_batch:
+        hist = _get(batch, "num_history_latent_frames") or hist
+        frame_dt = _get(batch, "latent_frame_dt_s") or frame_dt
+
     # --- noise levels, noisy input, target
-    t, loss_mask = sample_noise_levels(cfg, b, nf, generator, dev)
+    t, loss_mask = sample_noise_levels(cfg, b, nf, generator, dev, num_history_frames=hist)
     noise = torch.randn(x0.shape, generator=generator).to(device=dev, dtype=x0.dtype)
     ac = _alphas(cfg, dev)
     x_t = add_noise(x0, noise, t, ac)
@@ -103,8 +113,7 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
         keep_act = torch.ones(b, nf, dtype=torch.bool, device=dev) if valid is None else valid.to(dev).bool()
     elif traj is not None and cfg.actions_from_trajectory and _wants_ego_motion(model):
         from training.models.conditioning import actions_from_trajectory
-        actions, keep_act = actions_from_trajectory(traj, nf, cfg.num_history_frames,
-                                                    cfg.latent_frame_dt_s, cfg.waypoint_dt_s)
+        actions, keep_act = actions_from_trajectory(traj, nf, hist, frame_dt, cfg.waypoint_dt_s)
         keep_act = keep_act.to(dev) & keep_traj[:, None]
         derived = True
     if actions is not None:

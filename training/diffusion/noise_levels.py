@@ -17,7 +17,9 @@ from training.diffusion.config import ObjectiveConfig
 
 def sample_noise_levels(cfg: ObjectiveConfig, batch_size: int, num_frames: int,
                         generator: torch.Generator | None = None,
-                        device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+                        device: torch.device | str = "cpu",
+                        num_history_frames: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``num_history_frames`` (latent frames) overrides ``cfg.num_history_frames`` (a batch's own clip geometry)."""
     n = cfg.schedule.num_train_timesteps
     b, f = batch_size, num_frames
     if cfg.noise_mode == "diffusion_forcing":
@@ -27,7 +29,7 @@ def sample_noise_levels(cfg: ObjectiveConfig, batch_size: int, num_frames: int,
         t = torch.randint(0, n, (b, 1), generator=generator).expand(b, f).clone()
         mask = torch.ones(b, f, dtype=torch.bool)
     elif cfg.noise_mode == "resim_cond_aug":
-        h = cfg.num_history_frames
+        h = cfg.num_history_frames if num_history_frames is None else int(num_history_frames)
         if not 0 < h < f:
             raise ValueError(f"resim_cond_aug needs 0 < num_history_frames ({h}) < latent frames ({f})")
         t_aug = torch.randint(0, cfg.cond_aug_max_t + 1, (b, 1), generator=generator)
