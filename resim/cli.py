@@ -14,6 +14,7 @@ import sys
 # (module defining register(subparsers)); order = order in --help
 COMMANDS: list[str] = [
     "shards.cli",
+    "pipelines.sources.cli",
     "training.reward.cli",
 ]
 

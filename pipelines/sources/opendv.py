@@ -1,0 +1,213 @@
+"""OpenDV-YouTube-style reader: a folder of front-camera videos, no poses (issue 3).
+
+Layout (the OpenDV-YouTube toolkit stores ``<channel>/<video_id>.<ext>``)::
+
+    ROOT/**/<video_id>.{mp4,mkv,webm,mov}
+    ROOT/videos.csv        optional: video_id,start_discard_s,end_discard_s,notes
+
+Defaults follow the OpenDV-YouTube toolkit: resample to 10 Hz, discard the
+first 90 s (intros) and the last 60 s (outros), skip videos whose height is
+under 720 px. The synthetic world's OpenDV part is read with
+``OpenDVConfig.preset("synthetic", root=...)`` (no discards, low minimum height).
+
+Frames are decoded lazily and resized right after decoding (before colour
+conversion); resampling keeps, for output frame k at ``t_k = start + k / fps_hz``,
+the source frame nearest to ``t_k``.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from resim.config import ConfigError, from_dict
+
+from .episode import Episode, SourceError
+
+VIDEO_EXTENSIONS = ("mp4", "mkv", "webm", "mov")
+
+
+@dataclass
+class OpenDVConfig:
+    root: Path = Path(".")
+    fps_hz: float = 10.0                 # output rate after resampling
+    start_discard_s: float = 90.0        # default discard at the start (per-video CSV overrides)
+    end_discard_s: float = 60.0          # default discard at the end
+    min_height_px: int = 720             # videos lower than this are skipped (reported)
+    metadata_csv: str = "videos.csv"     # relative to root; absent file = no per-video metadata
+    extensions: tuple[str, ...] = VIDEO_EXTENSIONS
+    verify_last_frame: bool = True       # on open, seek to the last frame to catch truncated files early
+    seek_gap_s: float = 2.0              # seek instead of decoding through gaps longer than this
+
+    def __post_init__(self):
+        self.root = Path(self.root)
+        if self.fps_hz <= 0:
+            raise ConfigError(f"fps_hz must be > 0, got {self.fps_hz}")
+        if self.start_discard_s < 0 or self.end_discard_s < 0:
+            raise ConfigError("start_discard_s and end_discard_s must be >= 0")
+        if self.min_height_px < 1:
+            raise ConfigError(f"min_height_px must be >= 1, got {self.min_height_px}")
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "OpenDVConfig":
+        if name not in OPENDV_PRESETS:
+            raise ConfigError(f"unknown OpenDV preset {name!r}; known: {sorted(OPENDV_PRESETS)}")
+        return from_dict(cls, {**OPENDV_PRESETS[name], **overrides})
+
+
+OPENDV_PRESETS: dict[str, dict] = {
+    # the OpenDV-YouTube toolkit's defaults
+    "opendv_youtube": {},
+    # our synthetic world: short clips, nothing to discard, low resolution
+    "synthetic": {"start_discard_s": 0.0, "end_discard_s": 0.0, "min_height_px": 32},
+}
+
+
+@dataclass
+class _VideoMeta:
+    start_discard_s: float | None = None
+    end_discard_s: float | None = None
+    notes: str = ""
+
+
+@dataclass
+class OpenDVReader:
+    cfg: OpenDVConfig
+    _meta: dict[str, _VideoMeta] = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self):
+        self._meta = self._read_metadata()
+
+    # -- metadata --------------------------------------------------------------------------
+    def _read_metadata(self) -> dict[str, _VideoMeta]:
+        path = self.cfg.root / self.cfg.metadata_csv
+        if not path.is_file():
+            return {}
+        out: dict[str, _VideoMeta] = {}
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+        for i, row in enumerate(rows, start=2):  # line numbers as a spreadsheet shows them
+            vid = (row.get("video_id") or row.get("videoid") or "").strip()
+            if not vid:
+                raise SourceError(f"{path}:{i}", "row has no video_id")
+            try:
+                out[vid] = _VideoMeta(
+                    _opt_float(row.get("start_discard_s", row.get("start_discard"))),
+                    _opt_float(row.get("end_discard_s", row.get("end_discard"))),
+                    (row.get("notes") or "").strip(),
+                )
+            except ValueError as e:
+                raise SourceError(f"{path}:{i}", f"bad discard value ({e})") from None
+        return out
+
+    def _video_meta(self, item_id: str) -> _VideoMeta:
+        p = Path(item_id)
+        return self._meta.get(item_id) or self._meta.get(str(p.with_suffix(""))) or self._meta.get(p.stem) or _VideoMeta()
+
+    # -- listing / opening -------------------------------------------------------------------
+    def list_items(self) -> list[str]:
+        """Relative paths (posix) of all videos under root, sorted."""
+        root = self.cfg.root
+        if not root.is_dir():
+            raise SourceError(str(root), "OpenDV root folder does not exist")
+        exts = {"." + e.lower().lstrip(".") for e in self.cfg.extensions}
+        return sorted(p.relative_to(root).as_posix() for p in root.rglob("*")
+                      if p.is_file() and p.suffix.lower() in exts)
+
+    def open(self, item_id: str) -> Episode:
+        import cv2
+
+        path = self.cfg.root / item_id
+        if not path.is_file():
+            raise SourceError(item_id, f"video file {path} does not exist")
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                raise SourceError(item_id, "cannot open video (unreadable or truncated container)")
+            src_fps = float(cap.get(cv2.CAP_PROP_FPS))
+            count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+            h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            if not (src_fps > 0 and math.isfinite(src_fps)) or count <= 0 or h <= 0 or w <= 0:
+                raise SourceError(item_id, f"video header unusable (fps={src_fps}, frames={count}, size={w}x{h})")
+            if h < self.cfg.min_height_px:
+                raise SourceError(item_id, f"height {h} px < min_height_px {self.cfg.min_height_px} (skipped)")
+            if self.cfg.verify_last_frame:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, count - 1)
+                if not cap.grab():
+                    raise SourceError(item_id, f"truncated video: header says {count} frames but frame "
+                                               f"{count - 1} cannot be decoded")
+        finally:
+            cap.release()
+
+        meta = self._video_meta(item_id)
+        start_s = self.cfg.start_discard_s if meta.start_discard_s is None else meta.start_discard_s
+        end_s = self.cfg.end_discard_s if meta.end_discard_s is None else meta.end_discard_s
+        duration_s = count / src_fps
+        usable_s = duration_s - start_s - end_s
+        n_out = int(math.floor(usable_s * self.cfg.fps_hz + 1e-9))
+        if n_out < 1:
+            raise SourceError(item_id, f"too short: {duration_s:.1f} s minus discards "
+                                       f"{start_s:.0f} s + {end_s:.0f} s leaves nothing")
+        t = start_s + np.arange(n_out) / self.cfg.fps_hz
+        src_idx = np.minimum(np.round(t * src_fps).astype(np.int64), count - 1)
+
+        def loader(a: int, b: int, size_hw):
+            return _decode(path, item_id, src_idx[a:b], src_fps, size_hw, self.cfg.seek_gap_s, count)
+
+        return Episode(source="opendv", item_id=item_id, fps_hz=self.cfg.fps_hz, num_frames=n_out,
+                       frame_size_hw=(h, w), timestamps_s=t - start_s, _loader=loader)
+
+
+def _opt_float(v) -> float | None:
+    if v is None or str(v).strip() == "":
+        return None
+    x = float(v)
+    if not math.isfinite(x) or x < 0:
+        raise ValueError(f"{v!r} is not a finite number >= 0")
+    return x
+
+
+def _decode(path: Path, item_id: str, wanted: np.ndarray, src_fps: float, size_hw, seek_gap_s: float,
+            count: int) -> Iterator[np.ndarray]:
+    """Decode the source frames ``wanted`` (non-decreasing indices) one at a time."""
+    import cv2
+
+    if len(wanted) == 0:
+        return
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            raise SourceError(item_id, "cannot open video (unreadable or truncated container)")
+        pos = 0  # index of the next frame grab() returns
+        if wanted[0] > seek_gap_s * src_fps:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, int(wanted[0]))
+            pos = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
+        last_idx, last_img = -1, None
+        for idx in wanted:
+            idx = int(idx)
+            if idx == last_idx:              # upsampling: the same source frame again
+                yield last_img.copy()
+                continue
+            if idx - pos > seek_gap_s * src_fps:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, idx)
+                pos = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
+            while pos <= idx:
+                if not cap.grab():
+                    raise SourceError(item_id, f"truncated video: frame {pos} of {count} cannot be decoded")
+                pos += 1
+            ok, bgr = cap.retrieve()
+            if not ok or bgr is None:
+                raise SourceError(item_id, f"frame {idx} cannot be decoded")
+            if size_hw is not None:
+                from .episode import resize_rgb
+
+                bgr = resize_rgb(bgr, size_hw)   # resize first: colour conversion on fewer pixels
+            last_idx, last_img = idx, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            yield last_img
+    finally:
+        cap.release()

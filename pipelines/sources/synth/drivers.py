@@ -1,0 +1,217 @@
+"""Drivers of the synthetic world: an expert and hazardous explorers (issue 3).
+
+The ego is a kinematic unicycle driven by a curvature command ``k`` (1/m,
+left +, |k| <= 1/5) and an acceleration; each step integrates exact arcs, so
+the heading stored per frame is exactly the heading the poses imply (the chord
+between consecutive poses points along their mean yaw).
+
+* ``expert``: pure pursuit on the ego-lane centre with a speed-adaptive
+  look-ahead; target speed limited by the curvature ahead (lateral acceleration
+  <= 2.2 m/s^2) and by a lead car; it drives the route cleanly (the analogue of
+  PDM-Lite in ReSim's CARLA data).
+* explorers (ReSim: "rule-based hazardous explorations"), one pattern per
+  episode, drawn from ``EXPLORER_PATTERNS``:
+  ``drift``   after 1-4 s a constant steering bias either way (leaves the lane, hits scenery);
+  ``swerve``  the expert's steering plus a large sinusoid;
+  ``random``  piecewise-constant random steering and throttle/brake every 0.5-1.5 s;
+  ``stop``    brakes to a standstill and waits 4-8 s (low speed), then goes on;
+  ``speeding``twice the expert's speed, ignores curves (runs wide in turns, rear-ends the lead car).
+After a collision the ego stops for good (the episode is cut 2 s later).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .world import LANE_OFFSET_M, World
+
+K_MAX = 0.2            # 1/m, about a 5 m turning radius
+A_MAX, A_MIN = 2.5, -6.0
+A_LAT_MAX = 2.2
+EGO_RADIUS_M = 1.0     # collision circles: two of them, at +-1.2 m along the car
+EXPLORER_PATTERNS = ("drift", "swerve", "random", "stop", "speeding")
+
+
+@dataclass
+class Trace:
+    """What happened, sampled at the simulation rate."""
+
+    t_s: np.ndarray         # (N,)
+    poses: np.ndarray       # (N, 3) x, y, yaw (unwrapped, rad)
+    speed_mps: np.ndarray   # (N,)
+    curvature: np.ndarray   # (N,) commanded curvature, 1/m
+    accel_mps2: np.ndarray  # (N,)
+    throttle: np.ndarray
+    brake: np.ndarray
+    route_s_m: np.ndarray   # (N,) progress along the route (projected)
+    lane_dev_m: np.ndarray  # (N,) signed lateral distance from the ego-lane centre (left +)
+    road_dist_m: np.ndarray  # (N,) distance to the nearest road centreline
+    collisions: list[tuple[int, str, str]] = field(default_factory=list)  # (step, category, message)
+    driver: str = "expert"
+    pattern: str | None = None
+
+
+def _arc_step(x, y, yaw, v, k, dt):
+    ds = v * dt
+    dyaw = k * ds
+    chord = ds * (np.sinc(dyaw / 2 / np.pi))
+    hm = yaw + dyaw / 2
+    return x + chord * math.cos(hm), y + chord * math.sin(hm), yaw + dyaw
+
+
+class _LaneTracker:
+    def __init__(self, world: World):
+        self.lane = world.lane_path()
+        self.route = world.route
+        self.i = int(round(world.start_s_m / (world.route.s[1] - world.route.s[0])))
+
+    def locate(self, x, y):
+        lo, hi = max(0, self.i - 20), min(len(self.lane), self.i + 60)
+        d2 = ((self.lane[lo:hi] - (x, y)) ** 2).sum(1)
+        j = lo + int(d2.argmin())
+        if d2.min() < 36.0:  # only follow the lane while near it (explorers may leave it)
+            self.i = j
+        h = self.route.heading[j]
+        dev = -(x - self.lane[j, 0]) * math.sin(h) + (y - self.lane[j, 1]) * math.cos(h)
+        return j, float(dev)
+
+
+def _pure_pursuit(world: World, lane, j, x, y, yaw, v):
+    ds = world.route.s[1] - world.route.s[0]
+    look = max(5.0, 0.9 * v)
+    tgt = lane[min(len(lane) - 1, j + int(look / ds))]
+    dx, dy = tgt[0] - x, tgt[1] - y
+    alpha = math.atan2(dy, dx) - yaw
+    Ld = max(1.0, math.hypot(dx, dy))
+    return 2 * math.sin(alpha) / Ld
+
+
+def _curve_speed(world: World, j, v_max):
+    ds = world.route.s[1] - world.route.s[0]
+    k = np.abs(world.route.curvature[j: j + int(30 / ds)])
+    kmax = float(k.max()) if k.size else 0.0
+    return min(v_max, math.sqrt(A_LAT_MAX / kmax)) if kmax > 1e-6 else v_max
+
+
+def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Generator,
+             driver: str = "expert", pattern: str | None = None) -> Trace:
+    n = int(round(duration_s * sim_hz))
+    dt = 1.0 / sim_hz
+    tr = _LaneTracker(world)
+    (x, y), yaw = world.route.at(world.start_s_m, LANE_OFFSET_M)
+    x, y, yaw = float(x), float(y), float(yaw)
+    v_max = world.nominal_speed_mps
+    v = 0.8 * _curve_speed(world, tr.i, v_max)
+    # explorer parameters
+    p = {}
+    if driver == "explorer":
+        p["t0"] = float(rng.uniform(1.0, 4.0))
+        p["bias"] = float(rng.choice([-1, 1]) * rng.uniform(0.02, 0.06))
+        p["amp"] = float(rng.uniform(0.05, 0.12))
+        p["period"] = float(rng.uniform(2.0, 4.0))
+        p["stop_for"] = float(rng.uniform(4.0, 8.0))
+        p["changes"] = np.cumsum(rng.uniform(0.5, 1.5, 64))
+        p["rand_k"] = rng.uniform(-0.12, 0.12, 64)
+        p["rand_a"] = rng.uniform(-3.0, 2.5, 64)
+    rows = []
+    collisions: list[tuple[int, str, str]] = []
+    hit: set = set()
+    crashed_at = None
+    end = n
+    for step in range(n):
+        t = step * dt
+        j, dev = tr.locate(x, y)
+        k_pp = _pure_pursuit(world, tr.lane, j, x, y, yaw, v)
+        v_des = _curve_speed(world, j, v_max)
+        lead_gap = _lead_gap(world, x, y, yaw, t)
+        if lead_gap is not None:
+            v_des = min(v_des, max(0.0, (lead_gap - 8.0) * 0.5))
+        k_cmd = k_pp
+        if driver == "explorer":
+            if pattern == "drift" and t >= p["t0"]:
+                k_cmd = p["bias"]
+            elif pattern == "swerve":
+                k_cmd = k_pp + p["amp"] * math.sin(2 * math.pi * t / p["period"])
+            elif pattern == "random":
+                idx = int(np.searchsorted(p["changes"], t))
+                k_cmd = float(p["rand_k"][idx])
+            elif pattern == "stop" and p["t0"] <= t < p["t0"] + p["stop_for"]:
+                v_des = 0.0
+            elif pattern == "speeding":
+                v_des = 2.0 * v_max
+        if crashed_at is not None:
+            v_des, k_cmd = 0.0, 0.0
+        if driver == "explorer" and pattern == "random" and crashed_at is None:
+            idx = int(np.searchsorted(p["changes"], t))
+            acc = float(p["rand_a"][idx]) if v > 0.5 or p["rand_a"][idx] > 0 else 0.0
+        else:
+            acc = float(np.clip(1.2 * (v_des - v), A_MIN, A_MAX))
+        if crashed_at is not None:
+            acc = 0.0
+            v = 0.0
+        k_cmd = float(np.clip(k_cmd, -K_MAX, K_MAX))
+        rows.append((t, x, y, yaw, v, k_cmd, acc, world.route.s[j], dev))
+        # collisions at the current pose
+        if crashed_at is None:
+            c = _collide(world, x, y, yaw, t, hit)
+            if c is not None:
+                collisions.append((step, *c))
+                crashed_at = step
+                end = min(n, step + int(round(2.0 * sim_hz)) + 1)
+        if step + 1 >= end:
+            break
+        x, y, yaw = _arc_step(x, y, yaw, v, k_cmd, dt)
+        v = max(0.0, v + acc * dt)
+    arr = np.array(rows)
+    poses = arr[:, 1:4]
+    acc = arr[:, 6]
+    return Trace(t_s=arr[:, 0], poses=poses, speed_mps=arr[:, 4], curvature=arr[:, 5], accel_mps2=acc,
+                 throttle=np.clip(acc / A_MAX, 0, 1), brake=np.clip(-acc / -A_MIN, 0, 1),
+                 route_s_m=arr[:, 7], lane_dev_m=arr[:, 8],
+                 road_dist_m=world.distance_to_roads(poses[:, :2]), collisions=collisions,
+                 driver=driver, pattern=pattern)
+
+
+def _lead_gap(world: World, x, y, yaw, t):
+    """Distance to the nearest car ahead in a narrow corridor, or None."""
+    if not world.cars:
+        return None
+    poses = world.car_poses(t)
+    dx, dy = poses[:, 0] - x, poses[:, 1] - y
+    fwd = dx * math.cos(yaw) + dy * math.sin(yaw)
+    lat = -dx * math.sin(yaw) + dy * math.cos(yaw)
+    ahead = (fwd > 0) & (fwd < 40) & (np.abs(lat) < 1.6)
+    return float(fwd[ahead].min()) if ahead.any() else None
+
+
+def _collide(world: World, x, y, yaw, t, hit: set):
+    """(category, message) of the first new collision at this pose, else None."""
+    ch, sh = math.cos(yaw), math.sin(yaw)
+    centres = np.array([[x + 1.2 * ch, y + 1.2 * sh], [x - 1.2 * ch, y - 1.2 * sh]])
+    p = world.props
+    if len(p.xy):
+        d = np.sqrt(((p.xy[None] - centres[:, None]) ** 2).sum(-1)).min(0)
+        close = np.flatnonzero(d < EGO_RADIUS_M + p.radius_m)
+        for i in close:
+            if ("prop", int(i)) not in hit:
+                hit.add(("prop", int(i)))
+                kind = ("static.vegetation", "static.vegetation", "static.prop.post")[int(p.kind[i])]
+                return "collisions_layout", _msg(kind, i, p.xy[i])
+    if world.cars:
+        poses = world.car_poses(t)
+        for j, (car, pose) in enumerate(zip(world.cars, poses)):
+            c2 = np.array([[pose[0] + 1.2 * math.cos(pose[2]), pose[1] + 1.2 * math.sin(pose[2])],
+                           [pose[0] - 1.2 * math.cos(pose[2]), pose[1] - 1.2 * math.sin(pose[2])]])
+            d = np.sqrt(((centres[:, None] - c2[None]) ** 2).sum(-1)).min()
+            if d < 2 * EGO_RADIUS_M and ("car", j) not in hit:
+                hit.add(("car", j))
+                return "collisions_vehicle", _msg("vehicle.synthetic.box", 1000 + j, pose[:2])
+    return None
+
+
+def _msg(type_id: str, ident, xy) -> str:
+    # the leaderboard's message format, in CARLA coordinates (y flipped)
+    return (f"Agent collided against object with type={type_id} and id={int(ident)} "
+            f"at (x={float(xy[0]):.3f}, y={-float(xy[1]):.3f}, z=0.0)")

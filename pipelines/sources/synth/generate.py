@@ -1,0 +1,230 @@
+"""``resim synth``: generate a synthetic driving dataset in the three real layouts (issue 3).
+
+Episode i (of N) gets its own ``numpy`` generator seeded with ``(seed, i)``, so a
+seed fixes every byte written. Episodes are split round-robin over the parts
+``opendv, navsim, carla``; OpenDV and NAVSIM episodes are expert drives, CARLA
+episodes alternate expert and hazardous explorer (``carla_hazard_fraction``).
+Each part is written in its real layout (see writers.py), and
+``ground_truth.json`` holds, per episode, the exact simulation-rate poses,
+heading and speed, the outcome, and how each reader's frame k maps to a
+simulation step (``reader_stride``: step = k * stride).
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from resim.config import ConfigError, from_dict, to_dict
+
+from .drivers import EXPLORER_PATTERNS, Trace, simulate
+from .render import Camera, Renderer
+from .score import Score, score_trace
+from .world import LANE_OFFSET_M, World, build_world
+from . import writers
+
+PARTS = ("opendv", "navsim", "carla")
+READER_FPS_HZ = {"opendv": 10.0, "navsim": 2.0, "carla": 10.0}
+TURN_LOOKAHEAD_M = 20.0
+
+
+@dataclass
+class SynthConfig:
+    height_px: int = 128
+    width_px: int = 224
+    hfov_deg: float = 80.0
+    episode_s: float = 16.0
+    sim_hz: float = 20.0              # simulation / ground-truth rate; multiple of 10
+    opendv_fps_hz: float = 20.0       # rate of the written OpenDV videos (the reader resamples to 10 Hz)
+    nominal_speed_mps: tuple[float, float] = (7.0, 10.0)
+    carla_hazard_fraction: float = 0.5
+    jpeg_quality: int = 90
+    navsim_split: str = "synth"
+
+    def __post_init__(self):
+        if self.height_px < 16 or self.width_px < 16:
+            raise ConfigError("height_px and width_px must be >= 16")
+        if self.sim_hz <= 0 or abs(self.sim_hz / 10 - round(self.sim_hz / 10)) > 1e-9:
+            raise ConfigError(f"sim_hz must be a multiple of 10, got {self.sim_hz}")
+        if self.opendv_fps_hz <= 0 or abs(self.sim_hz / self.opendv_fps_hz - round(self.sim_hz / self.opendv_fps_hz)) > 1e-9:
+            raise ConfigError("opendv_fps_hz must divide sim_hz")
+        if self.opendv_fps_hz < 10:
+            raise ConfigError("opendv_fps_hz must be >= 10 (the reader resamples to 10 Hz)")
+        if not 0 <= self.carla_hazard_fraction <= 1:
+            raise ConfigError("carla_hazard_fraction must be in [0, 1]")
+        if self.episode_s < 2:
+            raise ConfigError("episode_s must be >= 2")
+        if not 0 < self.nominal_speed_mps[0] <= self.nominal_speed_mps[1]:
+            raise ConfigError("nominal_speed_mps must be (low, high) with 0 < low <= high")
+
+
+SYNTH_PRESETS = {
+    "demo": {},
+    "tiny": {"height_px": 64, "width_px": 112, "episode_s": 8.0},
+}
+
+
+def preset(name: str, **overrides) -> SynthConfig:
+    if name not in SYNTH_PRESETS:
+        raise ConfigError(f"unknown synth preset {name!r}; known: {sorted(SYNTH_PRESETS)}")
+    return from_dict(SynthConfig, {**SYNTH_PRESETS[name], **overrides})
+
+
+@dataclass
+class EpisodePlan:
+    index: int
+    part: str
+    driver: str
+    pattern: str | None
+    name: str
+
+
+def plan_episodes(n: int, cfg: SynthConfig) -> list[EpisodePlan]:
+    plans, k_carla, k_expl = [], 0, 0
+    for i in range(n):
+        part = PARTS[i % 3]
+        driver, pattern = "expert", None
+        if part == "carla":
+            # explorer whenever the running hazard share would fall below the target
+            if math.floor((k_carla + 1) * cfg.carla_hazard_fraction) > math.floor(k_carla * cfg.carla_hazard_fraction):
+                driver, pattern = "explorer", EXPLORER_PATTERNS[k_expl % len(EXPLORER_PATTERNS)]
+                k_expl += 1
+            k_carla += 1
+        plans.append(EpisodePlan(i, part, driver, pattern, f"synth_{i:04d}"))
+    return plans
+
+
+def turn_labels(world: World, route_s: np.ndarray) -> list[str]:
+    """Per sample: 'left'/'right' while an intersection turn starts within TURN_LOOKAHEAD_M or is under way."""
+    out = []
+    for s in route_s:
+        lab = "straight"
+        for sg in world.segments:
+            if sg.kind == "turn" and sg.s_start - TURN_LOOKAHEAD_M <= s <= sg.s_start + sg.length_m:
+                lab = "left" if sg.curvature > 0 else "right"
+                break
+        out.append(lab)
+    return out
+
+
+def _simulate_episode(plan: EpisodePlan, seed: int, cfg: SynthConfig):
+    rng = np.random.default_rng([seed, plan.index])
+    v_nom = float(rng.uniform(*cfg.nominal_speed_mps))
+    world = build_world(rng, cfg.episode_s, v_nom, first_turn_sign=1 if plan.index % 2 == 0 else -1)
+    expert = simulate(world, cfg.episode_s, cfg.sim_hz, rng, "expert")
+    expert_progress = float(expert.route_s_m[-1] - expert.route_s_m[0])
+    trace, pattern = expert, None
+    if plan.driver == "explorer":
+        # an explorer that happened to drive cleanly is redrawn (patterns in turn), so hazard => penalty < 1
+        order = [plan.pattern] + [p for p in EXPLORER_PATTERNS if p != plan.pattern]
+        for pattern in order:
+            trace = simulate(world, cfg.episode_s, cfg.sim_hz, rng, "explorer", pattern)
+            if score_trace(trace, cfg.sim_hz, expert_progress).score_penalty < 1.0:
+                break
+    score = score_trace(trace, cfg.sim_hz, None if plan.driver == "expert" else expert_progress)
+    return rng, world, trace, pattern, score
+
+
+def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None = None,
+             overwrite: bool = False, progress: bool = True) -> dict:
+    """Write the dataset to ``out`` (atomically: built beside it, then renamed). Returns the summary."""
+    cfg = cfg or SynthConfig()
+    out = Path(out)
+    if episodes < 1:
+        raise ConfigError("episodes must be >= 1")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(f"{out} exists and is not empty (use --overwrite)")
+    tmp = out.with_name(out.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    cam = Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg)
+    K = cam.intrinsic()
+    plans = plan_episodes(episodes, cfg)
+    gt_eps, csv_rows, records = [], [], []
+    it = plans
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(plans, desc="synth episodes", unit="ep")
+    for plan in it:
+        rng, world, tr, pattern, score = _simulate_episode(plan, seed, cfg)
+        renderer = Renderer(world, cam, rng)
+        sim_hz = cfg.sim_hz
+        if plan.part == "opendv":
+            step = int(round(sim_hz / cfg.opendv_fps_hz))
+        else:
+            step = int(round(sim_hz / READER_FPS_HZ[plan.part]))
+        steps = list(range(0, len(tr.t_s), step))
+        frames = [renderer.render(tr.poses[s], tr.t_s[s]) for s in steps]
+        turns = turn_labels(world, tr.route_s_m[steps])
+        layout: dict = {}
+        if plan.part == "opendv":
+            rel = f"synth/{plan.name}.mp4"
+            writers.write_opendv_video(tmp / "opendv" / rel, frames, cfg.opendv_fps_hz)
+            csv_rows.append({"video_id": f"synth/{plan.name}", "start_discard_s": 0, "end_discard_s": 0,
+                             "notes": f"synthetic, seed {seed}, {world.appearance.name}"})
+            layout = {"reader": "opendv", "item_id": rel, "reader_stride": int(round(sim_hz / 10.0))}
+        elif plan.part == "navsim":
+            log = f"synth-s{seed}-{plan.name}"
+            writers.write_navsim_log(tmp / "navsim", cfg.navsim_split, log, tr, steps, frames, turns, K,
+                                     cfg.jpeg_quality)
+            layout = {"reader": "navsim", "item_id": log, "reader_stride": step}
+        else:
+            scen = "SynthExpert" if plan.driver == "expert" else f"SynthExplorer{pattern.capitalize()}"
+            wid = writers.WEATHERS[world.appearance.name][0]
+            route_num = 90000 + plan.index
+            folder = f"{scen}_Town90_Route{route_num}_Weather{wid}"
+            lane = world.lane_path()
+            targets = []
+            for s in steps:
+                j = min(len(lane) - 1, int(np.searchsorted(world.route.s, tr.route_s_m[s] + TURN_LOOKAHEAD_M)))
+                targets.append((float(lane[j, 0]), float(lane[j, 1])))
+            options = [t if t != "straight" else "lanefollow" for t in turns]
+            writers.write_carla_route(tmp / "carla" / folder, tr, steps, frames, options, targets,
+                                      world.appearance.name, K, cfg.jpeg_quality)
+            length = float(np.hypot(*np.diff(tr.poses[:, :2], axis=0).T).sum())
+            records.append(writers.route_record(route_num, folder, scen, wid, score, length, float(tr.t_s[-1])))
+            layout = {"reader": "carla", "item_id": folder, "reader_stride": step}
+        gt_eps.append(_gt_entry(plan, pattern, tr, score, layout, world, sim_hz))
+    if csv_rows:
+        writers.write_opendv_csv(tmp / "opendv" / "videos.csv", csv_rows)
+    if records:
+        (tmp / "carla").mkdir(exist_ok=True)
+        (tmp / "carla" / "simulation_results.json").write_text(
+            json.dumps(writers.results_json(records), indent=4), encoding="utf-8")
+    from .ground_truth import command_share
+
+    share = command_share(gt_eps)
+    gt = {"format": "resim-synth-ground-truth", "version": 1, "seed": seed, "episodes_requested": episodes,
+          "config": to_dict(cfg), "camera": {"intrinsic": K.tolist(), "height_m": 1.5, "forward_m": 1.0,
+                                             "hfov_deg": cfg.hfov_deg},
+          "command_share": share, "episodes": gt_eps}
+    (tmp / "ground_truth.json").write_text(json.dumps(gt), encoding="utf-8")
+    (tmp / "synth_config.json").write_text(json.dumps({"seed": seed, "episodes": episodes, **to_dict(cfg)},
+                                                      indent=2, sort_keys=True), encoding="utf-8")
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    summary = {"out": str(out), "episodes": episodes, "parts": {p: sum(e["layout"]["reader"] == p for e in gt_eps)
+                                                                 for p in PARTS},
+               "hazardous": sum(e["driver"] == "explorer" for e in gt_eps), "command_share": share}
+    return summary
+
+
+def _gt_entry(plan: EpisodePlan, pattern, tr: Trace, score: Score, layout: dict, world: World, sim_hz: float) -> dict:
+    return {
+        "episode": plan.name, "index": plan.index, "part": plan.part, "driver": plan.driver, "pattern": pattern,
+        "sim_hz": sim_hz, "num_steps": int(len(tr.t_s)), "layout": layout,
+        "appearance": world.appearance.name, "nominal_speed_mps": world.nominal_speed_mps,
+        "route_segments": [[sg.kind, round(sg.s_start, 3), round(sg.length_m, 3), sg.curvature] for sg in world.segments],
+        "t_s": tr.t_s.tolist(), "x_m": tr.poses[:, 0].tolist(), "y_m": tr.poses[:, 1].tolist(),
+        "yaw_rad": tr.poses[:, 2].tolist(), "speed_mps": tr.speed_mps.tolist(),
+        "outcome": {"hazard": plan.driver == "explorer", "infraction_score": score.score_penalty,
+                    "infractions": score.names(), "score_route": score.score_route,
+                    "score_composed": score.score_composed, "status": score.status},
+    }
