@@ -37,3 +37,30 @@ def test_collate_video_shapes(tiny_cfg, toy):
     assert b["infraction_score"].shape == (3,)
     with pytest.raises(ClipError, match="no stored features"):
         collate(toy[:1], tiny_cfg, use_features=True)
+
+
+def test_clips_from_episode_record():
+    from pipelines.sources.episode import Episode, Outcome, SourceError
+
+    from training.reward.data import clips_from_episode
+    from training.reward.toy import toy_episode_frames
+
+    frames = toy_episode_frames(0.3, 30, 16, 24, np.random.default_rng(0))
+
+    def loader(start, stop, size_hw):
+        for i in range(start, stop):
+            if i == 25 and bad:
+                raise SourceError("carla/r1", "frame 25: unreadable jpeg")
+            yield frames[i]
+
+    bad = False
+    ep = Episode(source="carla", item_id="carla/r1", fps_hz=10.0, num_frames=30, frame_size_hw=(16, 24),
+                 outcome=Outcome(hazard=True, infraction_score=0.3), _loader=loader)
+    clips = clips_from_episode(ep, clip_frames=12, stride_frames=8)
+    assert [c.key for c in clips] == ["carla/r1@0", "carla/r1@8", "carla/r1@16"]
+    assert all(c.infraction_score == 0.3 and c.hazard and c.item_id == "carla/r1" for c in clips)
+    np.testing.assert_array_equal(clips[1].frames, frames[8:20])
+    assert clips_from_episode(ep.replace(outcome=None), 12, 8) == []
+    bad = True
+    with pytest.raises(SourceError):
+        clips_from_episode(ep, 12, 8)

@@ -69,3 +69,16 @@ def test_loss_accepts_attribute_batches_and_checks_feature_id(tiny_cfg):
         m.loss(B(f, ["other-backbone|224px|T8s5"] * 2, torch.tensor([0.0, 1.0])))
     with pytest.raises(ValueError, match="no infraction_score"):
         m.loss({"video": torch.rand(1, 4, 3, 8, 8)})
+
+
+def test_loss_reads_the_common_stream_batch(tiny_cfg):
+    """training.data.Batch style: whole-clip uint8 frames + meta dicts; the model takes the last window."""
+    m = Video2Reward(tiny_cfg)
+    frames = torch.randint(0, 256, (2, 9, 3, 24, 24), dtype=torch.uint8)
+    meta = [{"infraction_score": 0.3, "dino_id": None}, {"infraction_score": 1.0, "dino_id": None}]
+    loss, logs = m.loss({"frames": frames, "meta": meta, "keys": ["a", "b"]})
+    with torch.no_grad():
+        pred = m(video=frames[:, [2, 4, 6, 8]].float() / 255)
+    assert float(loss) == pytest.approx(float(((pred - torch.tensor([0.3, 1.0])) ** 2).mean()), rel=1e-5)
+    with pytest.raises(ValueError, match="sample b has no infraction_score"):
+        m.loss({"frames": frames, "meta": [meta[0], {"infraction_score": None}], "keys": ["a", "b"]})

@@ -80,9 +80,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from training.reward.train import run_training
 
     cfg = _load_train_cfg(args)
-    clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
+    if bool(args.shards) == bool(args.carla):
+        print("resim reward-train: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
+        return 2
+    if args.shards:
+        clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
+    else:
+        clips = _carla_clips(args)
+    src = args.shards or args.carla
     if not clips:
-        print(f"resim reward-train: error: {args.shards} has no sample with an infraction score", file=sys.stderr)
+        print(f"resim reward-train: error: {src} has no clip with an infraction score", file=sys.stderr)
         return 1
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -96,6 +103,25 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"skipped clip {sk['key']}: {sk['reason']}", file=sys.stderr)
     print(f"checkpoint, predictions and plot in {out}")
     return 0
+
+
+def _carla_clips(args):
+    """Clips cut straight from CARLA-layout route folders (Bench2Drive / `resim synth` OUT/carla) through
+    pipelines.sources.carla.CarlaReader; routes the reader refuses are named and left out."""
+    from pipelines.sources.carla import CarlaConfig, CarlaReader
+    from pipelines.sources.episode import SourceError
+    from tqdm import tqdm
+
+    from training.reward.data import clips_from_episode
+
+    reader = CarlaReader(CarlaConfig(root=args.carla))
+    clips = []
+    for item in tqdm(reader.list_items(), desc="routes", unit="route", disable=args.no_progress):
+        try:
+            clips += clips_from_episode(reader.open(item), args.clip_frames, args.clip_stride_frames)
+        except SourceError as e:
+            print(f"skipped route {item}: {e}", file=sys.stderr)
+    return clips
 
 
 def _add_cfg_args(p):
@@ -124,7 +150,11 @@ def register(subparsers) -> None:
         description="Regression to each clip's infraction score (ReSim B.2: AdamW, lr 1e-3). Held-out split by "
         "episode (item_id). Uses stored dino.npy features when present and matching the backbone, else "
         "computes them once (frozen backbone). Writes checkpoint, config, held-out predictions and a plot.")
-    t.add_argument("--shards", required=True, help="shard dataset folder")
+    t.add_argument("--shards", default=None, help="shard dataset folder (labelled clips: infraction_score set)")
+    t.add_argument("--carla", default=None, help="or a CARLA-layout folder (Bench2Drive routes + results json, "
+                   "e.g. `resim synth` OUT/carla): clips are cut from each route, labelled with its infraction score")
+    t.add_argument("--clip-frames", type=int, default=40, help="with --carla: frames per clip (default 40 = 4 s)")
+    t.add_argument("--clip-stride-frames", type=int, default=20, help="with --carla: frames between clip starts")
     t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_cfg_args(t)

@@ -165,27 +165,51 @@ class Video2Reward(nn.Module):
         present, with ``dino_id`` equal to ``self.feature_id``), else ``video`` (B, T, 3, H, W) in [0, 1].
         Returns (loss, {"loss", "mae", "used_features"}).
         """
-        target = _field(batch, "infraction_score")
-        if target is None:
-            raise ValueError("batch has no infraction_score: Video2Reward trains only on clips with outcomes")
-        feats = _field(batch, "dino")
+        target, feats, ids, video = self._inputs(batch)
         if feats is not None:
-            ids = _field(batch, "dino_id")
-            ids = [ids] if isinstance(ids, str) else list(ids or [])
             bad = [i for i in ids if i != self.feature_id]
             if not ids or bad:
                 raise FeatureMismatchError(f"stored features {bad[:1] or 'without dino_id'} do not match this "
                                            f"model's {self.feature_id!r}: recompute them (resim reward-features)")
             pred = self(features=feats)
         else:
-            video = _field(batch, "video")
-            if video is None:
-                raise ValueError("batch has neither dino nor video")
             pred = self(video=video)
         target = torch.as_tensor(target, dtype=torch.float32, device=pred.device)
         loss = F.mse_loss(pred, target)
         mae = (pred.detach() - target).abs().mean()
         return loss, {"loss": float(loss.detach()), "mae": float(mae), "used_features": float(feats is not None)}
+
+    def _inputs(self, batch: Any):
+        """(target (B,), dino or None, dino ids, video or None) from a reward batch (``collate``: keys
+        infraction_score / dino / dino_id / video) or the common stream's ``training.data.Batch``
+        (``meta`` dicts carry infraction_score and dino_id; ``frames`` (B, T_clip, 3, H, W) uint8 is the
+        whole clip, of which the model takes its last window)."""
+        meta = _field(batch, "meta") or []
+        target = _field(batch, "infraction_score")
+        if target is None and meta:
+            vals = [m.get("infraction_score") for m in meta]
+            if any(v is None for v in vals):
+                key = (_field(batch, "keys") or ["?"] * len(vals))[vals.index(None)]
+                raise ValueError(f"sample {key} has no infraction_score: train Video2Reward on clips with outcomes "
+                                 "(filter the stream to labelled sources)")
+            target = vals
+        if target is None:
+            raise ValueError("batch has no infraction_score: Video2Reward trains only on clips with outcomes")
+        feats = _field(batch, "dino")
+        ids = _field(batch, "dino_id")
+        if ids is None and meta:
+            ids = [m.get("dino_id") for m in meta]
+        ids = [ids] if isinstance(ids, str) else [i for i in (ids or []) if i is not None]
+        video = _field(batch, "video")
+        if feats is None and video is None:
+            frames = _field(batch, "frames")
+            if frames is None:
+                raise ValueError("batch has neither dino, video nor frames")
+            w = self.cfg.window_frames
+            if frames.shape[1] < w:
+                raise ValueError(f"clips of {frames.shape[1]} frames are shorter than the model's window of {w}")
+            video = frames[:, frames.shape[1] - w::self.cfg.frame_step].float() / 255.0
+        return target, feats, ids, video
 
     def metadata(self) -> dict:
         """What a checkpoint / score output records about the model."""

@@ -101,7 +101,13 @@ def fit(model: Video2Reward, clips: Sequence[RewardClip], cfg: RewardTrainConfig
     model.eval()
     mpath = Path(run_dir) / "metrics.jsonl"
     history = [json.loads(line) for line in mpath.read_text().splitlines() if line.strip()] if mpath.is_file() else []
-    return {**summary, "steps": steps, "samples_per_s": cfg.epochs * len(data.clips) / dt, "history": history}
+    # steady-state throughput from the trainer's per-step timings (data + forward + backward + step),
+    # leaving out step 0 (warm-up) when there are more; wall time also counts set-up and checkpointing
+    rows = history[1:] if len(history) > 1 else history
+    t = sum(r["step_time_s"] for r in rows)
+    sps = sum(r["samples_per_s"] * r["step_time_s"] for r in rows) / t if t > 0 else float("nan")
+    return {**summary, "steps": steps, "samples_per_s": sps, "wall_samples_per_s": cfg.epochs * len(data.clips) / dt,
+            "history": history}
 
 
 @torch.no_grad()
