@@ -21,6 +21,7 @@ COMMANDS: list[str] = [
     "labeling.cli",
     "training.eval.cli",
     "pipelines.cli",
+    "resim.demo",
 ]
 
 EPILOG = """\

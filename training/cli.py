@@ -78,7 +78,7 @@ def register(subparsers) -> None:
     from training.presets import PRESETS
 
     p = subparsers.add_parser(
-        "train", help="train a model from shards (world model; launch on many GPUs)",
+        "train", help="train a model from shards (world model, Video2Reward; launch on many GPUs)",
         description="Train a model from shards on one CPU/GPU, or on many with `resim train launch`.",
         epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="train_command", metavar="SUBCOMMAND")
@@ -88,6 +88,9 @@ def register(subparsers) -> None:
                            epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
         add_train_arguments(s, list(table))
         s.set_defaults(func=_cmd_train, model_name=name)
+    from training.reward.cli import add_train_parser as add_reward_parser
+
+    add_reward_parser(sub)  # Video2Reward has its own data path (clips with infraction scores), see docs/reward.md
     from training.launch import add_launch_arguments
     lp = sub.add_parser(
         "launch", help="run `resim train ...` on N nodes x G processes with torchrun, print a SLURM script, or dry-run",

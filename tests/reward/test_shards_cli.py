@@ -67,7 +67,7 @@ def test_cli_features_train_score(dataset, tmp_path, capsys):
     feats = tmp_path / "feats"
     assert main(["reward-features", str(dataset), "--out", str(feats), *TINY_SETS]) == 0
     run = tmp_path / "run"
-    rc = main(["reward-train", "--shards", str(feats), "--out", str(run), "--set", "epochs=4",
+    rc = main(["train", "reward", "--shards", str(feats), "--out", str(run), "--set", "epochs=4",
                "--set", "batch_size_per_gpu=4", *TINY_SETS])
     assert rc == 0
     cap = capsys.readouterr()

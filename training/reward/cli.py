@@ -1,4 +1,4 @@
-"""`resim reward ...`, `resim reward-train ...`, `resim reward-features ...` (issue 8).
+"""`resim reward ...`, `resim train reward ...`, `resim reward-features ...` (issue 8).
 
 Light module: torch/transformers are imported inside the handlers.
 """
@@ -81,7 +81,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     cfg = _load_train_cfg(args)
     if bool(args.shards) == bool(args.carla):
-        print("resim reward-train: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
+        print("resim train reward: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
         return 2
     if args.shards:
         clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
@@ -89,7 +89,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         clips = _carla_clips(args)
     src = args.shards or args.carla
     if not clips:
-        print(f"resim reward-train: error: {src} has no clip with an infraction score", file=sys.stderr)
+        print(f"resim train reward: error: {src} has no clip with an infraction score", file=sys.stderr)
         return 1
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,25 +131,16 @@ def _add_cfg_args(p):
                    help="override a config value, e.g. --set model.image_size_px=224 --set epochs=5")
 
 
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "reward", help="score videos or shard samples with a trained Video2Reward model",
-        description="Predict the infraction score (1 = clean driving, lower = collisions / red lights / off-road / "
-        "too slow) of videos with a trained Video2Reward checkpoint. Each input is a video file (anything "
-        "OpenCV reads) or, with --shards, a shard sample key. Longer videos are scored by sliding windows "
-        "(averaged). A video shorter than the model's window, or with an unreadable frame, is an error.")
-    p.add_argument("inputs", nargs="+", metavar="VIDEO_OR_SHARD_KEY")
-    p.add_argument("--checkpoint", required=True, help="folder written by `resim reward-train`")
-    p.add_argument("--shards", default=None, help="shard dataset folder to look sample keys up in")
-    p.add_argument("--stride", type=int, default=None, help="frames between window starts (default: window span)")
-    p.add_argument("--json", action="store_true", help="print JSON (model metadata + one result per input)")
-    p.set_defaults(func=_cmd_score)
+TRAIN_DESCRIPTION = ("Train Video2Reward: regression to each clip's infraction score (ReSim B.2: AdamW, lr 1e-3). "
+                     "Held-out split by episode (item_id). Uses stored dino.npy features when present and matching "
+                     "the backbone, else computes them once (frozen backbone). Writes checkpoint, config, held-out "
+                     "predictions (MAE, Spearman, hazard AUC) and a predicted-vs-true plot.")
 
-    t = subparsers.add_parser(
-        "reward-train", help="train Video2Reward on the labelled clips of a shard dataset",
-        description="Regression to each clip's infraction score (ReSim B.2: AdamW, lr 1e-3). Held-out split by "
-        "episode (item_id). Uses stored dino.npy features when present and matching the backbone, else "
-        "computes them once (frozen backbone). Writes checkpoint, config, held-out predictions and a plot.")
+
+def add_train_parser(sub) -> None:
+    """`resim train reward ...` (registered by training/cli.py under `train`)."""
+    t = sub.add_parser("reward", help="train Video2Reward on the labelled clips of a shard dataset",
+                       description=TRAIN_DESCRIPTION)
     t.add_argument("--shards", default=None, help="shard dataset folder (labelled clips: infraction_score set)")
     t.add_argument("--carla", default=None, help="or a CARLA-layout folder (Bench2Drive routes + results json, "
                    "e.g. `resim synth` OUT/carla): clips are cut from each route, labelled with its infraction score")
@@ -159,6 +150,22 @@ def register(subparsers) -> None:
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_cfg_args(t)
     t.set_defaults(func=_cmd_train)
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "reward", help="score videos or shard samples with a trained Video2Reward model",
+        description="Predict the infraction score (1 = clean driving, lower = collisions / red lights / off-road / "
+        "too slow) of videos with a trained Video2Reward checkpoint. Each input is a video file (anything "
+        "OpenCV reads) or, with --shards, a shard sample key. Longer videos are scored by sliding windows "
+        "(averaged). A video shorter than the model's window, or with an unreadable frame, is an error.")
+    p.add_argument("inputs", nargs="+", metavar="VIDEO_OR_SHARD_KEY")
+    p.add_argument("--checkpoint", required=True, help="folder written by `resim train reward`")
+    p.add_argument("--shards", default=None, help="shard dataset folder to look sample keys up in")
+    p.add_argument("--stride", type=int, default=None, help="frames between window starts (default: window span)")
+    p.add_argument("--json", action="store_true", help="print JSON (model metadata + one result per input)")
+    p.set_defaults(func=_cmd_score)
+
 
     f = subparsers.add_parser(
         "reward-features", help="copy a shard dataset adding DINOv2 features (dino.npy) for Video2Reward",
