@@ -135,6 +135,9 @@ def main() -> int:
                                       "max": float(np.abs(true[test]).max())},
         "scale_fit": float(np.sum(est * true) / np.sum(true * true)),
         "flow_cpu_s": round(t_flow, 1),
+        "held_out_errors": [{"reader": r[1], "item": r[2], "start_frame": r[3], "true_deg": round(r[4], 2),
+                             "est_deg": round(r[5], 2), "quality": round(r[8], 3)}
+                            for r, rf, p, t in zip(rows, ref, pred, test) if t and rf != p],
     }
     for rule, idx in (("lateral_offset", 6), ("heading", 7)):
         pairs = [(p, r[idx]) for p, r in zip(pred, rows) if r[idx] is not None]
@@ -152,6 +155,9 @@ def main() -> int:
     for k in ("agreement_flow_vs_trajectory_lateral_offset", "agreement_flow_vs_trajectory_heading"):
         if k in out:
             print(f"{k}: {out[k]['agree']:.3f} of {out[k]['windows']} windows")
+    for e in out["held_out_errors"]:
+        print(f"  held-out error: {e['reader']} {e['item']} frame {e['start_frame']}: true {e['true_deg']:+.1f}, "
+              f"flow {e['est_deg']:+.1f} deg (quality {e['quality']:.2f})")
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(out, indent=2))
     return 0

@@ -27,6 +27,11 @@ class FlowConfig:
     hfov_deg: float = 80.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
     #                                  ~ with tan(hfov/2): reads tan(true/2)/tan(80/2) x the truth
     flow_preset: Literal["ultrafast", "fast", "medium"] = "ultrafast"   # cv2.DISOpticalFlow preset
+    dis_finest_scale: int | None = None   # overrides of the preset's DIS parameters (None = preset's)
+    dis_patch_size: int | None = None
+    dis_patch_stride: int | None = None
+    dis_grad_iters: int | None = None
+    dis_var_iters: int | None = None
     grid_step_px: int = 6            # flow is read on a grid with this spacing (working-resolution pixels)
     mask_top_frac: float = 0.0       # rows ignored at the top (overlays)
     mask_bottom_frac: float = 0.12   # rows ignored at the bottom (hood / dashboard)
@@ -38,8 +43,14 @@ class FlowConfig:
     max_photo_err: int = 24          # grey-level difference after following the flow (occlusion/bad flow)
     robust_scale_px: float = 0.3     # lower bound on the Cauchy scale of the IRLS fit (pixels of flow)
     irls_iters: int = 3
-    foe_iters: int = 1               # alternations between rotation fit and focus-of-expansion fit
-    foe_x_prior: float = 0.05        # relative weight pulling the FOE's x to its previous value (see flow.py)
+    foe_iters: int = 2               # extra Gauss-Newton steps of the joint rotation + per-pair FOE fit
+    foe_prior: float = 1e-4          # weight pulling each pair's FOE to the running FOE, per unit of fit
+    #                                  weight; ~ a radial expansion of 1 %/pair (a crawling car) (see flow.py)
+    foe_smooth: Literal["none", "time", "line"] = "time"
+    foe_smooth_pairs: float = 3.0
+    foe_yaw_k: float = 0.5
+    foe_line_prior: float = 1e-6
+    contrast: Literal["none", "equalize", "clahe"] = "none"
     chunk_pairs: int = 60            # the focus of expansion is re-estimated per chunk of this many pairs
 
     def __post_init__(self):
