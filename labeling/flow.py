@@ -168,7 +168,7 @@ class FlowLabeler:
         C = (-y, x)
         return A, B, C
 
-    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid, e_fixed=None):
+    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid):
         """Batched joint fit of (yaw, pitch, roll) and a focus of expansion *per pair*. Arrays (P, N).
 
         W0 = 0 where padded; e0 (2,) is the prior FOE (px from the image centre). The rotation-only
@@ -193,20 +193,19 @@ class FlowLabeler:
         A, B, C = self._rot_fields(X, Y, f)
         Ru = np.stack([A[0], B[0], C[0]], axis=-1)          # (P, N, 3)
         Rv = np.stack([A[1], B[1], C[1]], axis=-1)
-        free = e_fixed is None
-        e = np.broadcast_to(np.asarray(e0 if free else e_fixed, np.float64), (P, 2)).copy()
+        e = np.broadcast_to(np.asarray(e0, np.float64), (P, 2)).copy()
         theta = np.zeros((P, 3))
         reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2, 0.0, 0.0]) * f * f
         pad = np.where(np.arange(N) % 2 == 0, 0.0, np.inf)[None, :]
         lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
         w = W0
-        n_it = fc.irls_iters + (fc.foe_iters if free else 0)
+        n_it = fc.irls_iters + fc.foe_iters
         for it in range(n_it):
             dx, dy = X - e[:, :1], Y - e[:, 1:]
             r = np.maximum(np.hypot(dx, dy), 0.05 * f)
             Mrot = (Ru * dy[..., None] - Rv * dx[..., None]) / r[..., None]
             b = (U * dy - V * dx) / r
-            if it == 0 or not free:          # rotation only: no translation estimate to linearise the FOE around yet
+            if it == 0:          # rotation only: no translation estimate to linearise the FOE around yet
                 M = np.concatenate([Mrot, np.zeros((P, N, 2))], axis=-1)
             else:
                 Tu = U - (Ru @ theta[..., None])[..., 0]
@@ -224,7 +223,7 @@ class FlowLabeler:
             theta = sol[:, :3]
             info = H[:, 3, 3] - lam
             res = b - (M @ sol[..., None])[..., 0]
-            if it > 0 and free:
+            if it > 0:
                 e = np.clip(e + sol[:, 3:], -lim, lim)
             # median |res| over the valid points of each pair: padding alternates 0 and +inf, which
             # leaves the median in place (to within one pad) and keeps np.median's fast partition
@@ -233,8 +232,7 @@ class FlowLabeler:
             w = W0 / (1.0 + (res / (2.0 * scale)) ** 2)    # Cauchy
         few = valid.sum(1) < 8
         theta[few] = 0.0
-        if free:
-            e[few] = e0
+        e[few] = e0
         kept = (valid & (np.abs(res) < 3.0 * scale)).sum(1) / max(n_grid, 1)
         kept[few] = 0.0
         info = np.where(few, 0.0, info / np.maximum(w.sum(1), 1.0))
@@ -247,10 +245,6 @@ class FlowLabeler:
             k = len(d.x)
             X[i, :k], Y[i, :k], U[i, :k], V[i, :k], W0[i, :k] = d.x, d.y, d.u, d.v, d.w
         theta, e, kept, info = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
-        mode = self.flow_cfg.foe_smooth
-        if mode != "none":
-            e = _smooth_foe(e, info, theta[:, 0], np.asarray(e0), self.flow_cfg, f)
-            theta, _, kept, _ = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid, e_fixed=e)
         self._foes.append(e)
         # the next chunk's prior: the evidence-weighted median FOE of this one (the camera is fixed to the
         # car, so the FOE of straight driving is stable; turns shift it both ways and average out)
@@ -324,27 +318,6 @@ class FlowLabeler:
         cmd, conf = command_from_yaw(yaw, self.cfg.command)
         q = window_quality(quality)
         return FlowLabel(command=cmd, yaw_deg=yaw, confidence=conf * q, quality=q)
-
-
-def _smooth_foe(e, info, yaw, e0, fc, f):
-    """Per-pair FOE estimates (P, 2) are noisy (weakly separable from yaw pair by pair): pool them."""
-    P = len(e)
-    wt = info + fc.foe_prior
-    if fc.foe_smooth == "time":
-        t = np.arange(P)
-        K = np.exp(-0.5 * ((t[:, None] - t[None, :]) / fc.foe_smooth_pairs) ** 2) * wt[None, :]
-        prior = fc.foe_prior * K.sum(1, keepdims=True)
-        return (K @ e + prior * e0) / (K.sum(1, keepdims=True) + prior)
-    # "line": e_x = a + b * yaw (the FOE moves towards the turn in proportion to the yaw step), weighted
-    # least squares pooled over the chunk; b has a prior at -f * foe_yaw_k, a at the running FOE
-    out = e.copy()
-    G = np.stack([np.ones(P), yaw], 1)
-    sw = wt.sum()
-    H = (G * wt[:, None]).T @ G + np.diag([fc.foe_prior, fc.foe_line_prior * f * f]) * sw
-    c = np.linalg.solve(H, (G * wt[:, None]).T @ e[:, 0] + np.array([fc.foe_prior * e0[0], -fc.foe_line_prior * f * f * f * fc.foe_yaw_k]) * sw)
-    out[:, 0] = G @ c
-    out[:, 1] = (np.sum(wt * e[:, 1]) + fc.foe_prior * sw * e0[1]) / (sw * (1 + fc.foe_prior))
-    return out
 
 
 def _wmedian(x: np.ndarray, w: np.ndarray) -> float:
