@@ -64,6 +64,7 @@ def main() -> int:
     ap.add_argument("--data", help="an existing `resim synth` output folder")
     ap.add_argument("--episodes", type=int, default=48)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--preset", default="default", help="labeler preset (labeling.config.PRESETS)")
     ap.add_argument("--hfov-deg", type=float, default=None, help="labeler's assumed FOV (default: config's)")
     ap.add_argument("--ref-threshold-deg", type=float, default=15.0)
     ap.add_argument("--json-out", help="write the numbers here")
@@ -80,10 +81,15 @@ def main() -> int:
         print(f"synthetic world: {args.episodes} episodes, seed {args.seed}, {time.perf_counter() - t0:.0f} s")
     gt = GroundTruth.load(root)
     cam = gt.data.get("camera", {})
-    flow_cfg = FlowConfig() if args.hfov_deg is None else FlowConfig(hfov_deg=args.hfov_deg)
-    cfg = LabelerConfig(flow=flow_cfg)
+    from labeling.config import preset
+
+    cfg = preset(args.preset)
+    if args.hfov_deg is not None:
+        cfg = LabelerConfig(flow=dataclasses.replace(cfg.flow, hfov_deg=args.hfov_deg), command=cfg.command)
+    flow_cfg = cfg.flow
     print(f"labeler: hfov assumed {flow_cfg.hfov_deg:g} deg (synthetic camera: {cam}), "
-          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset}")
+          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset} (finest scale {flow_cfg.dis_finest_scale or 'preset'}), "
+          f"preset {args.preset!r}")
     rows = []   # (split, reader, item, start, true_deg, est_deg, traj_cmd_offset, traj_cmd_heading, quality)
     t_flow = 0.0
     for k, (name, item, ep) in enumerate(episodes(root)):

@@ -23,6 +23,8 @@ class FlowConfig:
     """Optical-flow yaw estimator (``labeling.flow.FlowLabeler``)."""
 
     sample_hz: float = 10.0          # frames are sampled at this rate before flow (ReSim: 10 Hz)
+    decoder: Literal["auto", "pyav", "opencv"] = "auto"   # video files (resim label): PyAV when installed
+    #                                  (luma plane, no deblocking, non-reference frames skipped; labeling/video.py)
     work_width_px: int = 256         # frames are resized to this width (display aspect kept) before flow
     hfov_deg: float = 80.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
     #                                  ~ with tan(hfov/2): reads tan(true/2)/tan(80/2) x the truth
@@ -73,7 +75,7 @@ class CommandConfig:
     """Heading change / trajectory -> command."""
 
     window_s: float = 4.0                  # future window a command describes (ReSim: 40 frames at 10 Hz)
-    turn_threshold_deg: float = 18.0       # calibrated (bench/calibrate_labeler.py, 24 synthetic episodes): |heading change| >= this over the window is a turn
+    turn_threshold_deg: float = 15.5       # calibrated (bench/calibrate_labeler.py, 48 synthetic episodes, seed 11): |heading change| >= this over the window is a turn
     confidence_scale_deg: float = 4.0      # distance from the threshold at which confidence reaches ~0.88
     # trajectory rule (common practice of nuScenes/NAVSIM planners: ST-P3, UniAD, VAD): the lateral
     # offset of the last waypoint in the ego frame; >= +2 m left, <= -2 m right. "heading" uses the
