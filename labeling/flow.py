@@ -4,14 +4,13 @@ ReSim pseudo-labels OpenDV's uncalibrated YouTube videos with "Turning left / Mo
 forward / Turning right" from OpenCV flow. This module estimates the per-frame-pair
 yaw rate robustly:
 
-1. Frames are resized to ``work_width_px`` (display aspect), greyscale, and DIS flow
-   (OpenCV, ``ultrafast`` by default) is read on a grid of points.
+1. Frames are resized to ``work_width_px`` (display aspect), greyscale, histogram-equalised,
+   and DIS flow (OpenCV ``ultrafast`` down to finest scale 1 by default) is read on a grid.
 2. Points are dropped where the image is flat (sky, plain asphalt: unreliable flow),
    in the masked bottom/top bands (hood, dashboard, overlays), and where nothing
    moves (burnt-in overlays, the hood).
-3. Pinhole model, principal point at the image centre, focal length from the
-   *assumed* horizontal field of view ``hfov_deg``. For small rotations the flow of
-   a static point p = (x, y) is
+3. Pinhole model, rotation fields about the image centre, focal length from the *assumed*
+   horizontal field of view ``hfov_deg``. For small rotations the flow of a static point p = (x, y) is
 
        flow = yaw * A(p) + pitch * B(p) + roll * C(p) + s_p * (p - e)
 
@@ -22,10 +21,10 @@ yaw rate robustly:
 
        cross(flow, p - e) = yaw * cross(A, p - e) + pitch * cross(B, p - e) + roll * cross(C, p - e)
 
-   so (yaw, pitch, roll) is a 3-parameter linear fit, solved by IRLS with Cauchy
-   weights (other vehicles, bad flow = outliers). Forward motion, however fast, does
-   not leak into yaw as long as e is right; e itself is fitted (linear, given the
-   rotations) jointly over a chunk of pairs, because the camera is fixed to the car.
+   Linearised in a shift of e, (yaw, pitch, roll, e_x, e_y) is fitted *per frame pair* by
+   Gauss-Newton with IRLS (Cauchy weights: other vehicles, bad flow). e must be free per pair:
+   in a turn the camera moves along the chord and, ahead of the rear axle, sideways, so the FOE
+   shifts towards the turn with the yaw rate; a fixed e reads that as 5-15 % extra yaw (issue 4).
    Yaw information comes from points above/below the FOE (road, trees, posts).
 4. Heading change over a window = sum of the per-pair yaw.
 
