@@ -64,6 +64,7 @@ def main() -> int:
     ap.add_argument("--data", help="an existing `resim synth` output folder")
     ap.add_argument("--episodes", type=int, default=48)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--preset", default="default", help="labeler preset (labeling.config.PRESETS)")
     ap.add_argument("--hfov-deg", type=float, default=None, help="labeler's assumed FOV (default: config's)")
     ap.add_argument("--ref-threshold-deg", type=float, default=15.0)
     ap.add_argument("--json-out", help="write the numbers here")
@@ -80,10 +81,15 @@ def main() -> int:
         print(f"synthetic world: {args.episodes} episodes, seed {args.seed}, {time.perf_counter() - t0:.0f} s")
     gt = GroundTruth.load(root)
     cam = gt.data.get("camera", {})
-    flow_cfg = FlowConfig() if args.hfov_deg is None else FlowConfig(hfov_deg=args.hfov_deg)
-    cfg = LabelerConfig(flow=flow_cfg)
+    from labeling.config import preset
+
+    cfg = preset(args.preset)
+    if args.hfov_deg is not None:
+        cfg = LabelerConfig(flow=dataclasses.replace(cfg.flow, hfov_deg=args.hfov_deg), command=cfg.command)
+    flow_cfg = cfg.flow
     print(f"labeler: hfov assumed {flow_cfg.hfov_deg:g} deg (synthetic camera: {cam}), "
-          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset}")
+          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset} (finest scale {flow_cfg.dis_finest_scale or 'preset'}), "
+          f"preset {args.preset!r}")
     rows = []   # (split, reader, item, start, true_deg, est_deg, traj_cmd_offset, traj_cmd_heading, quality)
     t_flow = 0.0
     for k, (name, item, ep) in enumerate(episodes(root)):
@@ -135,6 +141,9 @@ def main() -> int:
                                       "max": float(np.abs(true[test]).max())},
         "scale_fit": float(np.sum(est * true) / np.sum(true * true)),
         "flow_cpu_s": round(t_flow, 1),
+        "held_out_errors": [{"reader": r[1], "item": r[2], "start_frame": r[3], "true_deg": round(r[4], 2),
+                             "est_deg": round(r[5], 2), "quality": round(r[8], 3)}
+                            for r, rf, p, t in zip(rows, ref, pred, test) if t and rf != p],
     }
     for rule, idx in (("lateral_offset", 6), ("heading", 7)):
         pairs = [(p, r[idx]) for p, r in zip(pred, rows) if r[idx] is not None]
@@ -152,6 +161,9 @@ def main() -> int:
     for k in ("agreement_flow_vs_trajectory_lateral_offset", "agreement_flow_vs_trajectory_heading"):
         if k in out:
             print(f"{k}: {out[k]['agree']:.3f} of {out[k]['windows']} windows")
+    for e in out["held_out_errors"]:
+        print(f"  held-out error: {e['reader']} {e['item']} frame {e['start_frame']}: true {e['true_deg']:+.1f}, "
+              f"flow {e['est_deg']:+.1f} deg (quality {e['quality']:.2f})")
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(out, indent=2))
     return 0

@@ -4,14 +4,13 @@ ReSim pseudo-labels OpenDV's uncalibrated YouTube videos with "Turning left / Mo
 forward / Turning right" from OpenCV flow. This module estimates the per-frame-pair
 yaw rate robustly:
 
-1. Frames are resized to ``work_width_px`` (display aspect), greyscale, and DIS flow
-   (OpenCV, ``ultrafast`` by default) is read on a grid of points.
+1. Frames are resized to ``work_width_px`` (display aspect), greyscale, histogram-equalised,
+   and DIS flow (OpenCV ``ultrafast`` down to finest scale 1 by default) is read on a grid.
 2. Points are dropped where the image is flat (sky, plain asphalt: unreliable flow),
    in the masked bottom/top bands (hood, dashboard, overlays), and where nothing
    moves (burnt-in overlays, the hood).
-3. Pinhole model, principal point at the image centre, focal length from the
-   *assumed* horizontal field of view ``hfov_deg``. For small rotations the flow of
-   a static point p = (x, y) is
+3. Pinhole model, rotation fields about the image centre, focal length from the *assumed*
+   horizontal field of view ``hfov_deg``. For small rotations the flow of a static point p = (x, y) is
 
        flow = yaw * A(p) + pitch * B(p) + roll * C(p) + s_p * (p - e)
 
@@ -22,10 +21,10 @@ yaw rate robustly:
 
        cross(flow, p - e) = yaw * cross(A, p - e) + pitch * cross(B, p - e) + roll * cross(C, p - e)
 
-   so (yaw, pitch, roll) is a 3-parameter linear fit, solved by IRLS with Cauchy
-   weights (other vehicles, bad flow = outliers). Forward motion, however fast, does
-   not leak into yaw as long as e is right; e itself is fitted (linear, given the
-   rotations) jointly over a chunk of pairs, because the camera is fixed to the car.
+   Linearised in a shift of e, (yaw, pitch, roll, e_x, e_y) is fitted *per frame pair* by
+   Gauss-Newton with IRLS (Cauchy weights: other vehicles, bad flow). e must be free per pair:
+   in a turn the camera moves along the chord and, ahead of the rear axle, sideways, so the FOE
+   shifts towards the turn with the yaw rate; a fixed e reads that as 5-15 % extra yaw (issue 4).
    Yaw information comes from points above/below the FOE (road, trees, posts).
 4. Heading change over a window = sum of the per-pair yaw.
 
@@ -100,9 +99,22 @@ class FlowLabeler:
         fc = self.cfg.flow
         self.flow_cfg = fc
         self._dis = cv2.DISOpticalFlow_create(_PRESETS[fc.flow_preset])
+        if fc.dis_finest_scale is not None:
+            self._dis.setFinestScale(fc.dis_finest_scale)
+        if fc.dis_patch_size is not None:
+            self._dis.setPatchSize(fc.dis_patch_size)
+        if fc.dis_patch_stride is not None:
+            self._dis.setPatchStride(fc.dis_patch_stride)
+        if fc.dis_grad_iters is not None:
+            self._dis.setGradientDescentIterations(fc.dis_grad_iters)
+        if fc.dis_var_iters is not None:
+            self._dis.setVariationalRefinementIterations(fc.dis_var_iters)
+        self._clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4))
         self._grid_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.last_quality: np.ndarray | None = None   # per-pair share of points kept by the fit
         self.last_foe: tuple[float, float] | None = None
+        self.last_foe_per_pair: np.ndarray | None = None   # (N-1, 2) px from the image centre
+        self._foes: list[np.ndarray] = []
 
     # ---------------------------------------------------------------- per frame / per pair
     def focal_px(self, width_px: int) -> float:
@@ -155,27 +167,63 @@ class FlowLabeler:
         C = (-y, x)
         return A, B, C
 
-    def _fit_rotation(self, X, Y, U, V, W0, e, f, n_grid):
-        """Batched IRLS fit of (yaw, pitch, roll) in rad, FOE fixed. Arrays (P, N), W0 = 0 where padded.
+    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid):
+        """Batched joint fit of (yaw, pitch, roll) and a focus of expansion *per pair*. Arrays (P, N).
 
-        Returns theta (P, 3), weights (P, N), kept (P,) = share of the grid that the fit kept as inliers.
+        W0 = 0 where padded; e0 (2,) is the prior FOE (px from the image centre). The rotation-only
+        residual cross(flow - R theta, p - e) / |p - e| is zero for every static point (translation is
+        radial from e); linearised in the FOE shift de around the current (theta, e):
+
+            cross(flow, p - e) = theta . cross(R, p - e) + cross(T, de),   T = flow - R theta
+
+        a 5-parameter linear least-squares problem per pair, solved by Gauss-Newton + IRLS (Cauchy).
+        The FOE must be free per pair: a car turns on an arc, so between two frames the camera moves
+        along the chord (rotated by half the yaw step) and, with the camera ahead of the rear axle, also
+        sideways by (lever arm x yaw): the FOE shifts towards the turn by f (dt/2 + L/v) yaw_rate. A FOE
+        held fixed turns that shift into a yaw bias of (d/2 + L) / Z (5-15 % on the road, measured: issue 4).
+        Where the car barely moves (|T| small) the FOE columns vanish and the prior keeps e near e0.
+
+        Returns theta (P, 3) rad, foe (P, 2) px, kept (P,) share of the grid kept as inliers,
+        info (P,) weight of the FOE evidence (0 = none).
         """
         fc = self.flow_cfg
+        P, N = X.shape
         valid = W0 > 0
-        dx, dy = X - e[0], Y - e[1]
-        r = np.maximum(np.hypot(dx, dy), 0.05 * f)
         A, B, C = self._rot_fields(X, Y, f)
-        # cross(a, d) = a_u * d_y - a_v * d_x, divided by |p - e| -> flow perpendicular to the radial line (px)
-        M = np.stack([(F[0] * dy - F[1] * dx) / r for F in (A, B, C)], axis=-1)      # (P, N, 3)
-        b = (U * dy - V * dx) / r
-        reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2]) * f * f
-        pad = np.where(np.arange(X.shape[1]) % 2 == 0, 0.0, np.inf)[None, :]
+        Ru = np.stack([A[0], B[0], C[0]], axis=-1)          # (P, N, 3)
+        Rv = np.stack([A[1], B[1], C[1]], axis=-1)
+        e = np.broadcast_to(np.asarray(e0, np.float64), (P, 2)).copy()
+        theta = np.zeros((P, 3))
+        reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2, 0.0, 0.0]) * f * f
+        pad = np.where(np.arange(N) % 2 == 0, 0.0, np.inf)[None, :]
+        lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
         w = W0
-        for _ in range(fc.irls_iters):
-            MwT = (M * w[..., None]).transpose(0, 2, 1)                      # (P, 3, N)
-            H = MwT @ M + reg * np.maximum(w.sum(1), 1.0)[:, None, None]
-            theta = np.linalg.solve(H, MwT @ b[..., None])[..., 0]
-            res = b - (M @ theta[..., None])[..., 0]
+        n_it = fc.irls_iters + fc.foe_iters
+        for it in range(n_it):
+            dx, dy = X - e[:, :1], Y - e[:, 1:]
+            r = np.maximum(np.hypot(dx, dy), 0.05 * f)
+            Mrot = (Ru * dy[..., None] - Rv * dx[..., None]) / r[..., None]
+            b = (U * dy - V * dx) / r
+            if it == 0:          # rotation only: no translation estimate to linearise the FOE around yet
+                M = np.concatenate([Mrot, np.zeros((P, N, 2))], axis=-1)
+            else:
+                Tu = U - (Ru @ theta[..., None])[..., 0]
+                Tv = V - (Rv @ theta[..., None])[..., 0]
+                M = np.concatenate([Mrot, np.stack([-Tv / r, Tu / r], axis=-1)], axis=-1)
+            MwT = (M * w[..., None]).transpose(0, 2, 1)                          # (P, 5, N)
+            sw = np.maximum(w.sum(1), 1.0)[:, None, None]
+            lam = fc.foe_prior * sw[:, 0, 0]
+            H = MwT @ M + reg * sw
+            H[:, 3, 3] += lam + 1e-12
+            H[:, 4, 4] += lam + 1e-12
+            rhs = (MwT @ b[..., None])[..., 0]
+            rhs[:, 3:] += lam[:, None] * (np.asarray(e0) - e)
+            sol = np.linalg.solve(H, rhs[..., None])[..., 0]
+            theta = sol[:, :3]
+            info = H[:, 3, 3] - lam
+            res = b - (M @ sol[..., None])[..., 0]
+            if it > 0:
+                e = np.clip(e + sol[:, 3:], -lim, lim)
             # median |res| over the valid points of each pair: padding alternates 0 and +inf, which
             # leaves the median in place (to within one pad) and keeps np.median's fast partition
             med = np.median(np.where(valid, np.abs(res), pad), axis=1)
@@ -183,57 +231,26 @@ class FlowLabeler:
             w = W0 / (1.0 + (res / (2.0 * scale)) ** 2)    # Cauchy
         few = valid.sum(1) < 8
         theta[few] = 0.0
+        e[few] = e0
         kept = (valid & (np.abs(res) < 3.0 * scale)).sum(1) / max(n_grid, 1)
         kept[few] = 0.0
-        return theta, w, kept
-
-    def _fit_foe(self, X, Y, U, V, theta, w_rot, f, e0):
-        """Focus of expansion from the translational flow left after removing the rotations.
-
-        T = flow - R(p) is parallel to p - e: T_u (y - ey) - T_v (x - ex) = 0, linear in e.
-        Each row is divided by |T| (distance from e to the flow line, px); weak flow gets low weight.
-        All pairs of the chunk share e (the camera is fixed to the car).
-        """
-        A, B, C = self._rot_fields(X, Y, f)
-        th = theta[:, None, :]
-        tu = U - (th[..., 0] * A[0] + th[..., 1] * B[0] + th[..., 2] * C[0])
-        tv = V - (th[..., 0] * A[1] + th[..., 1] * B[1] + th[..., 2] * C[1])
-        n = np.hypot(tu, tv)
-        ok = (n > 0.3) & (w_rot > 0)
-        if ok.sum() < 16:
-            return e0
-        tu, tv, n, x, y = tu[ok], tv[ok], n[ok], X[ok], Y[ok]
-        M = np.stack([-tv / n, tu / n], axis=1)       # coefficients of (ex, ey)
-        b = (tu * y - tv * x) / n
-        w0 = w_rot[ok] * np.minimum(n / 2.0, 1.0)
-        # Pull towards the previous estimate (a stationary car says nothing about e). The pull is
-        # stronger on ex: on ground points a lateral FOE shift and yaw make the same flow (both
-        # horizontal and proportional to the row), so ex is only weakly identified within a chunk.
-        prior = np.diag([self.flow_cfg.foe_x_prior, 1e-3]) * max(w0.sum(), 1.0)
-        e = np.asarray(e0, dtype=np.float64)
-        w = w0
-        for _ in range(3):
-            H = (M * w[:, None]).T @ M + prior
-            e = np.linalg.solve(H, (M * w[:, None]).T @ b + prior @ np.asarray(e0))
-            res = b - M @ e
-            scale = max(1.4826 * np.median(np.abs(res)), 1.0)
-            w = w0 / (1.0 + (res / (2.0 * scale)) ** 2)
-        lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
-        return float(np.clip(e[0], -lim, lim)), float(np.clip(e[1], -lim, lim))
+        info = np.where(few, 0.0, info / np.maximum(w.sum(1), 1.0))
+        return theta, e, kept, info
 
     def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
-        fc = self.flow_cfg
         P, N = len(pairs), max(1, max(len(d.x) for d in pairs))
         X, Y, U, V, W0 = (np.zeros((P, N)) for _ in range(5))
         for i, d in enumerate(pairs):
             k = len(d.x)
             X[i, :k], Y[i, :k], U[i, :k], V[i, :k], W0[i, :k] = d.x, d.y, d.u, d.v, d.w
-        e = e0
-        for it in range(fc.foe_iters + 1):
-            theta, w, kept = self._fit_rotation(X, Y, U, V, W0, e, f, n_grid)
-            if it < fc.foe_iters:
-                e = self._fit_foe(X, Y, U, V, theta, w, f, e)
-        return theta[:, 0].copy(), kept, e
+        theta, e, kept, info = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
+        self._foes.append(e)
+        # the next chunk's prior: the evidence-weighted median FOE of this one (the camera is fixed to the
+        # car, so the FOE of straight driving is stable; turns shift it both ways and average out)
+        good = info > 1e-4
+        if good.sum() >= 3:
+            e0 = (_wmedian(e[good, 0], info[good]), _wmedian(e[good, 1], info[good]))
+        return theta[:, 0].copy(), kept, e0
 
     # ---------------------------------------------------------------- public API
     def yaw_rates_from_grey(self, greys: Iterable[np.ndarray], fps_hz: float) -> np.ndarray:
@@ -245,9 +262,14 @@ class FlowLabeler:
         quality: list[np.ndarray] = []
         chunk: list[_PairData] = []
         e = (0.0, 0.0)
+        self._foes = []
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:
+            if fc.contrast == "equalize":
+                g = cv2.equalizeHist(g)
+            elif fc.contrast == "clahe":
+                g = self._clahe.apply(g)
             if prev is not None and g.shape != prev.shape:
                 raise ValueError(f"frame size changed from {prev.shape} to {g.shape}")
             h, w = g.shape
@@ -268,6 +290,7 @@ class FlowLabeler:
             out.append(yaw)
             quality.append(kept)
         self.last_foe = e
+        self.last_foe_per_pair = np.concatenate(self._foes) if self._foes else np.zeros((0, 2))
         self.last_quality = np.concatenate(quality) if quality else np.zeros(0)
         if not out:
             return np.zeros(0)
@@ -294,6 +317,12 @@ class FlowLabeler:
         cmd, conf = command_from_yaw(yaw, self.cfg.command)
         q = window_quality(quality)
         return FlowLabel(command=cmd, yaw_deg=yaw, confidence=conf * q, quality=q)
+
+
+def _wmedian(x: np.ndarray, w: np.ndarray) -> float:
+    o = np.argsort(x)
+    c = np.cumsum(w[o])
+    return float(x[o][np.searchsorted(c, 0.5 * c[-1])])
 
 
 def window_quality(kept: np.ndarray | None) -> float:

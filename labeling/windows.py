@@ -57,7 +57,7 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     times: list[float] = []
 
     def greys():
-        for t, g in iter_grey_samples(path, fc.sample_hz, fc.work_width_px, info):
+        for t, g in iter_grey_samples(path, fc.sample_hz, fc.work_width_px, info, decoder=fc.decoder):
             times.append(t)
             yield g
 

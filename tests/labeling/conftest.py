@@ -18,8 +18,12 @@ REPO = Path(__file__).resolve().parents[2]
 
 def render_drive(num_frames: int, fps_hz: float, yaw_rate_deg_s: float, speed_mps: float = 10.0,
                  size_hw: tuple[int, int] = (144, 256), hfov_deg: float = 70.0, cam_height_m: float = 1.5,
-                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Frames (T, H, W, 3) uint8 RGB of a car driving at constant speed and yaw rate, and poses (T, 3)."""
+                 seed: int = 0, cam_forward_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Frames (T, H, W, 3) uint8 RGB of a car driving at constant speed and yaw rate, and poses (T, 3).
+
+    The car moves on arcs (chord along the mean heading); the camera sits ``cam_forward_m`` ahead of
+    the pose point (the rear axle), looking along the heading, so it also moves sideways in turns.
+    """
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -46,6 +50,7 @@ def render_drive(num_frames: int, fps_hz: float, yaw_rate_deg_s: float, speed_mp
     sky = np.linspace(200, 150, h)[:, None].repeat(w, 1)
     for i, (px, py, a) in enumerate(poses):
         fwd, left = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+        px, py = px + cam_forward_m * fwd[0], py + cam_forward_m * fwd[1]
         gx = px + t * (fwd[0] - X * left[0])        # world point of each ground pixel (right = -left)
         gy = py + t * (fwd[1] - X * left[1])
         img = cv2.remap(tex, (gx / texel_m).astype(np.float32), (gy / texel_m).astype(np.float32),

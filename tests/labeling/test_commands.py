@@ -85,7 +85,7 @@ def test_command_from_trajectory_rules():
 
 
 def test_config_validation_and_presets():
-    assert preset("accurate").flow.flow_preset == "fast"
+    assert preset("accurate").flow.flow_preset == "medium" and preset("accurate").flow.dis_finest_scale is None
     with pytest.raises(ConfigError, match="hfov_deg"):
         from_dict(LabelerConfig, {"flow": {"hfov_deg": 200}})
     with pytest.raises(ConfigError, match="flow.nope"):

@@ -22,11 +22,23 @@ def test_heading_change_matches_rendered_truth(render, yaw_rate_deg_s):
     assert rates.shape == (40,)
     est = rates.sum() / FPS
     true = np.degrees(poses[-1, 2] - poses[0, 2])
-    # tolerance: DIS "ultrafast" at 256 px on this crude renderer (aliased far ground, pixel-snapped
-    # posts) reads ~+6 % and +-1 deg on straight road; calibrated numbers are in docs/labeling.md
-    assert abs(est - true) <= max(1.5, 0.10 * abs(true)), (est, true)
+    # tolerance: DIS at 256 px on this crude renderer (aliased far ground, pixel-snapped posts) reads
+    # within ~3 % and +-1 deg on straight road; calibrated numbers are in docs/labeling.md
+    assert abs(est - true) <= max(1.0, 0.06 * abs(true)), (est, true)
     if yaw_rate_deg_s:  # every pair has the right sign (left +)
         assert (np.sign(rates) == np.sign(yaw_rate_deg_s)).mean() > 0.9
+
+
+def test_camera_ahead_of_the_rear_axle_does_not_inflate_yaw(render):
+    # In a turn the camera moves along the chord and, 2 m ahead of the rear axle, sideways: the focus
+    # of expansion shifts towards the turn with the yaw rate. A FOE held fixed (foe_iters=0: the
+    # first labeler) reads that shift as extra yaw (+(d/2 + L)/Z, > 10 % here); the per-pair FOE fit must not.
+    frames, poses = render(41, FPS, 15.0, speed_mps=8.0, seed=5, cam_forward_m=2.0)
+    true = np.degrees(poses[-1, 2] - poses[0, 2])
+    est = FlowLabeler(_cfg()).yaw_rates_deg(frames, FPS).sum() / FPS
+    fixed = FlowLabeler(_cfg(foe_iters=0)).yaw_rates_deg(frames, FPS).sum() / FPS
+    assert abs(est - true) <= 0.06 * abs(true), (est, true)
+    assert fixed - true > 0.10 * true, (fixed, true)
 
 
 def test_label_window_command_and_confidence(render):
@@ -63,3 +75,17 @@ def test_frame_size_change_is_an_error(render):
     small = frames[:, :100, :180]
     with pytest.raises(ValueError, match="frame size changed"):
         FlowLabeler(_cfg()).yaw_rates_deg([frames[0], small[1]], FPS)
+
+
+def test_dark_low_contrast_video_is_equalised(render):
+    # night: the synthetic world's night episodes lost track (quality ~0.01) before the working frame
+    # was histogram-equalised; here the rendered drive is dimmed to 1/12 of its contrast
+    frames, poses = render(31, FPS, 10.0, speed_mps=6.0, seed=6)
+    dark = (frames.astype(np.float32) / 12.0 + 4).astype(np.uint8)
+    true = np.degrees(poses[-1, 2])
+    lab = FlowLabeler(_cfg())
+    est = lab.yaw_rates_deg(dark, FPS).sum() / FPS
+    assert abs(est - true) <= 0.10 * abs(true), (est, true)
+    raw = FlowLabeler(_cfg(contrast="none"))
+    raw.yaw_rates_deg(dark, FPS)
+    assert np.median(lab.last_quality) > 3 * np.median(raw.last_quality)
