@@ -13,14 +13,14 @@ import sys
 
 # (module defining register(subparsers)); order = order in --help
 COMMANDS: list[str] = [
-    "shards.cli",
     "pipelines.sources.cli",
+    "labeling.cli",
+    "pipelines.cli",
+    "shards.cli",
     "training.cli",
     "training.reward.cli",
     "training.sampling.cli",
-    "labeling.cli",
     "training.eval.cli",
-    "pipelines.cli",
     "resim.demo",
 ]
 
@@ -30,8 +30,11 @@ typical flow:
   resim pipeline run configs/pipeline/synthetic.yaml --out out/shards
   resim shards stats out/shards                     # inspect what was written
   resim train world --preset tiny --shards out/shards --out runs/wm
-  resim sample --checkpoint runs/wm --history out/shards/KEY --out out/samples
-  resim demo                                        # all of the above, small, on a CPU
+  resim train reward --preset tiny --shards out/shards --out runs/reward
+  resim sample --checkpoint runs/wm --shards out/shards --history KEY --command "Turning left" --out out/samples
+  resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --out out/plan
+  resim eval quality --checkpoint runs/wm --shards out/shards --idm runs/idm --out out/eval
+  resim demo                                        # all of the above, small, on a CPU, with an HTML report
 
 Every subcommand has its own --help.
 """
