@@ -37,9 +37,8 @@ def test_lpips_layout_and_identity(net, trunk_params, tmp_path):
     torch.manual_seed(0)
     m = LPIPS(net)
     assert _count(m.features) == trunk_params  # torchvision vgg16 / alexnet `features`
-    for i in range(5):  # random non-negative heads, as trained LPIPS heads are
-        lin = getattr(m, f"lin{i}").model[1]
-        lin.weight.data = lin.weight.data.abs()
+    for i in range(5):  # placeholder heads are non-negative, as trained LPIPS heads are
+        assert (getattr(m, f"lin{i}").model[1].weight >= 0).all()
     x = torch.rand(2, 3, 64, 64)
     assert torch.allclose(m(x, x), torch.zeros(2))
     d = m(x, torch.rand(2, 3, 64, 64))

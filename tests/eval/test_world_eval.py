@@ -95,3 +95,15 @@ def test_quality_command(world, capsys):
     assert (out / "quality.png").stat().st_size > 1000
     # placeholder networks are refused unless asked for
     assert main(["eval", "quality", *_common(root, ds, out), "--metrics", "lpips", "--limit", "1"]) == 2
+
+
+def test_mixed_geometries_keep_the_most_common_one(capsys):
+    from training.eval.worldeval import EvalClip, _one_geometry
+
+    def clip(key, t_lat, hist, fps):
+        return EvalClip(key, key, np.zeros((t_lat, 4, 2, 2), np.float32), None, None, None, hist, fps, True)
+
+    clips = [clip("a", 13, 9, 10.0), clip("b", 3, 1, 2.0), clip("c", 13, 9, 10.0)]
+    kept = _one_geometry(clips)
+    assert [c.key for c in kept] == ["a", "c"]
+    assert "left out clips of other geometries: 1 x latent (3, 4, 2, 2) @ 2 Hz" in capsys.readouterr().err

@@ -72,6 +72,10 @@ class LPIPS(nn.Module):
         self.features = _vgg16_features() if net == "vgg" else _alexnet_features()
         for i, c in enumerate(_CHANNELS[net]):
             setattr(self, f"lin{i}", _Lin(c))
+            # trained LPIPS heads are non-negative (the lpips package clamps them), so a distance is >= 0;
+            # keep the random-init placeholder in that family too
+            lin = getattr(self, f"lin{i}").model[1]
+            lin.weight.data.abs_()
         self.weights_sha256 = "random-init"
         self.requires_grad_(False)
         self.eval()

@@ -63,7 +63,30 @@ def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = N
                             np.asarray(s["traj.npy"], np.float32) if "traj.npy" in s else None, m.get("command"),
                             int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder"))))
     out.sort(key=lambda c: c.key)
+    out = _one_geometry(out)
     return out[:limit] if limit else out
+
+
+def _one_geometry(clips: list[EvalClip]) -> list[EvalClip]:
+    """Keep the most common clip geometry (latent shape, history frames, fps).
+
+    A dataset can mix geometries (NAVSIM-style 2 Hz clips next to 10 Hz ones); one rollout batch and one
+    IDM window need one geometry, so the others are left out, and said so, rather than failing mid-run.
+    """
+    if not clips:
+        return clips
+    geo = lambda c: (tuple(c.latents.shape), c.num_history_frames, c.fps_hz)  # noqa: E731
+    counts: dict = {}
+    for c in clips:
+        counts[geo(c)] = counts.get(geo(c), 0) + 1
+    best = max(counts, key=lambda g: (counts[g], g[0][0]))
+    if len(counts) > 1:
+        import sys
+
+        others = ", ".join(f"{n} x latent {g[0]} @ {g[2]:g} Hz" for g, n in counts.items() if g != best)
+        print(f"[resim eval] evaluating the {counts[best]} clips of geometry latent {best[0]} @ {best[2]:g} Hz; "
+              f"left out clips of other geometries: {others}", file=sys.stderr)
+    return [c for c in clips if geo(c) == best]
 
 
 class WorldRollouts:
