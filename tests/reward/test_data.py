@@ -64,3 +64,21 @@ def test_clips_from_episode_record():
     bad = True
     with pytest.raises(SourceError):
         clips_from_episode(ep, 12, 8)
+
+
+def test_clips_from_short_episode_hold_last():
+    """An episode shorter than a clip (ended early after a crash) gives no clip, or one with its last frame held."""
+    from pipelines.sources.episode import Episode, Outcome
+
+    from training.reward.data import clips_from_episode
+    from training.reward.toy import toy_episode_frames
+
+    frames = toy_episode_frames(0.3, 9, 16, 24, np.random.default_rng(0))
+    ep = Episode(source="carla", item_id="carla/r2", fps_hz=10.0, num_frames=9, frame_size_hw=(16, 24),
+                 outcome=Outcome(hazard=True, infraction_score=0.6),
+                 _loader=lambda start, stop, size_hw: iter(frames[start:stop]))
+    assert clips_from_episode(ep, clip_frames=12, stride_frames=4) == []
+    (clip,) = clips_from_episode(ep, clip_frames=12, stride_frames=4, hold_last=True)
+    assert clip.key == "carla/r2@0+hold3" and clip.frames.shape[0] == 12
+    np.testing.assert_array_equal(clip.frames[:9], frames)
+    np.testing.assert_array_equal(clip.frames[9:], np.repeat(frames[-1:], 3, axis=0))

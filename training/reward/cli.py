@@ -115,17 +115,25 @@ def _carla_clips(args):
     from training.reward.data import clips_from_episode
 
     reader = CarlaReader(CarlaConfig(root=args.carla))
-    clips = []
+    clips, short = [], []
     for item in tqdm(reader.list_items(), desc="routes", unit="route", disable=args.no_progress):
         try:
-            clips += clips_from_episode(reader.open(item), args.clip_frames, args.clip_stride_frames)
+            got = clips_from_episode(reader.open(item), args.clip_frames, args.clip_stride_frames,
+                                     hold_last=args.hold_last)
         except SourceError as e:
             print(f"skipped route {item}: {e}", file=sys.stderr)
+            continue
+        if not got:
+            short.append(item)
+        clips += got
+    if short:  # named, not silently dropped: these are mostly early-crash hazards (the episode ends 2 s after)
+        print(f"{len(short)} routes are shorter than --clip-frames {args.clip_frames} and gave no clip "
+              f"(--hold-last keeps them): {', '.join(short)}", file=sys.stderr)
     return clips
 
 
 def _add_cfg_args(p):
-    p.add_argument("--preset", default="tiny", help="named preset: tiny (placeholder backbone, 56 px) or resim (224 px)")
+    p.add_argument("--preset", default="tiny", help="named preset: tiny (placeholder backbone, 56 px), synthetic (tiny, 8 frames every 11 = whole 8 s synth episode) or resim (224 px)")
     p.add_argument("--config", default=None, help="YAML RewardTrainConfig file applied over the preset")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a config value, e.g. --set model.image_size_px=224 --set epochs=5")
@@ -146,6 +154,8 @@ def add_train_parser(sub) -> None:
                    "e.g. `resim synth` OUT/carla): clips are cut from each route, labelled with its infraction score")
     t.add_argument("--clip-frames", type=int, default=40, help="with --carla: frames per clip (default 40 = 4 s)")
     t.add_argument("--clip-stride-frames", type=int, default=20, help="with --carla: frames between clip starts")
+    t.add_argument("--hold-last", action="store_true", help="with --carla: a route shorter than --clip-frames "
+                   "(episodes end early after a crash) gives one clip with its last frame held, instead of none")
     t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_cfg_args(t)

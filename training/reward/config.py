@@ -4,7 +4,7 @@
 (backbone, input size, which frames of a clip it sees, head size);
 ``RewardTrainConfig`` the optimisation (ReSim: AdamW, lr 1e-3, 20 epochs) and
 the held-out split. Presets: ``tiny`` (placeholder backbone, 56 px, CPU tests
-and demo) and ``resim`` (DINOv2 at 224x224 as in the paper).
+and demo), ``synthetic`` (tiny + whole-episode window for `resim synth` worlds) and ``resim`` (DINOv2 at 224x224 as in the paper).
 """
 from __future__ import annotations
 
@@ -94,4 +94,10 @@ PRESETS: dict[str, dict] = {
     "resim": {"model": {"image_size_px": 224, "backbone_dir": "models/dinov2-small", "head_dim": 256,
                         "num_heads": 8, "mlp_hidden_dim": 512, "num_frames": 8, "frame_step": 5},
               "batch_size_per_gpu": 32},
+    # The synthetic world's CARLA-layout episodes (8 s at 10 Hz, `resim synth --preset tiny`): one window
+    # spans 78 of the 80 frames, so the episode-level infraction (a late crash, a stop of >= 3 s) is in
+    # view (docs/reward.md, "what the frames show"); frozen random placeholder backbone, head only.
+    "synthetic": {"model": {"num_frames": 8, "frame_step": 11, "head_dim": 32, "num_heads": 2,
+                            "mlp_hidden_dim": 64, "dropout": 0.1},
+                  "epochs": 100},
 }

@@ -165,17 +165,28 @@ def clips_from_samples(samples: Iterable[dict]) -> Iterator[RewardClip]:
                          mp4=mp4)
 
 
-def clips_from_episode(ep: Any, clip_frames: int, stride_frames: int, size_hw: tuple[int, int] | None = None
-                       ) -> list[RewardClip]:
+def clips_from_episode(ep: Any, clip_frames: int, stride_frames: int, size_hw: tuple[int, int] | None = None,
+                       hold_last: bool = False) -> list[RewardClip]:
     """Cut one ``pipelines.sources`` Episode (with an ``outcome``) into clips of ``clip_frames`` frames
     every ``stride_frames``; every clip carries the episode's infraction score. Returns [] without outcome.
+
+    An episode shorter than ``clip_frames`` gives no clip, unless ``hold_last``: then its last frame is
+    repeated up to ``clip_frames`` (one clip). Why: the synthetic world (and CARLA after a
+    crash) ends an episode early when the ego has crashed and stopped for good; dropping those
+    episodes would remove exactly the early-crash hazards, and a held last frame is what the stopped
+    ego's camera would keep seeing. Such clips' keys end in ``+hold<N>`` (N = repeated frames).
     """
     if ep.outcome is None:
         return []
     frames = np.stack(list(ep.frames(0, None, size_hw=size_hw)))
+    suffix = ""
+    if hold_last and 0 < len(frames) < clip_frames:
+        n = clip_frames - len(frames)
+        frames = np.concatenate([frames, np.repeat(frames[-1:], n, axis=0)])
+        suffix = f"+hold{n}"
     out = []
     for s in range(0, len(frames) - clip_frames + 1, stride_frames):
-        out.append(RewardClip(key=f"{ep.item_id}@{s}", item_id=ep.item_id,
+        out.append(RewardClip(key=f"{ep.item_id}@{s}{suffix}", item_id=ep.item_id,
                               infraction_score=float(ep.outcome.infraction_score), hazard=bool(ep.outcome.hazard),
                               frames=frames[s:s + clip_frames]))
     return out
