@@ -65,6 +65,29 @@ def encode_mp4(frames: np.ndarray, fps_hz: float) -> bytes:
     return data
 
 
+def read_rgb_frames(path: str) -> tuple[bool, list[np.ndarray], int]:
+    """Read every frame of a video file with OpenCV, as RGB uint8 ``(H, W, 3)`` arrays.
+
+    Returns ``(opened, frames, expected_count)``; decoding stops at the first unreadable frame, and the
+    caller decides what a short read means (``expected_count`` is OpenCV's header count, 0 if unknown).
+    """
+    cv2 = _cv2()
+    cap = cv2.VideoCapture(str(path))
+    frames: list[np.ndarray] = []
+    try:
+        if not cap.isOpened():
+            return False, frames, 0
+        expected = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        while True:
+            ok, f = cap.read()
+            if not ok:
+                break
+            frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
+    finally:
+        cap.release()
+    return True, frames, expected
+
+
 def decode_mp4(data: bytes) -> np.ndarray:
     """Decode mp4 bytes into (T, H, W, 3) uint8 RGB frames."""
     if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) == 0:
@@ -74,18 +97,9 @@ def decode_mp4(data: bytes) -> np.ndarray:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(bytes(data))
-        cap = cv2.VideoCapture(path)
-        frames = []
-        try:
-            if not cap.isOpened():
-                raise VideoError("OpenCV cannot open the mp4 bytes (not a valid video)")
-            while True:
-                ok, f = cap.read()
-                if not ok:
-                    break
-                frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
-        finally:
-            cap.release()
+        opened, frames, _ = read_rgb_frames(path)
+        if not opened:
+            raise VideoError("OpenCV cannot open the mp4 bytes (not a valid video)")
     finally:
         os.remove(path)
     if not frames:

@@ -112,24 +112,14 @@ def score_videos(model: Video2Reward, videos, stride: int | None = None, batch_s
 
 def read_video_file(path: str | Path) -> np.ndarray:
     """Read a video file with OpenCV -> (T, H, W, 3) uint8 RGB; ScoreError on unreadable files/frames."""
-    import cv2
+    from shards.video import read_rgb_frames
 
     p = Path(path)
     if not p.is_file():
         raise ScoreError(f"{p}: no such video file")
-    cap = cv2.VideoCapture(str(p))
-    if not cap.isOpened():
+    opened, frames, expected = read_rgb_frames(str(p))
+    if not opened:
         raise ScoreError(f"{p}: OpenCV cannot open it as a video")
-    try:
-        expected = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        frames = []
-        while True:
-            ok, f = cap.read()
-            if not ok:
-                break
-            frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
-    finally:
-        cap.release()
     if not frames:
         raise ScoreError(f"{p}: no decodable frame")
     if expected > 0 and len(frames) < expected:
