@@ -7,7 +7,7 @@ import torch
 from resim.config import ConfigError
 from shards.testing import dummy_trajectory
 from training.eval.idm import InverseDynamicsModel, idm_preset
-from training.eval.idm_train import TrajClip, constant_velocity, split_by_episode, trajectory_errors
+from training.eval.idm_train import TrajClip, constant_velocity, load_idm, split_by_episode, trajectory_errors
 from training.eval.synthetic import SynthConfig, future_waypoints, make_clips
 
 
@@ -154,7 +154,7 @@ def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):
     final/) are the best epoch's, not the last one's."""
     from safetensors.torch import load_file
 
-    from training.eval.idm_train import IDMTrainConfig, fit, predict
+    from training.eval.idm_train import IDMTrainConfig, collate, fit, load_idm, predict
 
     clips = [{"item_id": c["item_id"], "frames": c["frames"], "traj": c["traj"]}
              for c in make_clips(SynthConfig(episodes=3, frames_per_episode=59, seed=4))]
@@ -172,3 +172,23 @@ def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):
     assert trajectory_errors(predict(m, tc[:2]), gt)["ade_m"] == pytest.approx(best["val_ade_m"], rel=1e-5)
     saved = load_file(str(tmp_path / "final" / "model.safetensors"))
     assert all(torch.equal(saved[k], v) for k, v in m.state_dict().items())
+    # the run stores the resolved config: it loads as the same network, with the best weights
+    loaded, _ = load_idm(tmp_path)
+    assert loaded.cfg == m.cfg
+    assert torch.allclose(loaded(collate(tc[:2], m.cfg)["video"]), m(collate(tc[:2], m.cfg)["video"]))
+
+
+def test_runs_written_before_the_odometry_head_still_load(tmp_path):
+    """Old runs stored {"preset": "tiny"} with query-head weights; "tiny" is an odometry IDM now."""
+    import yaml
+    from safetensors.torch import save_file
+
+    old = InverseDynamicsModel(idm_preset("tiny-queries"))
+    (tmp_path / "final").mkdir()
+    save_file({k: v.contiguous() for k, v in old.state_dict().items()}, str(tmp_path / "final/model.safetensors"))
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "idm", "model": {"preset": "tiny"}}))
+    loaded, _ = load_idm(tmp_path)
+    assert loaded.cfg.head == "queries"
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {}}))
+    with pytest.raises(ValueError, match="not an IDM run"):
+        load_idm(tmp_path)

@@ -202,7 +202,8 @@ def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False):
     from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
 
     return RunConfig(
-        model_name="idm", model={"preset": tcfg.preset, **to_dict(tcfg.overrides)},
+        # the resolved IDMConfig, not just the preset name: a run must load the same network after presets change
+        model_name="idm", model=to_dict(tcfg.model_cfg()),
         data=DataConfig(batch_size_per_gpu=tcfg.batch_size_per_gpu, load_frames=True, seed=tcfg.seed),
         optim=OptimConfig(lr=tcfg.lr, weight_decay=tcfg.weight_decay, warmup_steps=min(tcfg.warmup_steps, steps - 1),
                           schedule="cosine", min_lr_ratio=0.05, grad_clip_norm=1.0),
@@ -277,8 +278,13 @@ def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsM
     run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
     if run_cfg.get("model_name") != "idm":
         raise ValueError(f"{d}: model_name is {run_cfg.get('model_name')!r}, not an IDM run")
-    model = registry.build("idm", run_cfg.get("model") or {}, device="cpu")
-    model.load_state_dict(load_file(str(d / "model.safetensors")), strict=True)
+    state = load_file(str(d / "model.safetensors"))
+    mdict = dict(run_cfg.get("model") or {})
+    if "head" not in mdict:
+        # runs written before the odometry head store only {"preset": ...}; the presets' head changed since
+        mdict["head"] = "odometry" if any(k.startswith("odometry.") for k in state) else "queries"
+    model = registry.build("idm", mdict, device="cpu")
+    model.load_state_dict(state, strict=True)
     sha = hashlib.sha256((d / "model.safetensors").read_bytes()).hexdigest()
     return model.to(device).eval().requires_grad_(False), {"checkpoint": str(d), "weights_sha256": sha}
 
@@ -328,7 +334,8 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
         "protocol": {"dataset": str(root), "clips_train": len(train), "clips_heldout": len(held),
                      "episodes_train": len({c.item_id for c in train}),
                      "episodes_heldout": len({c.item_id for c in held}),
-                     "heldout_items": sorted({c.item_id for c in held}), "split": "by episode (item_id), seeded hash",
+                     "heldout_items": sorted({c.item_id for c in held}),
+                     "train_items": sorted({c.item_id for c in train}), "split": "by episode (item_id), seeded hash",
                      "split_seed": tcfg.split_seed, "min_heldout_episodes": tcfg.min_heldout_episodes,
                      "validation": validation, "clips_fit": len(fit_clips), "clips_validation": len(val),
                      "augmentation": f"left-right mirror with p={tcfg.hflip_prob} (y, yaw negated)",
