@@ -1,7 +1,9 @@
 """`resim demo`: the whole system, small, on a CPU, with no downloads.
 
 synthetic world → Ray pipeline → shards → tiny world model + tiny Video2Reward →
-rollouts under three commands → ranking of candidate trajectories → one HTML report.
+rollouts under three commands → ranking of candidate trajectories → evaluation (an inverse dynamics
+model trained on the demo's shards; controllability and video quality of the world model on the
+episodes the IDM held out) → one HTML report.
 
 Each step runs the same entry point a user would (``resim <command> ...``, in this
 process), writes into its own folder under ``--out`` and leaves a ``.done`` marker
@@ -38,18 +40,32 @@ class DemoConfig:
     ddim_steps: int = 20
     plan_candidates: tuple[str, ...] = ("keep_lane", "turn_left", "turn_right", "brake", "swerve")
     workers: int = 2
+    # evaluation (issue 10): the IDM trains on the shards' 10 Hz clips with trajectories (CARLA-layout
+    # episodes), holding out >= 2 whole episodes; `resim eval control|quality` roll the world model out on
+    # `eval_clips` of the held-out clips (spread over the held-out episodes) with `ddim_steps` steps
+    idm_epochs: int = 15
+    idm_heldout_episodes: int = 2
+    eval_clips: int = 6            # control: 2 rollouts + 2 VAE decodes per clip (~5 s per decode on 2 cores)
+    quality_clips: int = 6         # quality: 1 rollout + decode per clip
 
     def __post_init__(self):
-        if self.episodes < 3:
-            raise ConfigError("episodes must be >= 3 (one per layout)")
-        if min(self.world_steps, self.reward_epochs, self.ddim_steps) < 1:
-            raise ConfigError("world_steps, reward_epochs and ddim_steps must be >= 1")
+        if self.episodes < 9:
+            raise ConfigError("episodes must be >= 9 (a third per layout; the evaluation needs 3 CARLA-layout "
+                              "episodes with 10 Hz trajectories: one to train the IDM on, two held out)")
+        if min(self.world_steps, self.reward_epochs, self.ddim_steps, self.idm_epochs, self.quality_clips) < 1:
+            raise ConfigError("world_steps, reward_epochs, ddim_steps, idm_epochs and quality_clips must be >= 1")
+        if self.eval_clips < 2:
+            raise ConfigError("eval_clips must be >= 2 (control pairs clips of two episodes)")
+        if self.idm_heldout_episodes < 2:
+            raise ConfigError("idm_heldout_episodes must be >= 2 (non-expert trajectories come from another "
+                              "held-out episode)")
 
 
 PRESETS = {
     "default": {},
     "smoke": {"episodes": 9, "synth_preset": "tiny", "world_steps": 4, "reward_epochs": 1, "sample_seconds": 1.2,
-              "ddim_steps": 2, "plan_candidates": ["keep_lane", "turn_left"]},
+              "ddim_steps": 2, "plan_candidates": ["keep_lane", "turn_left"], "idm_epochs": 1, "eval_clips": 2,
+              "quality_clips": 1},
 }
 
 
@@ -128,6 +144,28 @@ def rollout_steps(cfg: DemoConfig, out: Path, key: str) -> list[Step]:
     return steps
 
 
+def eval_steps(cfg: DemoConfig, out: Path) -> list[Step]:
+    """IDM on the demo's shards, then Trajectory Difference and video quality of the world model on the
+    clips of the episodes the IDM held out (issue 10's done-when: on a tiny trained world model)."""
+    data, ev = out / "shards", out / "eval"
+    world = ["--checkpoint", str(out / "world_model"), "--shards", str(data), "--steps", str(cfg.ddim_steps),
+             "--seed", str(cfg.seed), "--heldout-from", str(ev / "idm"), "--batch-size", "4"]
+    return [
+        Step("eval: inverse dynamics model", ev / "idm",
+             ["eval", "idm", "--shards", str(data), "--out", str(ev / "idm"), "--preset", "tiny",
+              "--epochs", str(cfg.idm_epochs), "--batch-size", "8", "--seed", str(cfg.seed),
+              "--min-heldout-episodes", str(cfg.idm_heldout_episodes)]),
+        Step("eval: controllability", ev / "control",
+             ["eval", "control", *world, "--limit", str(cfg.eval_clips), "--idm", str(ev / "idm"),
+              "--out", str(ev / "control")]),
+        # PSNR/SSIM only: FID/FVD/LPIPS need the standard network weights (docs/eval.md), which the demo does
+        # not download; random-init networks would give numbers that compare with nothing
+        Step("eval: video quality", ev / "quality",
+             ["eval", "quality", *world, "--limit", str(cfg.quality_clips), "--metrics", "psnr", "ssim",
+              "--out", str(ev / "quality")]),
+    ]
+
+
 def _img(path: Path, root: Path, caption: str) -> str:
     if not path.is_file():
         return f"<p><em>missing: {html.escape(str(path.relative_to(root)))}</em></p>"
@@ -153,6 +191,67 @@ def _reward_metrics(path: Path) -> str:
             for k in ("n", "n_hazard", "mae", "spearman", "hazard_auc")) + "</tr>")
     return ("<table><tr><th>split</th><th>clips</th><th>hazardous</th><th>MAE</th><th>Spearman</th><th>AUC</th></tr>"
             + "".join(rows) + "</table><p>(nan: the split has one class only or too few clips)</p>")
+
+
+def _f(v, fmt: str = ".3f") -> str:
+    return format(v, fmt) if isinstance(v, (int, float)) else html.escape(str(v))
+
+
+def _eval_section(out: Path) -> list[str]:
+    """Section 6: the IDM's held-out ADE/FDE vs constant velocity, Trajectory Difference, PSNR/SSIM per horizon."""
+    ev = out / "eval"
+    parts = ["<h2>6. Evaluation (issue 10)</h2>",
+             "<p>An inverse dynamics model (IDM: video → 8 waypoints) is trained on the shards' 10 Hz clips with "
+             "trajectories, split <b>by episode</b>; the world-model evaluations run on clips of the episodes the "
+             "IDM held out. The demo's world model trained on <em>every</em> clip, so these are not held out from "
+             "it; and with a random-init VAE and minutes of training, the numbers test the machinery. They are "
+             "what they are.</p>"]
+    idm_p = ev / "idm" / "idm_report.json"
+    if idm_p.is_file():
+        r = json.loads(idm_p.read_text())
+        pro = r["protocol"]
+        parts.append(f"<h3>IDM</h3><p>{pro['clips_train']} training clips ({pro['episodes_train']} episodes), "
+                     f"{pro['clips_heldout']} held-out clips ({pro['episodes_heldout']} episodes: "
+                     f"{html.escape(', '.join(pro['heldout_items']))}); validation: {html.escape(pro['validation'])}."
+                     "</p><table><tr><th>held-out</th><th>ADE (m)</th><th>FDE (m)</th><th>yaw err (deg)</th>"
+                     "<th>clips</th></tr>")
+        parts += [f"<tr><td>{html.escape(k)}</td><td>{_f(v['ade_m'])}</td><td>{_f(v['fde_m'])}</td>"
+                  f"<td>{_f(v['yaw_err_deg'], '.2f')}</td><td>{v['n']}</td></tr>" for k, v in r["heldout"].items()]
+        parts += ["</table>", _img(ev / "idm" / "idm_report.png", out, "IDM vs constant velocity, held-out")]
+    ctl_p = ev / "control" / "control.json"
+    if ctl_p.is_file():
+        r = json.loads(ctl_p.read_text())
+        parts.append(f"<h3>Controllability: Trajectory Difference</h3><p>{r['protocol']['clips']} held-out clips "
+                     f"of {r['protocol']['episodes']} episodes, each rolled out under its recorded trajectory "
+                     "(expert) and another episode's (non-expert); the IDM reads the trajectory off the generated "
+                     "video. <code>idm_on_recorded_video</code> (the IDM on the real frames) is the floor.</p>"
+                     "<table><tr><th></th><th>L2 mean (m)</th><th>L2 at 4 s (m)</th><th>clips</th></tr>")
+        parts += [f"<tr><td>{k}</td><td>{_f(r[k]['trajectory_difference_m'])}</td>"
+                  f"<td>{_f(r[k]['trajectory_difference_final_m'])}</td><td>{r[k]['n']}</td></tr>"
+                  for k in ("expert", "non_expert", "idm_on_recorded_video")]
+        ca = r["command_accuracy"]
+        acc = (html.escape(ca) if isinstance(ca, str) else ", ".join(
+            f"{html.escape(k)}: {_f(v['accuracy'], '.2f')} (n={v['n']})" for k, v in ca.items()))
+        parts += ["</table>", f"<p>Command accuracy (optical-flow labeler on the generated future): {acc}</p>",
+                  _img(ev / "control" / "control.png", out, "Trajectory Difference")]
+    q_p = ev / "quality" / "quality.json"
+    if q_p.is_file():
+        r = json.loads(q_p.read_text())
+        pro = r["protocol"]
+        parts.append(f"<h3>Video quality</h3><p>{pro['clips']} held-out clips, {pro['conditioning_frames_excluded']} "
+                     f"history frames excluded, {pro['future_frames_scored']} future frames scored at "
+                     f"{pro['metric_resolution_hw']} ({html.escape(str(pro.get('generated_resize')))}). PSNR and "
+                     "SSIM only: FID, FVD and LPIPS need the standard network weights (docs/eval.md), which the "
+                     "demo does not download.</p><table><tr><th>horizon</th><th>frames/clip</th><th>PSNR (dB)</th>"
+                     "<th>SSIM</th></tr>")
+        parts += [f"<tr><td>{row['from_s']:g}–{row['horizon_s']:g} s</td><td>{row['frames_per_clip']}</td>"
+                  f"<td>{_f(row.get('psnr'), '.2f')}</td><td>{_f(row.get('ssim'))}</td></tr>"
+                  for row in r["per_horizon"]]
+        parts += ["</table>", _img(ev / "quality" / "quality.png", out, "PSNR / SSIM vs prediction horizon")]
+    parts.append("<p>Full reports: " + ", ".join(
+        f'<a href="{html.escape(str(p.relative_to(out)))}">{html.escape(str(p.relative_to(out)))}</a>'
+        for p in (idm_p, ctl_p, q_p) if p.is_file()) + "</p>")
+    return parts
 
 
 def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str) -> Path:
@@ -197,6 +296,7 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
         parts += [f"<tr><td>{r['rank']}</td><td>{html.escape(r['name'])}</td><td>{html.escape(str(r['command']))}</td>"
                   f"<td>{r['reward']:.4f}</td></tr>" for r in rows]
         parts.append("</table>")
+    parts += _eval_section(out)
     parts.append(f"<h2>Config</h2><pre>{html.escape(json.dumps(to_dict(cfg), indent=2))}</pre>")
     path = out / "report.html"
     path.write_text("\n".join(parts))
@@ -222,11 +322,14 @@ def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False) -> Path:
         timings[step.name] = step.run()
         print(f"[demo {i}/{n}] {step.name}: done in {timings[step.name]:.1f} s", flush=True)
 
-    n = len(steps) + 4
+    evals = eval_steps(cfg, out)
+    n = len(steps) + 4 + len(evals)
     for i, step in enumerate(steps, 1):
         go(step, i, n)
     key = pick_history_key(out / "shards")
     for i, step in enumerate(rollout_steps(cfg, out, key), len(steps) + 1):
+        go(step, i, n)
+    for i, step in enumerate(evals, len(steps) + 5):
         go(step, i, n)
     report = write_report(out, cfg, timings, key)
     print(f"[demo] finished in {time.perf_counter() - t_all:.1f} s (steps reused count their first run)")

@@ -1,5 +1,7 @@
 """The README's main command, scaled down: every step runs for real (Ray pipeline, training,
-rollouts, planning) with the smoke preset, and the report links only files that exist."""
+rollouts, planning, evaluation) with the smoke preset, and the report links only files that exist."""
+import json
+import math
 import re
 import subprocess
 import sys
@@ -25,7 +27,50 @@ def test_smoke_demo_writes_report_and_reuses_steps(tmp_path):
     assert "missing:" not in page
     ranking = list(out.glob("plan/*.json"))
     assert ranking, "planning wrote no ranking"
+    _check_evaluation(out, page)
     # a second run reuses every finished step
     second = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("reusing") >= 6
+    assert second.stdout.count("reusing") >= 11
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def _check_evaluation(out: Path, page: str) -> None:
+    """Issue 10's done-when on the demo's trained world model: the IDM, `resim eval control` and `resim eval
+    quality` wrote JSON + PNG with real numbers, on clips of the episodes the IDM held out."""
+    ev = out / "eval"
+    for png in ("idm/idm_report.png", "control/control.png", "quality/quality.png"):
+        assert (ev / png).stat().st_size > 1000, png
+        assert f'src="eval/{png}"' in page, png
+    idm = json.loads((ev / "idm/idm_report.json").read_text())
+    held = set(idm["protocol"]["heldout_items"])
+    assert idm["protocol"]["episodes_heldout"] >= 2 and idm["protocol"]["episodes_train"] >= 1
+    assert held and not held & set(idm["protocol"]["train_items"])
+    for k in ("idm", "constant_velocity"):
+        assert _finite(idm["heldout"][k]["ade_m"]) and _finite(idm["heldout"][k]["fde_m"])
+        assert idm["heldout"][k]["n"] == idm["protocol"]["clips_heldout"] >= 2
+
+    ctl = json.loads((ev / "control/control.json").read_text())
+    assert ctl["protocol"]["clips"] == 2 and ctl["protocol"]["episodes"] == 2
+    assert ctl["protocol"]["heldout_from"].endswith("eval/idm")
+    for k in ("expert", "non_expert", "idm_on_recorded_video"):
+        assert _finite(ctl[k]["trajectory_difference_m"]) and _finite(ctl[k]["trajectory_difference_final_m"])
+        assert ctl[k]["n"] == 2
+    assert _finite(ctl["non_expert_vs_recorded_trajectory_m"]) and ctl["non_expert_vs_recorded_trajectory_m"] > 0
+    assert all(p["clip"] != p["non_expert_from"] for p in ctl["pairs"])
+    ca = ctl["command_accuracy"]
+    assert isinstance(ca, str) or all(v["n"] == 2 and 0 <= v["accuracy"] <= 1 for v in ca.values())
+    wm = ctl["protocol"]["world_model"]
+    assert wm["checkpoint"].startswith(str(out / "world_model")) and wm["rollout"]["num_steps"] == 2
+
+    q = json.loads((ev / "quality/quality.json").read_text())
+    assert q["protocol"]["clips"] == 1 and q["protocol"]["conditioning_frames_excluded"] == 9
+    assert q["protocol"]["world_model"]["vae_placeholder"] is True
+    assert [r["horizon_s"] for r in q["per_horizon"]] == [1.0, 2.0, 4.0]
+    for r in q["per_horizon"]:
+        assert _finite(r["psnr"]) and 0 < r["psnr"] < 100 and _finite(r["ssim"]) and -1 <= r["ssim"] <= 1
+    assert set(q["overall"]) >= {"psnr", "ssim"} and "fid" not in q["overall"]
+    assert "Trajectory Difference" in page and "PSNR" in page

@@ -7,7 +7,7 @@ import torch
 from resim.config import ConfigError
 from shards.testing import dummy_trajectory
 from training.eval.idm import InverseDynamicsModel, idm_preset
-from training.eval.idm_train import TrajClip, constant_velocity, split_by_episode, trajectory_errors
+from training.eval.idm_train import TrajClip, constant_velocity, load_idm, split_by_episode, trajectory_errors
 from training.eval.synthetic import SynthConfig, future_waypoints, make_clips
 
 
@@ -87,3 +87,108 @@ def test_synthetic_clips_render_and_move():
     assert c["frames"].shape == (49, 32, 48, 3) and c["frames"].dtype == np.uint8
     assert np.abs(c["frames"][1:].astype(int) - c["frames"][:-1]).mean() > 1.0   # the camera moves
     assert c["traj"].shape == (8, 3) and c["traj"][-1, 0] > 4 * 2.0             # >= 2 m/s forward
+
+
+def test_odometry_head_integrates_constant_curvature_exactly():
+    """SE(2) composition of equal chord steps reproduces the circular arc (closed form), and the waypoints are
+    read at their window positions (2.5 window frames per 0.5 s at frame_step 2)."""
+    from training.eval.idm import OdometryHead
+
+    cfg = idm_preset("tiny")
+    assert cfg.head == "odometry" and cfg.waypoint_positions() == [2.5 * k for k in range(1, 9)]
+    v, rate, dt = 8.0, np.deg2rad(6.0), 0.2
+    r, dth = v / rate, rate * dt
+    chord = 2 * r * np.sin(dth / 2)
+    steps = torch.tensor([[chord * np.cos(dth / 2), chord * np.sin(dth / 2), dth]] * 20, dtype=torch.float64)[None]
+    poses = OdometryHead.integrate(steps)[0].numpy()
+    t = np.arange(21) * dt
+    exact = np.stack([r * np.sin(rate * t), r * (1 - np.cos(rate * t)), rate * t], -1)
+    assert np.abs(poses - exact).max() < 1e-9
+    # read-out: a model whose per-step motions are forced to those chords gives the arc at 0.5 s steps
+    head = OdometryHead(cfg, 48).double()
+    head.steps = lambda tokens: steps.expand(tokens.shape[0], -1, -1)
+    wp = head(torch.zeros(1, 21 * 4, 48, dtype=torch.float64))[0].numpy()
+    tw = 0.5 * np.arange(1, 9)
+    arc = np.stack([r * np.sin(rate * tw), r * (1 - np.cos(rate * tw)), rate * tw], -1)
+    assert np.abs(wp - arc).max() < 0.01          # linear interpolation between window frames 0.2 s apart
+
+
+def test_odometry_head_needs_the_future_window_and_trains():
+    with pytest.raises(ConfigError, match="odometry"):
+        idm_preset("tiny-history", head="odometry")
+    torch.manual_seed(0)
+    m = InverseDynamicsModel(idm_preset("tiny"))
+    video = torch.rand(2, 21, 3, 32, 48)
+    traj = torch.from_numpy(np.stack([dummy_trajectory(20.0), dummy_trajectory(-5.0)]))
+    loss, logs = m.loss({"video": video, "trajectory": traj})
+    loss.backward()
+    assert all(p.grad is not None for p in m.parameters())
+    assert m(video).shape == (2, 8, 3)
+
+
+def test_mirror_augmentation_flips_frames_and_negates_y_and_yaw():
+    from training.eval.idm_train import collate
+
+    cfg = idm_preset("tiny")
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (49, 32, 48, 3), dtype=np.uint8)
+    traj = dummy_trajectory(20.0)
+    clip = TrajClip("k", "ep", frames, traj, 9, 10.0)
+    b = collate([clip, clip], cfg, flip=[False, True])
+    assert torch.equal(b["video"][1], b["video"][0].flip(-1))
+    assert torch.allclose(b["trajectory"][1], torch.from_numpy(traj * np.array([1, -1, -1], np.float32)))
+    assert torch.equal(b["trajectory"][0], torch.from_numpy(traj))
+
+
+def test_split_guarantees_a_minimum_of_heldout_episodes():
+    clips = [TrajClip(f"k{i}", f"ep{i % 4}", np.zeros((3, 4, 4, 3), np.uint8), np.zeros((8, 3), np.float32), 1, 10.0)
+             for i in range(12)]
+    assert len({c.item_id for c in split_by_episode(clips, 0.25)[1]}) == 1
+    train, held = split_by_episode(clips, 0.25, min_heldout=2)
+    assert len({c.item_id for c in held}) == 2 and len({c.item_id for c in train}) == 2
+    assert len({c.item_id for c in split_by_episode(clips, 0.25, min_heldout=9)[0]}) == 1  # one always trains
+
+
+def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):
+    """fit() with validation clips: the record lists every epoch and the weights left in the model (and in
+    final/) are the best epoch's, not the last one's."""
+    from safetensors.torch import load_file
+
+    from training.eval.idm_train import IDMTrainConfig, collate, fit, load_idm, predict
+
+    clips = [{"item_id": c["item_id"], "frames": c["frames"], "traj": c["traj"]}
+             for c in make_clips(SynthConfig(episodes=3, frames_per_episode=59, seed=4))]
+    tc = [TrajClip(f"k{i}", c["item_id"], c["frames"], c["traj"], 9, 10.0) for i, c in enumerate(clips)]
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    cfg = IDMTrainConfig(preset="tiny", epochs=3, batch_size_per_gpu=4, lr=3e-3, warmup_steps=1)
+    m = InverseDynamicsModel(cfg.model_cfg())
+    res = fit(m, tc[2:], cfg, tmp_path, val=tc[:2])["early_stopping"]
+    hist = res["val_ade_per_epoch"]
+    assert [h["epoch"] for h in hist] == [1, 2, 3]
+    best = min(hist, key=lambda h: h["val_ade_m"])
+    assert res["best_epoch"] == best["epoch"] and res["best_val_ade_m"] == best["val_ade_m"]
+    gt = np.stack([c.trajectory for c in tc[:2]])
+    assert trajectory_errors(predict(m, tc[:2]), gt)["ade_m"] == pytest.approx(best["val_ade_m"], rel=1e-5)
+    saved = load_file(str(tmp_path / "final" / "model.safetensors"))
+    assert all(torch.equal(saved[k], v) for k, v in m.state_dict().items())
+    # the run stores the resolved config: it loads as the same network, with the best weights
+    loaded, _ = load_idm(tmp_path)
+    assert loaded.cfg == m.cfg
+    assert torch.allclose(loaded(collate(tc[:2], m.cfg)["video"]), m(collate(tc[:2], m.cfg)["video"]))
+
+
+def test_runs_written_before_the_odometry_head_still_load(tmp_path):
+    """Old runs stored {"preset": "tiny"} with query-head weights; "tiny" is an odometry IDM now."""
+    import yaml
+    from safetensors.torch import save_file
+
+    old = InverseDynamicsModel(idm_preset("tiny-queries"))
+    (tmp_path / "final").mkdir()
+    save_file({k: v.contiguous() for k, v in old.state_dict().items()}, str(tmp_path / "final/model.safetensors"))
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "idm", "model": {"preset": "tiny"}}))
+    loaded, _ = load_idm(tmp_path)
+    assert loaded.cfg.head == "queries"
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {}}))
+    with pytest.raises(ValueError, match="not an IDM run"):
+        load_idm(tmp_path)

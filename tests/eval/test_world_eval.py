@@ -107,3 +107,15 @@ def test_mixed_geometries_keep_the_most_common_one(capsys):
     kept = _one_geometry(clips)
     assert [c.key for c in kept] == ["a", "c"]
     assert "left out clips of other geometries: 1 x latent (3, 4, 2, 2) @ 2 Hz" in capsys.readouterr().err
+
+
+def test_limit_spreads_clips_over_episodes():
+    """--limit takes clips round-robin over episodes: the first N keys would often be one episode, leaving
+    no other episode for non-expert trajectories."""
+    from training.eval.worldeval import EvalClip, spread_over_episodes
+
+    clips = [EvalClip(f"{ep}_{i}", ep, np.zeros((1, 1, 1, 1), np.float32), None, None, None, 1, 10.0, True)
+             for ep in ("a", "b", "c") for i in range(3 if ep != "c" else 1)]
+    assert [c.key for c in spread_over_episodes(clips, 2)] == ["a_0", "b_0"]
+    assert [c.key for c in spread_over_episodes(clips, 5)] == ["a_0", "a_1", "b_0", "b_1", "c_0"]
+    assert len(spread_over_episodes(clips, 100)) == 7

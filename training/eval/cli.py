@@ -39,7 +39,7 @@ def _world_args(p: argparse.ArgumentParser) -> None:
                         "(default for control/planning: the --idm run's)")
     p.add_argument("--all-clips", action="store_true",
                    help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
-    p.add_argument("--limit", type=int, default=None, help="at most N clips (in key order)")
+    p.add_argument("--limit", type=int, default=None, help="at most N clips, taken round-robin over the episodes (key order within each)")
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
     p.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the preset's 50)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
@@ -95,7 +95,14 @@ def register(subparsers) -> None:
     i.add_argument("--epochs", type=int, default=None)
     i.add_argument("--batch-size", type=int, default=None)
     i.add_argument("--lr", type=float, default=None)
-    i.add_argument("--heldout-fraction", type=float, default=None)
+    i.add_argument("--heldout-fraction", type=float, default=None, help="share of episodes held out (default 0.25)")
+    i.add_argument("--min-heldout-episodes", type=int, default=None,
+                   help="hold out at least this many episodes (default 1; the demo uses 2 so the held-out set "
+                        "has more than one clip and non-expert trajectories from another held-out episode)")
+    i.add_argument("--val-fraction", type=float, default=None,
+                   help="share of the training episodes set aside for early stopping (default 0.15; 0: off)")
+    i.add_argument("--hflip-prob", type=float, default=None,
+                   help="probability of mirroring a training clip left-right (default 0.5; 0: off)")
     i.add_argument("--seed", type=int, default=0)
     i.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
@@ -106,6 +113,8 @@ def register(subparsers) -> None:
     s.add_argument("--episodes", type=int, default=24)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--size", default="32x48", help="HxW of the frames (default 32x48)")
+    s.add_argument("--clip-stride", type=int, default=10, help="frames between clip starts (default 10)")
+    s.add_argument("--frames-per-episode", type=int, default=109, help="episode length in frames (default 109)")
     s.set_defaults(func=_cmd_synth)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
@@ -301,7 +310,8 @@ def _cmd_idm(args) -> int:
     d = {"preset": args.preset if args.window == "future" or args.preset.endswith("-history")
          else f"{args.preset}-history", "seed": args.seed}
     for k, v in (("epochs", args.epochs), ("batch_size_per_gpu", args.batch_size), ("lr", args.lr),
-                 ("heldout_fraction", args.heldout_fraction)):
+                 ("heldout_fraction", args.heldout_fraction), ("min_heldout_episodes", args.min_heldout_episodes),
+                 ("val_fraction", args.val_fraction), ("hflip_prob", args.hflip_prob)):
         if v is not None:
             d[k] = v
     try:
@@ -327,6 +337,8 @@ def _cmd_synth(args) -> int:
     from training.eval.synthetic import SynthConfig, write_synthetic_shards
 
     h, w = (int(v) for v in args.size.lower().split("x"))
-    n = write_synthetic_shards(args.out, SynthConfig(episodes=args.episodes, seed=args.seed, frames_hw=(h, w)))
+    n = write_synthetic_shards(args.out, SynthConfig(episodes=args.episodes, seed=args.seed, frames_hw=(h, w),
+                                                     clip_stride_frames=args.clip_stride,
+                                                     frames_per_episode=args.frames_per_episode))
     print(f"wrote {n} clips of {args.episodes} episodes to {args.out}")
     return 0

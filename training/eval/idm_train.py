@@ -44,12 +44,29 @@ class IDMTrainConfig:
     heldout_fraction: float = 0.25
     split_seed: int = 0
     seed: int = 0
+    # augmentation: mirror clips left-right (video flipped along W; trajectory y -> -y, yaw -> -yaw). Ego motion
+    # is mirror-symmetric, so a mirrored clip is another valid clip (doubles the distinct training clips).
+    hflip_prob: float = 0.5
+    # early stopping: this share of the *training* episodes (never the held-out ones) is set aside; the weights
+    # of the epoch with the lowest validation ADE are kept. 0 disables it; skipped (and said so) when the
+    # training split has fewer than `min_episodes_for_validation` episodes.
+    val_fraction: float = 0.15
+    min_episodes_for_validation: int = 6
+    # never fewer held-out episodes than this (when the dataset has more than this many): small datasets
+    # (the demo's) otherwise hold out one episode, sometimes of a single clip
+    min_heldout_episodes: int = 1
 
     def __post_init__(self):
         if self.epochs < 1 or self.batch_size_per_gpu < 1:
             raise ConfigError("epochs and batch_size_per_gpu must be >= 1")
         if not 0.0 < self.heldout_fraction < 1.0:
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
+        if not 0.0 <= self.hflip_prob <= 1.0:
+            raise ConfigError(f"hflip_prob must be in [0, 1], got {self.hflip_prob}")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ConfigError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.min_heldout_episodes < 1:
+            raise ConfigError("min_heldout_episodes must be >= 1")
 
     def model_cfg(self) -> IDMConfig:
         return idm_preset(self.preset, **self.overrides)
@@ -92,42 +109,60 @@ def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list
     return clips, counts
 
 
-def split_by_episode(clips: Sequence[TrajClip], heldout_fraction: float, seed: int = 0
+def split_by_episode(clips: Sequence[TrajClip], heldout_fraction: float, seed: int = 0, min_heldout: int = 1
                      ) -> tuple[list[TrajClip], list[TrajClip]]:
-    """(train, held-out) with whole episodes on one side; episodes ordered by a seeded hash of their id."""
+    """(train, held-out) with whole episodes on one side; episodes ordered by a seeded hash of their id.
+
+    ``round(heldout_fraction * episodes)`` episodes are held out, at least ``min_heldout`` and at least one,
+    and always leaving one for training."""
     eps = sorted({c.item_id for c in clips}, key=lambda e: hashlib.sha256(f"{seed}\0{e}".encode()).hexdigest())
     if len(eps) < 2:
         raise ValueError(f"{len(clips)} clips from {len(eps)} episode(s): a split by episode needs at least 2")
-    k = min(len(eps) - 1, max(1, int(np.floor(heldout_fraction * len(eps) + 0.5))))
+    k = min(len(eps) - 1, max(1, min_heldout, int(np.floor(heldout_fraction * len(eps) + 0.5))))
     held = set(eps[:k])
     return [c for c in clips if c.item_id not in held], [c for c in clips if c.item_id in held]
 
 
-def collate(clips: Sequence[TrajClip], cfg: IDMConfig) -> dict:
-    """``{"video": (B, T, 3, h, w) float [0, 1] (the model's window), "trajectory": (B, N, 3), "keys"}``."""
-    vids = []
-    for c in clips:
+def collate(clips: Sequence[TrajClip], cfg: IDMConfig, flip: Sequence[bool] | None = None) -> dict:
+    """``{"video": (B, T, 3, h, w) float [0, 1] (the model's window), "trajectory": (B, N, 3), "keys"}``.
+
+    ``flip[i]``: mirror clip i left-right (frames along W; trajectory y and yaw negated: the mirrored world's
+    ego motion, x forward / y left / yaw left +)."""
+    vids, trajs = [], []
+    for i, c in enumerate(clips):
         idx = cfg.frame_indices(c.num_history_frames, len(c.frames))
-        vids.append(torch.from_numpy(np.ascontiguousarray(c.frames[idx])).permute(0, 3, 1, 2))
+        f, t = c.frames[idx], c.trajectory
+        if flip is not None and flip[i]:
+            f, t = f[:, :, ::-1], t * np.array([1.0, -1.0, -1.0], np.float32)
+        vids.append(torch.from_numpy(np.ascontiguousarray(f)).permute(0, 3, 1, 2))
+        trajs.append(t)
     return {"video": torch.stack(vids).float().div_(255.0),
-            "trajectory": torch.from_numpy(np.stack([c.trajectory for c in clips])),
+            "trajectory": torch.from_numpy(np.stack(trajs).astype(np.float32)),
             "keys": [c.key for c in clips]}
 
 
 class ClipBatches:
-    """Re-iterable epochs of shuffled batches for ``Trainer.fit`` (epoch e shuffled with seed*1000 + e)."""
+    """Re-iterable epochs of shuffled batches for ``Trainer.fit`` (epoch e shuffled with seed*1000 + e; the
+    same RNG mirrors each clip with probability ``hflip_prob``). ``on_epoch_end(epoch)`` runs after the last
+    batch of every epoch (when the trainer asks for the next one; the very last epoch's is the caller's)."""
 
-    def __init__(self, clips: Sequence[TrajClip], cfg: IDMConfig, batch_size: int, seed: int):
+    def __init__(self, clips: Sequence[TrajClip], cfg: IDMConfig, batch_size: int, seed: int,
+                 hflip_prob: float = 0.0, on_epoch_end=None):
         self.clips, self.cfg, self.bs, self.seed, self.epoch = list(clips), cfg, batch_size, seed, 0
+        self.hflip_prob, self.on_epoch_end = hflip_prob, on_epoch_end
 
     def __len__(self) -> int:
         return -(-len(self.clips) // self.bs)
 
     def __iter__(self) -> Iterator[dict]:
-        order = np.random.default_rng(self.seed * 1000 + self.epoch).permutation(len(self.clips))
+        rng = np.random.default_rng(self.seed * 1000 + self.epoch)
+        order = rng.permutation(len(self.clips))
+        flips = rng.random(len(self.clips)) < self.hflip_prob
         self.epoch += 1
         for i in range(0, len(order), self.bs):
-            yield collate([self.clips[j] for j in order[i:i + self.bs]], self.cfg)
+            yield collate([self.clips[j] for j in order[i:i + self.bs]], self.cfg, flips[i:i + self.bs])
+        if self.on_epoch_end is not None:
+            self.on_epoch_end(self.epoch)
 
 
 @torch.no_grad()
@@ -167,7 +202,8 @@ def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False):
     from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
 
     return RunConfig(
-        model_name="idm", model={"preset": tcfg.preset, **to_dict(tcfg.overrides)},
+        # the resolved IDMConfig, not just the preset name: a run must load the same network after presets change
+        model_name="idm", model=to_dict(tcfg.model_cfg()),
         data=DataConfig(batch_size_per_gpu=tcfg.batch_size_per_gpu, load_frames=True, seed=tcfg.seed),
         optim=OptimConfig(lr=tcfg.lr, weight_decay=tcfg.weight_decay, warmup_steps=min(tcfg.warmup_steps, steps - 1),
                           schedule="cosine", min_lr_ratio=0.05, grad_clip_norm=1.0),
@@ -176,16 +212,54 @@ def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False):
         preset=f"idm-{tcfg.preset}", reference={"resim": "IDM: video -> 8 waypoints at 2 Hz (XVO backbone there)"})
 
 
+class BestOnValidation:
+    """Early stopping without touching the trainer: after every epoch, the validation ADE; a copy of the
+    weights of the best epoch so far (the model is small), restored at the end by :meth:`restore`."""
+
+    def __init__(self, model: InverseDynamicsModel, val: Sequence[TrajClip]):
+        self.model, self.val = model, list(val)
+        self.gt = np.stack([c.trajectory for c in self.val])
+        self.history: list[dict] = []
+        self.best: tuple[float, int, dict] | None = None
+
+    def __call__(self, epoch: int) -> None:
+        was_training = self.model.training
+        ade = trajectory_errors(predict(self.model, self.val), self.gt)["ade_m"]
+        self.model.train(was_training)
+        self.history.append({"epoch": epoch, "val_ade_m": ade})
+        if self.best is None or ade < self.best[0]:
+            self.best = (ade, epoch, {k: v.detach().clone() for k, v in self.model.state_dict().items()})
+
+    def restore(self) -> dict:
+        ade, epoch, state = self.best
+        self.model.load_state_dict(state)
+        return {"best_epoch": epoch, "best_val_ade_m": ade, "epochs_evaluated": len(self.history),
+                "val_ade_per_epoch": self.history}
+
+
 def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainConfig, run_dir: str | Path,
-        progress: bool = False) -> dict:
+        progress: bool = False, val: Sequence[TrajClip] = ()) -> dict:
+    """Train through the common Trainer; with ``val`` clips, keep the weights of the best validation epoch
+    (and re-export them to ``run_dir/final``)."""
+    from safetensors.torch import save_file
+
     from training.trainer import Trainer
 
-    data = ClipBatches(clips, model.cfg, tcfg.batch_size_per_gpu, tcfg.seed)
+    stopper = BestOnValidation(model, val) if len(val) else None
+    data = ClipBatches(clips, model.cfg, tcfg.batch_size_per_gpu, tcfg.seed, tcfg.hflip_prob, on_epoch_end=stopper)
     steps = tcfg.epochs * len(data)
     t0 = time.perf_counter()
     summary = Trainer(model, run_config(tcfg, steps, progress), run_dir).fit(data)
     model.eval()
-    return {**summary, "steps": steps, "seconds": time.perf_counter() - t0}
+    out = {**summary, "steps": steps, "seconds": time.perf_counter() - t0}
+    if stopper is not None:
+        stopper(tcfg.epochs)           # the last epoch (the trainer stops without asking for another batch)
+        out["early_stopping"] = stopper.restore()
+        model.eval()
+        if out["early_stopping"]["best_epoch"] != tcfg.epochs:
+            save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
+                      str(Path(run_dir) / "final" / "model.safetensors"))
+    return out
 
 
 def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsModel, dict]:
@@ -204,8 +278,13 @@ def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsM
     run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
     if run_cfg.get("model_name") != "idm":
         raise ValueError(f"{d}: model_name is {run_cfg.get('model_name')!r}, not an IDM run")
-    model = registry.build("idm", run_cfg.get("model") or {}, device="cpu")
-    model.load_state_dict(load_file(str(d / "model.safetensors")), strict=True)
+    state = load_file(str(d / "model.safetensors"))
+    mdict = dict(run_cfg.get("model") or {})
+    if "head" not in mdict:
+        # runs written before the odometry head store only {"preset": ...}; the presets' head changed since
+        mdict["head"] = "odometry" if any(k.startswith("odometry.") for k in state) else "queries"
+    model = registry.build("idm", mdict, device="cpu")
+    model.load_state_dict(state, strict=True)
     sha = hashlib.sha256((d / "model.safetensors").read_bytes()).hexdigest()
     return model.to(device).eval().requires_grad_(False), {"checkpoint": str(d), "weights_sha256": sha}
 
@@ -226,32 +305,51 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
             usable.append(c)
         except ValueError as e:
             skipped.append({"key": c.key, "reason": str(e)})
-    train, held = split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed)
+    train, held = split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed, tcfg.min_heldout_episodes)
+    n_train_eps = len({c.item_id for c in train})
+    fit_clips, val = train, []
+    if tcfg.val_fraction > 0 and n_train_eps >= tcfg.min_episodes_for_validation:
+        # a second seeded split, inside the training episodes only
+        fit_clips, val = split_by_episode(train, tcfg.val_fraction, tcfg.split_seed + 1)
+        validation = (f"{len({c.item_id for c in val})} of the {n_train_eps} training episodes "
+                      f"({len(val)} clips), best epoch kept")
+    else:
+        validation = ("none" if tcfg.val_fraction == 0 else
+                      f"none: {n_train_eps} training episodes < min_episodes_for_validation "
+                      f"{tcfg.min_episodes_for_validation}; the last epoch is kept")
     torch.manual_seed(tcfg.seed)
     model = InverseDynamicsModel(mcfg)
     out = Path(out_dir)
-    fitted = fit(model, train, tcfg, out, progress)
+    fitted = fit(model, fit_clips, tcfg, out, progress, val=val)
     gt_h = np.stack([c.trajectory for c in held])
-    gt_t = np.stack([c.trajectory for c in train])
+    gt_t = np.stack([c.trajectory for c in fit_clips])
     dt = held[0].waypoint_dt_s
     res = {
         "model": {"window": mcfg.window, "architecture": receptive_note(mcfg), "parameters": num_parameters(model),
                   "config": {"preset": tcfg.preset, **tcfg.overrides}},
         "heldout": {"idm" if mcfg.window == "future" else "planner": trajectory_errors(predict(model, held), gt_h),
                     "constant_velocity": trajectory_errors(constant_velocity(gt_h, dt), gt_h)},
-        "train": {"model": trajectory_errors(predict(model, train), gt_t),
+        "train": {"model": trajectory_errors(predict(model, fit_clips), gt_t),
                   "constant_velocity": trajectory_errors(constant_velocity(gt_t, dt), gt_t)},
         "protocol": {"dataset": str(root), "clips_train": len(train), "clips_heldout": len(held),
                      "episodes_train": len({c.item_id for c in train}),
                      "episodes_heldout": len({c.item_id for c in held}),
-                     "heldout_items": sorted({c.item_id for c in held}), "split": "by episode (item_id), seeded hash",
-                     "split_seed": tcfg.split_seed, "skipped": skipped, **counts,
+                     "heldout_items": sorted({c.item_id for c in held}),
+                     "train_items": sorted({c.item_id for c in train}), "split": "by episode (item_id), seeded hash",
+                     "split_seed": tcfg.split_seed, "min_heldout_episodes": tcfg.min_heldout_episodes,
+                     "validation": validation, "clips_fit": len(fit_clips), "clips_validation": len(val),
+                     "augmentation": f"left-right mirror with p={tcfg.hflip_prob} (y, yaw negated)",
+                     "skipped": skipped, **counts,
                      "constant_velocity": "straight ahead at |waypoint_1| / 0.5 s (oracle initial speed)",
                      "ade": "mean L2 over the 8 waypoints (x, y), metres; fde: L2 at 4.0 s",
                      "device": str(next(model.parameters()).device)},
-        "training": {k: fitted[k] for k in ("steps", "seconds") if k in fitted},
+        "training": {k: fitted[k] for k in ("steps", "seconds", "early_stopping") if k in fitted},
         "checkpoint": str(out / "final"),
     }
+    if val:  # the split early stopping chose on: optimistic by construction, reported for completeness
+        gt_v = np.stack([c.trajectory for c in val])
+        res["validation"] = {"model": trajectory_errors(predict(model, val), gt_v),
+                             "constant_velocity": trajectory_errors(constant_velocity(gt_v, dt), gt_v)}
     write_json(res, out / "idm_report.json")
     key = "idm" if mcfg.window == "future" else "planner"
     plot_bars({"held-out ADE": {key: res["heldout"][key]["ade_m"], "constant velocity":
@@ -263,6 +361,10 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
     (out / "train_config.json").write_text(json.dumps({"preset": tcfg.preset, "overrides": tcfg.overrides,
                                                         "epochs": tcfg.epochs, "lr": tcfg.lr,
                                                         "batch_size_per_gpu": tcfg.batch_size_per_gpu,
-                                                        "seed": tcfg.seed, "split_seed": tcfg.split_seed}, indent=1))
+                                                        "seed": tcfg.seed, "split_seed": tcfg.split_seed,
+                                                        "hflip_prob": tcfg.hflip_prob,
+                                                        "val_fraction": tcfg.val_fraction,
+                                                        "min_heldout_episodes": tcfg.min_heldout_episodes},
+                                                       indent=1))
     res["_model"] = model
     return res

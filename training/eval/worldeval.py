@@ -48,7 +48,8 @@ class EvalClip:
 
 def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = None, limit: int | None = None,
                             need_trajectory: bool = True) -> list[EvalClip]:
-    """Clips of ``root`` (only those of episodes ``items`` when given; the first ``limit`` in key order)."""
+    """Clips of ``root`` (only those of episodes ``items`` when given; at most ``limit``, spread over the
+    episodes by :func:`spread_over_episodes`)."""
     from shards.reader import iter_samples
 
     keep = set(items) if items is not None else None
@@ -64,7 +65,23 @@ def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = N
                             int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder"))))
     out.sort(key=lambda c: c.key)
     out = _one_geometry(out)
-    return out[:limit] if limit else out
+    return spread_over_episodes(out, limit) if limit else out
+
+
+def spread_over_episodes(clips: list[EvalClip], limit: int) -> list[EvalClip]:
+    """At most ``limit`` clips taken round-robin over the episodes (each episode's clips in key order).
+
+    Keys group clips by episode, so the first ``limit`` keys would often be one episode: too few for
+    non-expert trajectories (taken from another episode) and a poor sample of the set. Returned in key order."""
+    by_ep: dict[str, list[EvalClip]] = {}
+    for c in clips:
+        by_ep.setdefault(c.item_id, []).append(c)
+    queues, picked = list(by_ep.values()), []
+    while len(picked) < limit and any(queues):
+        for q in queues:
+            if q and len(picked) < limit:
+                picked.append(q.pop(0))
+    return sorted(picked, key=lambda c: c.key)
 
 
 def _one_geometry(clips: list[EvalClip]) -> list[EvalClip]:
@@ -263,7 +280,7 @@ def quality_eval(runner: WorldRollouts, clips: Sequence[EvalClip], qcfg: Any, ne
         ev.update(g, r)
     rep = ev.compute()
     rep["protocol"]["generated_resize"] = ("generated frames resized from the VAE's resolution "
-                                           f"{tuple(gen.shape[2:4])} to the recorded frames' {tuple(gt.shape[1:3])} "
+                                           f"{tuple(gen.shape[2:4])} to the recorded frames' {tuple(gt.shape[2:4])} "
                                            "(bilinear, antialias) before scoring"
-                                           if tuple(gen.shape[2:4]) != tuple(gt.shape[1:3]) else "none")
+                                           if tuple(gen.shape[2:4]) != tuple(gt.shape[2:4]) else "none")
     return rep
