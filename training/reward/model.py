@@ -70,7 +70,9 @@ class RewardHead(nn.Module):
 
     def __init__(self, in_dim: int, cfg: RewardModelConfig):
         super().__init__()
-        self.proj = nn.Linear(in_dim, cfg.head_dim)
+        self.temporal_diff = cfg.temporal_diff
+        self.sigmoid = cfg.output_activation == "sigmoid"
+        self.proj = nn.Linear(2 * in_dim if cfg.temporal_diff else in_dim, cfg.head_dim)
         self.time_pos = nn.Parameter(torch.zeros(1, cfg.num_frames, 1, cfg.head_dim))
         nn.init.normal_(self.time_pos, std=0.02)
         self.blocks = nn.ModuleList(
@@ -81,11 +83,15 @@ class RewardHead(nn.Module):
                                  nn.Linear(cfg.mlp_hidden_dim, 1))
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        if self.temporal_diff:  # (B, T, N, D) -> (B, T, N, 2D): features and their change since the last frame
+            diff = torch.cat([torch.zeros_like(feats[:, :1]), feats[:, 1:] - feats[:, :-1]], dim=1)
+            feats = torch.cat([feats, diff], dim=-1)
         x = self.proj(feats) + self.time_pos[:, : feats.shape[1]]
         for blk in self.blocks:
             x = blk(x)
         pooled = self.norm(x).mean(dim=(1, 2))
-        return self.mlp(pooled).squeeze(-1)
+        out = self.mlp(pooled).squeeze(-1)
+        return torch.sigmoid(out) if self.sigmoid else out
 
 
 def _field(batch: Any, name: str) -> Any:
