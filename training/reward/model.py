@@ -11,11 +11,13 @@ Shapes (B batch, T = cfg.num_frames, S = cfg.image_size_px, N tokens per frame =
 
     video     (B, T, 3, H, W) float in [0, 1]      any H, W: resized to S x S, ImageNet-normalised
     features  (B, T, N, D)   float32 (or float16)  DINOv2 last hidden state per frame (= dino.npy)
-    head      (B, T, N, D) -> Linear -> (B, T, N, d) + temporal position embedding
+    head      [temporal_diff: (B, T, N, D) -> (B, T, N, 2D), features ++ change since the previous frame]
+              (B, T, N, D or 2D) -> Linear -> (B, T, N, d) + temporal position embedding
               -> num_blocks x [spatial attention over N within each frame,
                                then temporal attention over T for each token position, then MLP]
-              -> mean over T and N -> MLP -> (B,)
-    output    (B,) float32 predicted infraction score (1 = clean, lower = infractions); not clamped
+              -> mean over T and N -> MLP -> sigmoid -> (B,)
+    output    (B,) float32 predicted infraction score in (0, 1) (1 = clean, lower = infractions);
+              output_activation "none" gives the raw, unbounded MLP output instead
 
 The spatio-temporal blocks are *factorised*: spatial-then-temporal attention
 (each block costs T*N^2 + N*T^2 instead of (T*N)^2). DINOv2's own position
