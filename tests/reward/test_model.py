@@ -82,3 +82,57 @@ def test_loss_reads_the_common_stream_batch(tiny_cfg):
     assert float(loss) == pytest.approx(float(((pred - torch.tensor([0.3, 1.0])) ** 2).mean()), rel=1e-5)
     with pytest.raises(ValueError, match="sample b has no infraction_score"):
         m.loss({"frames": frames, "meta": [meta[0], {"infraction_score": None}], "keys": ["a", "b"]})
+
+
+def test_output_is_bounded_by_sigmoid_unless_configured_raw(tiny_cfg):
+    """The infraction score lives in [0, 1]: the default head ends in a sigmoid; "none" keeps the raw output."""
+    from resim.config import ConfigError
+
+    m = Video2Reward(tiny_cfg)
+    raw = Video2Reward(dataclasses.replace(tiny_cfg, output_activation="none"))
+    raw.head.load_state_dict(m.head.state_dict())
+    with torch.no_grad():
+        for mod in (m, raw):  # make the logit large: a last-layer bias far outside [0, 1]
+            mod.head.mlp[-1].bias.fill_(5.0)
+        f = torch.randn(3, *m.feature_shape) * 10
+        p, r = m(features=f), raw(features=f)
+    assert ((p > 0) & (p < 1)).all()
+    assert torch.allclose(p, torch.sigmoid(r), atol=1e-6)
+    assert (r > 1).any()  # the raw head is not bounded
+    with pytest.raises(ConfigError, match="output_activation"):
+        dataclasses.replace(tiny_cfg, output_activation="tanh")
+
+
+def test_temporal_diff_feeds_the_head_frame_changes(tiny_cfg):
+    """With temporal_diff the projection takes [features, change since the previous frame]. Keeping only
+    the change half: two different static clips score alike (no change), a moving clip differently."""
+    m = Video2Reward(dataclasses.replace(tiny_cfg, temporal_diff=True)).eval()
+    t, n, d = m.feature_shape
+    assert m.head.proj.in_features == 2 * d
+    with torch.no_grad():
+        m.head.proj.weight[:, :d] = 0  # see only the frame-to-frame change
+        g = torch.Generator().manual_seed(0)
+        a = torch.randn(1, 1, n, d, generator=g).expand(1, t, n, d)
+        b = torch.randn(1, 1, n, d, generator=g).expand(1, t, n, d)
+        moving = torch.randn(1, t, n, d, generator=g)
+        pa, pb, pm = m(features=a), m(features=b), m(features=moving)
+    assert torch.allclose(pa, pb, atol=1e-6)
+    assert not torch.allclose(pa, pm, atol=1e-4)
+
+
+def test_old_checkpoint_without_output_activation_loads_raw(tiny_train_cfg, tmp_path):
+    """A checkpoint saved before the sigmoid existed (no output_activation in config.yaml) keeps its raw head."""
+    import yaml
+
+    from training.reward.checkpoint import load_checkpoint, save_checkpoint
+
+    m = Video2Reward(dataclasses.replace(tiny_train_cfg.model, output_activation="none"))
+    save_checkpoint(m, tmp_path, dataclasses.replace(tiny_train_cfg, model=m.cfg))
+    cfg = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert cfg["model"]["output_activation"] == "none"
+    del cfg["model"]["output_activation"]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg))
+    assert load_checkpoint(tmp_path).cfg.output_activation == "none"
+    new = Video2Reward(tiny_train_cfg.model)
+    save_checkpoint(new, tmp_path / "new", tiny_train_cfg)
+    assert load_checkpoint(tmp_path / "new").cfg.output_activation == "sigmoid"

@@ -45,7 +45,9 @@ def load_checkpoint(ckpt_dir: str | Path, device: str = "cpu") -> Video2Reward:
     for f in ("config.yaml", "reward.safetensors"):
         if not (d / f).is_file():
             raise CheckpointError(f"{d} is not a reward checkpoint: {f} is missing")
-    cfg = rconfig.load(RewardTrainConfig, d / "config.yaml")
+    # Checkpoints saved before the head got its sigmoid (output_activation) were trained with a raw
+    # linear output: a config.yaml without the key loads as "none", not as today's default.
+    cfg = rconfig.load(RewardTrainConfig, d / "config.yaml", base={"model": {"output_activation": "none"}})
     model = Video2Reward(cfg.model)
     state = load_file(str(d / "reward.safetensors"), device="cpu")
     head = {k[5:]: v for k, v in state.items() if k.startswith("head.")}

@@ -133,7 +133,7 @@ def _carla_clips(args):
 
 
 def _add_cfg_args(p):
-    p.add_argument("--preset", default="tiny", help="named preset: tiny (placeholder backbone, 56 px), synthetic (tiny, 8 frames every 11 = whole 8 s synth episode) or resim (224 px)")
+    p.add_argument("--preset", default="tiny", help="named preset: tiny (placeholder backbone, 56 px), synthetic (tiny, 8 frames every 11 = whole 8 s synth episode, temporal_diff) or resim (224 px)")
     p.add_argument("--config", default=None, help="YAML RewardTrainConfig file applied over the preset")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a config value, e.g. --set model.image_size_px=224 --set epochs=5")

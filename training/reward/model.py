@@ -11,11 +11,13 @@ Shapes (B batch, T = cfg.num_frames, S = cfg.image_size_px, N tokens per frame =
 
     video     (B, T, 3, H, W) float in [0, 1]      any H, W: resized to S x S, ImageNet-normalised
     features  (B, T, N, D)   float32 (or float16)  DINOv2 last hidden state per frame (= dino.npy)
-    head      (B, T, N, D) -> Linear -> (B, T, N, d) + temporal position embedding
+    head      [temporal_diff: (B, T, N, D) -> (B, T, N, 2D), features ++ change since the previous frame]
+              (B, T, N, D or 2D) -> Linear -> (B, T, N, d) + temporal position embedding
               -> num_blocks x [spatial attention over N within each frame,
                                then temporal attention over T for each token position, then MLP]
-              -> mean over T and N -> MLP -> (B,)
-    output    (B,) float32 predicted infraction score (1 = clean, lower = infractions); not clamped
+              -> mean over T and N -> MLP -> sigmoid -> (B,)
+    output    (B,) float32 predicted infraction score in (0, 1) (1 = clean, lower = infractions);
+              output_activation "none" gives the raw, unbounded MLP output instead
 
 The spatio-temporal blocks are *factorised*: spatial-then-temporal attention
 (each block costs T*N^2 + N*T^2 instead of (T*N)^2). DINOv2's own position
@@ -70,7 +72,9 @@ class RewardHead(nn.Module):
 
     def __init__(self, in_dim: int, cfg: RewardModelConfig):
         super().__init__()
-        self.proj = nn.Linear(in_dim, cfg.head_dim)
+        self.temporal_diff = cfg.temporal_diff
+        self.sigmoid = cfg.output_activation == "sigmoid"
+        self.proj = nn.Linear(2 * in_dim if cfg.temporal_diff else in_dim, cfg.head_dim)
         self.time_pos = nn.Parameter(torch.zeros(1, cfg.num_frames, 1, cfg.head_dim))
         nn.init.normal_(self.time_pos, std=0.02)
         self.blocks = nn.ModuleList(
@@ -81,11 +85,15 @@ class RewardHead(nn.Module):
                                  nn.Linear(cfg.mlp_hidden_dim, 1))
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        if self.temporal_diff:  # (B, T, N, D) -> (B, T, N, 2D): features and their change since the last frame
+            diff = torch.cat([torch.zeros_like(feats[:, :1]), feats[:, 1:] - feats[:, :-1]], dim=1)
+            feats = torch.cat([feats, diff], dim=-1)
         x = self.proj(feats) + self.time_pos[:, : feats.shape[1]]
         for blk in self.blocks:
             x = blk(x)
         pooled = self.norm(x).mean(dim=(1, 2))
-        return self.mlp(pooled).squeeze(-1)
+        out = self.mlp(pooled).squeeze(-1)
+        return torch.sigmoid(out) if self.sigmoid else out
 
 
 def _field(batch: Any, name: str) -> Any:
