@@ -183,18 +183,22 @@ def _reward_metrics(path: Path) -> str:
     if not path.is_file():
         return ""
     meta = json.loads(path.read_text())
-    rows = []
-    for split in ("train_metrics", "heldout_metrics"):
-        m = meta.get(split) or {}
-        rows.append(f"<tr><td>{split.split('_')[0]}</td>" + "".join(
-            f"<td>{m.get(k):.3f}</td>" if isinstance(m.get(k), float) else f"<td>{m.get(k)}</td>"
-            for k in ("n", "n_hazard", "mae", "spearman", "hazard_auc")) + "</tr>")
-    return ("<table><tr><th>split</th><th>clips</th><th>hazardous</th><th>MAE</th><th>Spearman</th><th>AUC</th></tr>"
-            + "".join(rows) + "</table><p>(nan: the split has one class only or too few clips)</p>")
+    rows = [[split.split("_")[0]] + [_f(m.get(k)) if isinstance(m.get(k), float) else html.escape(str(m.get(k)))
+                                      for k in ("n", "n_hazard", "mae", "spearman", "hazard_auc")]
+            for split in ("train_metrics", "heldout_metrics") for m in [meta.get(split) or {}]]
+    return (_table(["split", "clips", "hazardous", "MAE", "Spearman", "AUC"], rows)
+            + "<p>(nan: the split has one class only or too few clips)</p>")
 
 
 def _f(v, fmt: str = ".3f") -> str:
     return format(v, fmt) if isinstance(v, (int, float)) else html.escape(str(v))
+
+
+def _table(header: list[str], rows: list[list]) -> str:
+    """An HTML table. Header cells are escaped; row cells are printed as given (format/escape them: ``_f``)."""
+    th = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    return (f"<table><tr>{th}</tr>" + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
+            + "</table>")
 
 
 def _eval_section(out: Path) -> list[str]:
@@ -213,26 +217,24 @@ def _eval_section(out: Path) -> list[str]:
         parts.append(f"<h3>IDM</h3><p>{pro['clips_train']} training clips ({pro['episodes_train']} episodes), "
                      f"{pro['clips_heldout']} held-out clips ({pro['episodes_heldout']} episodes: "
                      f"{html.escape(', '.join(pro['heldout_items']))}); validation: {html.escape(pro['validation'])}."
-                     "</p><table><tr><th>held-out</th><th>ADE (m)</th><th>FDE (m)</th><th>yaw err (deg)</th>"
-                     "<th>clips</th></tr>")
-        parts += [f"<tr><td>{html.escape(k)}</td><td>{_f(v['ade_m'])}</td><td>{_f(v['fde_m'])}</td>"
-                  f"<td>{_f(v['yaw_err_deg'], '.2f')}</td><td>{v['n']}</td></tr>" for k, v in r["heldout"].items()]
-        parts += ["</table>", _img(ev / "idm" / "idm_report.png", out, "IDM vs constant velocity, held-out")]
+                     "</p>")
+        parts += [_table(["held-out", "ADE (m)", "FDE (m)", "yaw err (deg)", "clips"],
+                         [[html.escape(k), _f(v["ade_m"]), _f(v["fde_m"]), _f(v["yaw_err_deg"], ".2f"), v["n"]]
+                          for k, v in r["heldout"].items()]), _img(ev / "idm" / "idm_report.png", out, "IDM vs constant velocity, held-out")]
     ctl_p = ev / "control" / "control.json"
     if ctl_p.is_file():
         r = json.loads(ctl_p.read_text())
         parts.append(f"<h3>Controllability: Trajectory Difference</h3><p>{r['protocol']['clips']} held-out clips "
                      f"of {r['protocol']['episodes']} episodes, each rolled out under its recorded trajectory "
                      "(expert) and another episode's (non-expert); the IDM reads the trajectory off the generated "
-                     "video. <code>idm_on_recorded_video</code> (the IDM on the real frames) is the floor.</p>"
-                     "<table><tr><th></th><th>L2 mean (m)</th><th>L2 at 4 s (m)</th><th>clips</th></tr>")
-        parts += [f"<tr><td>{k}</td><td>{_f(r[k]['trajectory_difference_m'])}</td>"
-                  f"<td>{_f(r[k]['trajectory_difference_final_m'])}</td><td>{r[k]['n']}</td></tr>"
-                  for k in ("expert", "non_expert", "idm_on_recorded_video")]
+                     "video. <code>idm_on_recorded_video</code> (the IDM on the real frames) is the floor.</p>")
+        parts.append(_table(["", "L2 mean (m)", "L2 at 4 s (m)", "clips"],
+                            [[k, _f(r[k]["trajectory_difference_m"]), _f(r[k]["trajectory_difference_final_m"]),
+                              r[k]["n"]] for k in ("expert", "non_expert", "idm_on_recorded_video")]))
         ca = r["command_accuracy"]
         acc = (html.escape(ca) if isinstance(ca, str) else ", ".join(
             f"{html.escape(k)}: {_f(v['accuracy'], '.2f')} (n={v['n']})" for k, v in ca.items()))
-        parts += ["</table>", f"<p>Command accuracy (optical-flow labeler on the generated future): {acc}</p>",
+        parts += [f"<p>Command accuracy (optical-flow labeler on the generated future): {acc}</p>",
                   _img(ev / "control" / "control.png", out, "Trajectory Difference")]
     q_p = ev / "quality" / "quality.json"
     if q_p.is_file():
@@ -242,12 +244,10 @@ def _eval_section(out: Path) -> list[str]:
                      f"history frames excluded, {pro['future_frames_scored']} future frames scored at "
                      f"{pro['metric_resolution_hw']} ({html.escape(str(pro.get('generated_resize')))}). PSNR and "
                      "SSIM only: FID, FVD and LPIPS need the standard network weights (docs/eval.md), which the "
-                     "demo does not download.</p><table><tr><th>horizon</th><th>frames/clip</th><th>PSNR (dB)</th>"
-                     "<th>SSIM</th></tr>")
-        parts += [f"<tr><td>{row['from_s']:g}–{row['horizon_s']:g} s</td><td>{row['frames_per_clip']}</td>"
-                  f"<td>{_f(row.get('psnr'), '.2f')}</td><td>{_f(row.get('ssim'))}</td></tr>"
-                  for row in r["per_horizon"]]
-        parts += ["</table>", _img(ev / "quality" / "quality.png", out, "PSNR / SSIM vs prediction horizon")]
+                     "demo does not download.</p>")
+        parts += [_table(["horizon", "frames/clip", "PSNR (dB)", "SSIM"],
+                         [[f"{row['from_s']:g}–{row['horizon_s']:g} s", row["frames_per_clip"],
+                           _f(row.get("psnr"), ".2f"), _f(row.get("ssim"))] for row in r["per_horizon"]]), _img(ev / "quality" / "quality.png", out, "PSNR / SSIM vs prediction horizon")]
     parts.append("<p>Full reports: " + ", ".join(
         f'<a href="{html.escape(str(p.relative_to(out)))}">{html.escape(str(p.relative_to(out)))}</a>'
         for p in (idm_p, ctl_p, q_p) if p.is_file()) + "</p>")
@@ -263,9 +263,7 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
         "<h1>resim demo</h1>",
         "<p>All models are tiny random-init <b>placeholders</b> trained for seconds on a CPU: the page shows the "
         "system working end to end, not a good world model.</p>",
-        "<h2>Steps</h2><table><tr><th>step</th><th>seconds</th></tr>",
-        *[f"<tr><td>{html.escape(k)}</td><td>{v:.1f}</td></tr>" for k, v in timings.items()],
-        "</table>",
+        "<h2>Steps</h2>", _table(["step", "seconds"], [[html.escape(k), f"{v:.1f}"] for k, v in timings.items()]),
         "<h2>1. Synthetic world</h2>", _img(out / "world/contact_sheet.png", out, "a few synthetic episodes"),
         "<h2>2. Pipeline → shards</h2>", _img(out / "shards/report.png", out, "pipeline report"),
         _json_block(out / "shards/stats.json"),
@@ -292,10 +290,9 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
     ranking = out / "plan" / "ranking.json"
     if ranking.is_file():
         rows = json.loads(ranking.read_text())
-        parts.append("<table><tr><th>rank</th><th>candidate</th><th>command</th><th>reward</th></tr>")
-        parts += [f"<tr><td>{r['rank']}</td><td>{html.escape(r['name'])}</td><td>{html.escape(str(r['command']))}</td>"
-                  f"<td>{r['reward']:.4f}</td></tr>" for r in rows]
-        parts.append("</table>")
+        parts.append(_table(["rank", "candidate", "command", "reward"],
+                            [[r["rank"], html.escape(r["name"]), html.escape(str(r["command"])), f"{r['reward']:.4f}"]
+                             for r in rows]))
     parts += _eval_section(out)
     parts.append(f"<h2>Config</h2><pre>{html.escape(json.dumps(to_dict(cfg), indent=2))}</pre>")
     path = out / "report.html"
