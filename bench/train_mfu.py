@@ -8,13 +8,18 @@ with bf16 params / fp32 reduction, in a one-rank process group), and times full 
 (``flops_per_sample``: 6 x block params x tokens + attention; recompute not counted) / step time /
 peak bf16 FLOP/s. An out-of-memory configuration is reported as such, not skipped silently.
 
-    PYTHONPATH=. python bench/train_mfu.py [--batch 1] [--steps 6] [--peak-tflops 989]
+    PYTHONPATH=. python bench/train_mfu.py [--batch 1] [--steps 6] [--peak-tflops 989] [--sizes 32x56,64x112]
+                                           [--ac off,on] [--profile] [--json FILE]
+
+``--profile``: one extra (untimed) step per configuration under torch.profiler, printing the GPU time shares
+(attention / matmul / other) and the top kernels. Results (H100, 2026-11-24): docs/benchmarks.md, "GPU".
 
 Peak dense bf16: H100 SXM 989 TFLOP/s, H200 989 TFLOP/s (same compute), A100 312.
 """
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import time
 
@@ -36,36 +41,67 @@ def synthetic_batch(b: int, hw: tuple[int, int], device, seq: int = 226, dim: in
         source=["navsim"] * b, keys=[f"k{i}" for i in range(b)], meta=[{"num_history_frames": 9}] * b)
 
 
-def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env) -> dict:
+def _profile_step(step_fn) -> None:
+    """One more step under torch.profiler: where the GPU time goes (top kernels, and matmul/attention/other)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        step_fn()
+        torch.cuda.synchronize()
+    ev = [(e.key, getattr(e, "device_time_total", 0) or 0) for e in prof.key_averages()]
+    ev = [(k, t) for k, t in ev if t > 0 and not k.startswith(("aten::", "autograd::", "FSDP", "ProfilerStep"))]
+    total = sum(t for _, t in ev)
+    groups = {"attention (sdpa)": ("sdpa", "fmha", "flash", "cudnn"), "matmul (gemm)": ("gemm", "xmma", "cutlass", "nvjet")}
+    share = {g: 0.0 for g in groups}
+    for k, t in ev:
+        for g, keys in groups.items():
+            if any(x in k.lower() for x in keys):
+                share[g] += t
+                break
+    print(f"    profile of one step: {total / 1e3:.0f} ms of kernels; " +
+          ", ".join(f"{g} {v / total:.0%}" for g, v in share.items()) + f", other {1 - sum(share.values()) / total:.0%}")
+    for k, t in sorted(ev, key=lambda x: -x[1])[:12]:
+        print(f"      {t / 1e3:8.1f} ms  {k[:120]}")
+
+
+def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: bool = False) -> dict:
     from training.distributed import wrap_model
     from training.world import build_world
 
     torch.manual_seed(0)
+    # built on the GPU (random init there; a 1.7B-parameter fp32 init on the CPU only costs start-up time)
     model = build_world({"preset": "cogvideox-2b", "objective": {"noise_mode": "resim_cond_aug",
-                                                                 "num_history_frames": 3}})
+                                                                 "num_history_frames": 3}}, device=env.device)
     lm, layout = wrap_model(model, env, parallel="fsdp", activation_checkpointing=ac, bf16_params=True)
     opt = torch.optim.AdamW([p for p in lm.parameters() if p.requires_grad], lr=1e-5, foreach=True)
     data = synthetic_batch(batch, hw, env.device)
     flops = model.flops_per_sample(data) * batch
     times = []
-    torch.cuda.reset_peak_memory_stats()
-    for i in range(steps + 2):  # 2 warm-up steps
-        torch.cuda.synchronize()
-        t = time.perf_counter()
+
+    def step_fn():
         with torch.autocast("cuda", dtype=torch.bfloat16):
             loss, _ = lm(data)
         loss.float().backward()
         torch.nn.utils.clip_grad_norm_(lm.parameters(), 1.0)
         opt.step()
         opt.zero_grad(set_to_none=True)
+
+    torch.cuda.reset_peak_memory_stats()
+    for i in range(steps + 2):  # 2 warm-up steps
+        torch.cuda.synchronize()
+        t = time.perf_counter()
+        step_fn()
         torch.cuda.synchronize()
         if i >= 2:
             times.append(time.perf_counter() - t)
+    if profile:
+        _profile_step(step_fn)
     step = sorted(times)[len(times) // 2]
     return {"latent_hw": hw, "activation_checkpointing": ac, "batch": batch, "step_s": step,
             "samples_per_s": batch / step, "tokens_per_s": model.tokens_per_sample(data) * batch / step,
             "tflops_per_s": flops / step / 1e12, "mfu": flops / step / (peak * 1e12),
-            "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30, "layout": layout}
+            "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30, "layout": layout, "times": times,
+            "flops_per_step": flops}
 
 
 def main() -> None:
@@ -74,6 +110,9 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--peak-tflops", type=float, default=989.0)
     ap.add_argument("--json", help="also write the results here")
+    ap.add_argument("--sizes", default="32x56,64x112", help="latent h x w, comma-separated (pixels / 8)")
+    ap.add_argument("--ac", default="off,on", help="activation checkpointing settings to run")
+    ap.add_argument("--profile", action="store_true", help="profile one extra step per config (not timed)")
     args = ap.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("bench/train_mfu.py needs a CUDA GPU")
@@ -83,21 +122,30 @@ def main() -> None:
     torch.backends.cuda.matmul.allow_tf32 = True
     print(f"device: {torch.cuda.get_device_name()} ; torch {torch.__version__}; peak {args.peak_tflops} TFLOP/s bf16")
     results = []
-    for hw in ((32, 56), (64, 112)):
-        for ac in (False, True):
+    for hw in [tuple(map(int, s.split("x"))) for s in args.sizes.split(",")]:
+        for ac in [{"off": False, "on": True}[a] for a in args.ac.split(",")]:
             try:
-                r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env)
+                r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env, args.profile)
             except torch.OutOfMemoryError:
-                r = {"latent_hw": hw, "activation_checkpointing": ac, "batch": args.batch, "oom": True}
+                r = {"latent_hw": hw, "activation_checkpointing": ac, "batch": args.batch, "oom": True,
+                     "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30}
+            gc.collect()              # FSDP2 hooks keep module cycles: free the model before the next config
             torch.cuda.empty_cache()
             results.append(r)
             px = f"{hw[0] * 8}x{hw[1] * 8}"
             if r.get("oom"):
-                print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: out of memory")
+                print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: out of memory "
+                      f"(peak {r['max_mem_gib']:.1f} GiB allocated before the failure)", flush=True)
             else:
                 print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: step {r['step_s']:.3f} s, "
                       f"{r['tokens_per_s']:,.0f} tokens/s, {r['tflops_per_s']:.0f} TFLOP/s, MFU {r['mfu']:.1%}, "
-                      f"max mem {r['max_mem_gib']:.1f} GiB")
+                      f"max mem {r['max_mem_gib']:.1f} GiB; step times {[round(x, 3) for x in r['times']]}; "
+                      f"{r['layout']}", flush=True)
+    for hw in {tuple(r["latent_hw"]) for r in results}:
+        by_ac = {r["activation_checkpointing"]: r for r in results if tuple(r["latent_hw"]) == hw and not r.get("oom")}
+        if True in by_ac and False in by_ac:
+            print(f"{hw[0] * 8}x{hw[1] * 8}: step time AC on / AC off = "
+                  f"{by_ac[True]['step_s'] / by_ac[False]['step_s']:.2f}x (same process)")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)

@@ -10,11 +10,14 @@ sample x scaling factor) — on 49-frame clips at 256x448 and 512x896, fp16/bf16
 slicing/tiling. Prints clips/s per GPU and the ratio against the first case measured in this process,
 plus the published anchor (ReSim/CogVideoX-class encode: ~0.6-1.6 clips/s per A800 at 49x288x512).
 
-Needs a CUDA GPU; exits with a message otherwise. Not run in the session that wrote it (no GPU).
+Timed per iteration: host->device copy of the uint8 clip, encode, posterior sample, copy back to the host
+(what the stage does per batch); not timed: model construction (random init on the CPU), warm-up iterations.
+Needs a CUDA GPU; exits with a message otherwise. Results: docs/benchmarks.md ("GPU").
 """
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
 import tempfile
@@ -52,6 +55,7 @@ def main() -> int:
         print("no CUDA GPU: this benchmark needs one (nothing measured)")
         return 2
     dev = torch.cuda.get_device_name(0)
+    print(f"device: {dev}; torch {torch.__version__}", flush=True)
     results, base = [], None
     with tempfile.TemporaryDirectory() as tmp:
         AutoencoderKLCogVideoX(**COGVIDEOX_2B_VAE).save_config(tmp)      # config only: seeded random weights
@@ -63,6 +67,7 @@ def main() -> int:
                     vae = VideoVAE(tmp, dtype={"bf16": "bfloat16", "fp16": "float16"}[dt], device="cuda",
                                    slicing=slicing, tiling=tiling)
                     torch.cuda.reset_peak_memory_stats()
+                    cps = mem = float("nan")
                     try:
                         for i in range(args.warmup):
                             vae.encode(clips, list(range(args.batch)))
@@ -76,14 +81,16 @@ def main() -> int:
                         mem = torch.cuda.max_memory_allocated() / 2**30
                         status = "ok"
                     except torch.cuda.OutOfMemoryError:
-                        cps, mem, status = float("nan"), float("nan"), "OOM"
-                    base = base or cps
+                        status = "OOM"
+                    if base is None and status == "ok":     # ratios against the first case that ran
+                        base = cps
                     row = {"size": size, "frames": args.frames, "dtype": dt, "slicing_tiling": slicing,
                            "batch": args.batch, "clips_per_s": round(cps, 3), "peak_mem_gib": round(mem, 2),
-                           "ratio_vs_first": round(cps / base, 3), "status": status}
+                           "ratio_vs_first": round(cps / base, 3) if base else float("nan"), "status": status}
                     results.append(row)
                     print(json.dumps(row), flush=True)
                     del vae
+                    gc.collect()
                     torch.cuda.empty_cache()
     print(f"device: {dev}; anchor: ~0.6-1.6 clips/s per A800 at 49x288x512 (published)")
     return 0
