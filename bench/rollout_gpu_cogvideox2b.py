@@ -9,7 +9,17 @@ H100 (diffusers, 50 steps, CFG). Target from issue 9: <= 20 s on an H100/H200.
 Model forward only (the VAE decode and T5 are not timed; the T5 embedding is random). Needs CUDA.
 
   PYTHONPATH=. python bench/rollout_gpu_cogvideox2b.py [--steps 50] [--chunk 10] [--repeats 2] [--compile]
+                                                       [--attention sdpa,flex]
   PYTHONPATH=. python bench/rollout_gpu_cogvideox2b.py --sdpa-probe     # which SDPA kernel runs, then exit
+  PYTHONPATH=. python bench/rollout_gpu_cogvideox2b.py --flex-probe     # model's attention: sdpa vs flex, exit
+
+``--attention``: the model's attention backend(s) for the block-causal mask (``WorldModelConfig.attention_backend``;
+comma-separated: each is timed on the same model in the same process, switched with
+``WorldModel.set_attention_backend``). The flex backend compiles its kernel during the warm-up rollout (the
+warm-up's seconds are printed; they are not in the timed rollout).
+
+``--smoke-cpu``: the same code paths with the tiny preset on the CPU at a small size (checks this script, times
+nothing meaningful), e.g. ``--smoke-cpu --height-px 64 --width-px 96 --steps 2 --repeats 1 --attention sdpa,flex``.
 
 ``--sdpa-probe``: for the model's own attention module (``training.models.attention.Attention``, 30 heads x 64,
 bf16, batch 2 = CFG) at 256x448 and 512x896 (13 latent frames + 226 text tokens), with no mask and with the
@@ -37,21 +47,33 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--modes", default="on,off", help="KV-cache modes to time, comma-separated")
     ap.add_argument("--compile", action="store_true", help="torch.compile the transformer blocks")
+    ap.add_argument("--attention", default="sdpa", help="attention backend(s) to time: sdpa, flex or sdpa,flex")
     ap.add_argument("--sdpa-probe", action="store_true", help="report which SDPA kernel runs (see above) and exit")
+    ap.add_argument("--flex-probe", action="store_true",
+                    help="time the model's Attention module with the sdpa vs the flex backend's mask, then exit")
+    ap.add_argument("--smoke-cpu", action="store_true", help="tiny preset on the CPU: check the script (see above)")
     args = ap.parse_args()
-    if not torch.cuda.is_available():
+    dev = torch.device("cpu" if args.smoke_cpu else "cuda")
+    preset_name = "tiny" if args.smoke_cpu else "cogvideox-2b"
+    if dev.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("this benchmark needs a CUDA GPU (none found); the CPU benchmark is bench/rollout_kv_cache.py")
     if args.sdpa_probe:
         sdpa_probe()
         return
+    if args.flex_probe:
+        flex_probe(dev, preset_name)
+        return
+    backends = args.attention.split(",")
+    for b in backends:
+        if b not in ("sdpa", "flex"):
+            raise SystemExit(f"--attention: unknown backend {b!r} (sdpa, flex)")
 
     from training.models.config import preset
     from training.models.dit import WorldModel
     from training.sampling.guidance import guidance_preset
     from training.sampling.rollout import Condition, RolloutConfig, rollout
 
-    dev = torch.device("cuda")
-    cfg = preset("cogvideox-2b")
+    cfg = preset(preset_name)
     torch.manual_seed(0)
     with dev:
         model = WorldModel(cfg)
@@ -66,35 +88,67 @@ def main() -> None:
     text = torch.randn(1, cfg.max_text_seq_length, cfg.text_embed_dim, generator=g).to(dev, torch.bfloat16)
     cond = Condition(text=text, null_text=torch.zeros_like(text), trajectory=torch.randn(1, 8, 3).to(dev))
     tokens = (h // cfg.patch_size) * (w // cfg.patch_size)
-    print(f"device: {torch.cuda.get_device_name(0)}, torch {torch.__version__}; WorldModel cogvideox-2b size "
+    print(f"device: {_device_name(dev)}, torch {torch.__version__}; WorldModel {preset_name} size "
           f"({n_params / 1e9:.2f} B params, random, bf16); {args.height_px}x{args.width_px} px -> latents {h}x{w}, "
           f"{tokens} tokens/frame, 3 + 10 latent frames ({13 * tokens + cfg.max_text_seq_length} tokens), "
           f"{args.steps} steps, CFG batched (2 samples/forward), chunk {args.chunk}")
     results = {}
-    for mode in args.modes.split(","):
-        rc = RolloutConfig(num_steps=args.steps, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
-                           kv_cache=mode, guidance=guidance_preset("resim"))
-        warm = RolloutConfig(num_steps=2, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
-                             kv_cache=mode, guidance=guidance_preset("resim"))
-        rollout(model, hist, cond, 10, warm)               # warm-up (kernels, allocator, compile)
-        torch.cuda.synchronize()
-        torch.cuda.reset_peak_memory_stats()
-        best = float("inf")
-        for _ in range(args.repeats):
+    for backend in backends:
+        model.set_attention_backend(backend)
+        for mode in args.modes.split(","):
+            rc = RolloutConfig(num_steps=args.steps, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
+                               kv_cache=mode, guidance=guidance_preset("resim"))
+            warm = RolloutConfig(num_steps=2, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
+                                 kv_cache=mode, guidance=guidance_preset("resim"))
             t0 = time.perf_counter()
-            res = rollout(model, hist, cond, 10, rc, seed=0)
-            torch.cuda.synchronize()
-            best = min(best, time.perf_counter() - t0)
-        results[mode] = best
-        print(f"KV cache {mode:3s}: {best:7.2f} s per 4-s clip ({res.model_forwards} forwards, "
-              f"{best / res.model_forwards * 1e3:.0f} ms per forward, "
-              f"peak {torch.cuda.max_memory_allocated() / 2**30:.1f} GiB); vs ReSim's 120 s on an A100: "
-              f"{120 / best:.1f}x; target 20 s: {'met' if best <= 20 else 'NOT met'}")
-    if "on" in results and "off" in results:
-        print(f"KV cache speed-up: {results['off'] / results['on']:.2f}x")
+            rollout(model, hist, cond, 10, warm)               # warm-up (kernels, allocator, compile)
+            _sync(dev)
+            warm_s = time.perf_counter() - t0
+            if dev.type == "cuda":
+                torch.cuda.reset_peak_memory_stats()
+            best = float("inf")
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                res = rollout(model, hist, cond, 10, rc, seed=0)
+                _sync(dev)
+                best = min(best, time.perf_counter() - t0)
+            results[(backend, mode)] = (best, res.latents.float())
+            print(f"attention {backend:4s}, KV cache {mode:3s}: {best:7.2f} s per 4-s clip ({res.model_forwards} "
+                  f"forwards, {best / res.model_forwards * 1e3:.0f} ms per forward, "
+                  f"peak {_peak_gib(dev):.1f} GiB; 2-step warm-up {warm_s:.1f} s); "
+                  f"vs ReSim's 120 s on an A100: {120 / best:.1f}x; target 20 s: {'met' if best <= 20 else 'NOT met'}",
+                  flush=True)
+    for backend in backends:
+        if (backend, "on") in results and (backend, "off") in results:
+            print(f"attention {backend}: KV cache speed-up {results[(backend, 'off')][0] / results[(backend, 'on')][0]:.2f}x")
+    for mode in args.modes.split(","):
+        if ("sdpa", mode) in results and ("flex", mode) in results:
+            (ts, ls), (tf, lf) = results[("sdpa", mode)], results[("flex", mode)]
+            print(f"KV cache {mode}: flex speed-up over sdpa {ts / tf:.2f}x (same process); final latents "
+                  f"max |flex - sdpa| = {(lf - ls).abs().max().item():.3g} (max |sdpa| {ls.abs().max().item():.3g}; "
+                  f"bf16, {args.steps} steps of random weights: rounding differences grow, not a correctness test)")
 
 
-def _cuda_ms(fn, iters: int = 3) -> float:
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _peak_gib(dev: torch.device) -> float:
+    return torch.cuda.max_memory_allocated() / 2**30 if dev.type == "cuda" else float("nan")
+
+
+def _device_name(dev: torch.device) -> str:
+    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU (smoke run)"
+
+
+def _cuda_ms(fn, iters: int = 3, dev: torch.device | None = None) -> float:
+    if dev is not None and dev.type != "cuda":             # smoke runs: wall clock
+        fn()
+        t0 = time.perf_counter()
+        for _ in range(iters):
+            fn()
+        return (time.perf_counter() - t0) / iters * 1e3
     fn()                                                   # warm-up (and eligibility check)
     torch.cuda.synchronize()
     start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
@@ -213,6 +267,59 @@ def _flex_probe(q, k, v, mask, text_len: int, n: int, nf: int, base: float) -> N
     except Exception as e:                                  # report, do not hide: the probe is diagnostic
         print(f"  flex_attention: failed ({type(e).__name__}: {str(e).strip().splitlines()[0][:160] if str(e).strip() else ''})",
               flush=True)
+
+
+def flex_probe(dev: torch.device, preset_name: str = "cogvideox-2b") -> None:
+    """The model's ``Attention`` module (30 heads x 64, bf16, batch 2) with the mask each backend builds:
+    the dense bool mask (sdpa) vs the cached ``BlockMask`` (flex, ``training.models.flex``'s compiled call), for
+    the uncached ReSim geometry and the cached one (10 new frames against text + 13 frames), at 256x448 and
+    512x896. The flex path compiles static for its first shape, then once with dynamic lengths (torch's
+    default), so every row after the first times the dynamic-shape kernel (compare: the static compile in
+    ``--sdpa-probe``)."""
+    import torch.nn.functional as F
+
+    from training.models.attention import Attention, block_causal_block_mask, block_causal_mask
+    from training.models.config import preset
+    from training.models.flex import flex_block_attention
+
+    cfg = preset(preset_name)
+    torch.manual_seed(0)
+    attn = Attention(cfg.hidden_dim, cfg.num_attention_heads, cfg.attention_head_dim).to(dev, torch.bfloat16)
+    p, L, b, h, d = cfg.patch_size, cfg.max_text_seq_length, 2, cfg.num_attention_heads, cfg.attention_head_dim
+    print(f"device: {_device_name(dev)}, torch {torch.__version__}", flush=True)
+    for hp, wp in ((256, 448), (512, 896)) if dev.type == "cuda" else ((32, 48),):
+        n = (hp // 8 // p) * (wp // 8 // p)
+        for name, nf, prefix, text_q in (("uncached 13 frames", 13, 0, True), ("cached: 10 new vs 3 + text", 10, 3, False)):
+            s_q = (L if text_q else 0) + nf * n
+            s_k = L + (prefix + nf) * n
+            x = torch.randn(b, s_q, cfg.hidden_dim, device=dev, dtype=torch.bfloat16)
+            past = None if text_q else tuple(torch.randn(b, h, s_k - s_q, d, device=dev, dtype=torch.bfloat16)
+                                             for _ in range(2))
+            dense = block_causal_mask(L, n, nf, prefix, text_q, device=dev)
+            t0 = time.perf_counter()
+            bm = block_causal_block_mask(L, n, nf, prefix, text_q, device=dev)
+            _sync(dev)
+            build_ms = (time.perf_counter() - t0) * 1e3
+            with torch.no_grad():
+                ref = attn(x, mask=dense, past_kv=past)[0]
+                t0 = time.perf_counter()
+                out = attn(x, mask=bm, past_kv=past)[0]
+                _sync(dev)
+                first_s = time.perf_counter() - t0
+                err = (out.float() - ref.float()).abs().max().item()
+                ms_sdpa = _cuda_ms(lambda: attn(x, mask=dense, past_kv=past), dev=dev)
+                ms_flex = _cuda_ms(lambda: attn(x, mask=bm, past_kv=past), dev=dev)
+                q, k, v = (torch.randn(b, h, s, d, device=dev, dtype=torch.bfloat16) for s in (s_q, s_k, s_k))
+                ms_k_sdpa = _cuda_ms(lambda: F.scaled_dot_product_attention(q, k, v, attn_mask=dense), dev=dev)
+                ms_k_flex = _cuda_ms(lambda: flex_block_attention(q, k, v, bm), dev=dev)
+            print(f"  {hp}x{wp} {name:27s} S_q {s_q:6d} S_k {s_k:6d}: module sdpa(bool mask) {ms_sdpa:7.2f} ms, "
+                  f"module flex {ms_flex:7.2f} ms (x{ms_sdpa / ms_flex:.2f}; first call {first_s:.1f} s, BlockMask "
+                  f"build {build_ms:.0f} ms, sparsity {bm.sparsity():.1f} %); attention call alone: sdpa {ms_k_sdpa:7.2f} "
+                  f"ms, flex {ms_k_flex:7.2f} ms (x{ms_k_sdpa / ms_k_flex:.2f}); max |flex - sdpa| {err:.2e}",
+                  flush=True)
+            del x, past, dense, q, k, v
+            if dev.type == "cuda":
+                torch.cuda.empty_cache()
 
 
 if __name__ == "__main__":

@@ -9,7 +9,12 @@ with bf16 params / fp32 reduction, in a one-rank process group), and times full 
 peak bf16 FLOP/s. An out-of-memory configuration is reported as such, not skipped silently.
 
     PYTHONPATH=. python bench/train_mfu.py [--batch 1] [--steps 6] [--peak-tflops 989] [--sizes 32x56,64x112]
-                                           [--ac off,on] [--profile] [--json FILE]
+                                           [--ac off,on] [--attention sdpa,flex] [--profile] [--json FILE]
+
+``--attention``: the model's attention backend(s) for the block-causal mask (``attention_backend`` override:
+``sdpa`` = SDPA with the boolean mask, ``flex`` = flex_attention with a BlockMask, compiled; the compile happens
+in the 2 warm-up steps). The FLOP count is the same for both (all S^2 scores, although flex skips ~45 % of the
+tiles), so their MFU ratio is their step-time ratio.
 
 ``--profile``: one extra (untimed) step per configuration under torch.profiler, printing the GPU time shares
 (attention / matmul / other) and the top kernels. Results (H100, 2026-11-24): docs/benchmarks.md, "GPU".
@@ -64,14 +69,15 @@ def _profile_step(step_fn) -> None:
         print(f"      {t / 1e3:8.1f} ms  {k[:120]}")
 
 
-def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: bool = False) -> dict:
+def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: bool = False,
+            attention: str = "sdpa") -> dict:
     from training.distributed import wrap_model
     from training.world import build_world
 
     torch.manual_seed(0)
     # built on the GPU (random init there; a 1.7B-parameter fp32 init on the CPU only costs start-up time)
-    model = build_world({"preset": "cogvideox-2b", "objective": {"noise_mode": "resim_cond_aug",
-                                                                 "num_history_frames": 3}}, device=env.device)
+    model = build_world({"preset": "cogvideox-2b", "overrides": {"attention_backend": attention},
+                         "objective": {"noise_mode": "resim_cond_aug", "num_history_frames": 3}}, device=env.device)
     lm, layout = wrap_model(model, env, parallel="fsdp", activation_checkpointing=ac, bf16_params=True)
     opt = torch.optim.AdamW([p for p in lm.parameters() if p.requires_grad], lr=1e-5, foreach=True)
     data = synthetic_batch(batch, hw, env.device)
@@ -87,17 +93,21 @@ def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: boo
         opt.zero_grad(set_to_none=True)
 
     torch.cuda.reset_peak_memory_stats()
-    for i in range(steps + 2):  # 2 warm-up steps
+    warm_s = 0.0
+    for i in range(steps + 2):  # 2 warm-up steps (flex: its kernels compile here)
         torch.cuda.synchronize()
         t = time.perf_counter()
         step_fn()
         torch.cuda.synchronize()
         if i >= 2:
             times.append(time.perf_counter() - t)
+        else:
+            warm_s += time.perf_counter() - t
     if profile:
         _profile_step(step_fn)
     step = sorted(times)[len(times) // 2]
-    return {"latent_hw": hw, "activation_checkpointing": ac, "batch": batch, "step_s": step,
+    return {"latent_hw": hw, "activation_checkpointing": ac, "attention": attention, "warmup_s": warm_s,
+            "batch": batch, "step_s": step,
             "samples_per_s": batch / step, "tokens_per_s": model.tokens_per_sample(data) * batch / step,
             "tflops_per_s": flops / step / 1e12, "mfu": flops / step / (peak * 1e12),
             "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30, "layout": layout, "times": times,
@@ -112,6 +122,7 @@ def main() -> None:
     ap.add_argument("--json", help="also write the results here")
     ap.add_argument("--sizes", default="32x56,64x112", help="latent h x w, comma-separated (pixels / 8)")
     ap.add_argument("--ac", default="off,on", help="activation checkpointing settings to run")
+    ap.add_argument("--attention", default="sdpa", help="attention backend(s) to run: sdpa, flex or sdpa,flex")
     ap.add_argument("--profile", action="store_true", help="profile one extra step per config (not timed)")
     args = ap.parse_args()
     if not torch.cuda.is_available():
@@ -121,31 +132,45 @@ def main() -> None:
     env = init_distributed(force_group=True)
     torch.backends.cuda.matmul.allow_tf32 = True
     print(f"device: {torch.cuda.get_device_name()} ; torch {torch.__version__}; peak {args.peak_tflops} TFLOP/s bf16")
+    backends = args.attention.split(",")
+    for b in backends:
+        if b not in ("sdpa", "flex"):
+            raise SystemExit(f"--attention: unknown backend {b!r} (sdpa, flex)")
     results = []
     for hw in [tuple(map(int, s.split("x"))) for s in args.sizes.split(",")]:
         for ac in [{"off": False, "on": True}[a] for a in args.ac.split(",")]:
-            try:
-                r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env, args.profile)
-            except torch.OutOfMemoryError:
-                r = {"latent_hw": hw, "activation_checkpointing": ac, "batch": args.batch, "oom": True,
-                     "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30}
-            gc.collect()              # FSDP2 hooks keep module cycles: free the model before the next config
-            torch.cuda.empty_cache()
-            results.append(r)
-            px = f"{hw[0] * 8}x{hw[1] * 8}"
-            if r.get("oom"):
-                print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: out of memory "
-                      f"(peak {r['max_mem_gib']:.1f} GiB allocated before the failure)", flush=True)
-            else:
-                print(f"{px:>8s} AC {'on ' if ac else 'off'} batch {args.batch}: step {r['step_s']:.3f} s, "
-                      f"{r['tokens_per_s']:,.0f} tokens/s, {r['tflops_per_s']:.0f} TFLOP/s, MFU {r['mfu']:.1%}, "
-                      f"max mem {r['max_mem_gib']:.1f} GiB; step times {[round(x, 3) for x in r['times']]}; "
-                      f"{r['layout']}", flush=True)
-    for hw in {tuple(r["latent_hw"]) for r in results}:
-        by_ac = {r["activation_checkpointing"]: r for r in results if tuple(r["latent_hw"]) == hw and not r.get("oom")}
-        if True in by_ac and False in by_ac:
-            print(f"{hw[0] * 8}x{hw[1] * 8}: step time AC on / AC off = "
-                  f"{by_ac[True]['step_s'] / by_ac[False]['step_s']:.2f}x (same process)")
+            for attention in backends:
+                try:
+                    r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env, args.profile, attention)
+                except torch.OutOfMemoryError:
+                    r = {"latent_hw": hw, "activation_checkpointing": ac, "attention": attention, "batch": args.batch,
+                         "oom": True, "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30}
+                gc.collect()              # FSDP2 hooks keep module cycles: free the model before the next config
+                torch.cuda.empty_cache()
+                results.append(r)
+                px = f"{hw[0] * 8}x{hw[1] * 8}"
+                head = f"{px:>8s} AC {'on ' if ac else 'off'} attention {attention:4s} batch {args.batch}"
+                if r.get("oom"):
+                    print(f"{head}: out of memory (peak {r['max_mem_gib']:.1f} GiB allocated before the failure)",
+                          flush=True)
+                else:
+                    print(f"{head}: step {r['step_s']:.3f} s, {r['tokens_per_s']:,.0f} tokens/s, "
+                          f"{r['tflops_per_s']:.0f} TFLOP/s, MFU {r['mfu']:.1%}, max mem {r['max_mem_gib']:.1f} GiB; "
+                          f"step times {[round(x, 3) for x in r['times']]}; 2 warm-up steps {r['warmup_s']:.1f} s; "
+                          f"{r['layout']}", flush=True)
+    ok = [r for r in results if not r.get("oom")]
+    for hw in {tuple(r["latent_hw"]) for r in ok}:
+        for attention in backends:
+            by_ac = {r["activation_checkpointing"]: r for r in ok
+                     if tuple(r["latent_hw"]) == hw and r["attention"] == attention}
+            if True in by_ac and False in by_ac:
+                print(f"{hw[0] * 8}x{hw[1] * 8} attention {attention}: step time AC on / AC off = "
+                      f"{by_ac[True]['step_s'] / by_ac[False]['step_s']:.2f}x (same process)")
+        for ac in (False, True):
+            by_att = {r["attention"]: r for r in ok if tuple(r["latent_hw"]) == hw and r["activation_checkpointing"] == ac}
+            if "sdpa" in by_att and "flex" in by_att:
+                print(f"{hw[0] * 8}x{hw[1] * 8} AC {'on' if ac else 'off'}: step time sdpa / flex = "
+                      f"{by_att['sdpa']['step_s'] / by_att['flex']['step_s']:.2f}x (same process)")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)

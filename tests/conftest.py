@@ -25,3 +25,19 @@ def shared_dir() -> Path:
     if not SHARED.is_dir():
         pytest.skip("../shared is absent (a user's clone has none); this test reads real data from it")
     return SHARED
+
+
+def pytest_collection_modifyitems(config, items):
+    """``@pytest.mark.gpu`` tests skip where no CUDA GPU is visible (the marker alone skips nothing).
+
+    torch is imported only when a collected test carries the marker: most suites here never need it."""
+    gpu_items = [item for item in items if item.get_closest_marker("gpu") is not None]
+    if not gpu_items:
+        return
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU (none visible)")
+    for item in gpu_items:
+        item.add_marker(skip)

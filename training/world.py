@@ -64,7 +64,8 @@ class TrainableWorldModel(WorldModel):
     def flops_per_sample(self, batch: Any = None, latent_thw: tuple[int, int, int] | None = None) -> float:
         """Training FLOPs of one sample (forward + backward = 3 x forward; recompute not counted, as MFU
         conventionally excludes it): 6 x per-token block params x tokens + 6 x AdaLN modulation params x (T + 1)
-        + attention 12 x layers x S^2 x d (all S^2 scores: the CUDA kernels compute every tile with our mask).
+        + attention 12 x layers x S^2 x d (all S^2 scores: SDPA's cuDNN kernel computes every tile with our mask;
+        the flex backend skips ~45 % of them, but the count is kept the same so that MFU compares step times).
 
         The modulation linears (``norm1.linear``/``norm2.linear`` of each block: 21 % of CogVideoX-2B's block
         parameters) run once per frame embedding (T rows) and once on the text embedding, not once per token;

@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.nn.attention.flex_attention import BlockMask
 
 from training.models.attention import Attention
 
@@ -77,9 +78,10 @@ class DiTBlock(nn.Module):
         self.ff = FeedForward(dim)
 
     def forward(self, video: torch.Tensor, text: torch.Tensor | None, temb_frames: torch.Tensor,
-                temb_text: torch.Tensor | None, mask: torch.Tensor | None,
+                temb_text: torch.Tensor | None, mask: torch.Tensor | BlockMask | None,
                 past_kv: tuple[torch.Tensor, torch.Tensor] | None = None, return_kv: bool = False):
-        """video (B, T*n, D); text (B, L, D), or None when the text lives in ``past_kv`` (cached sampling).
+        """video (B, T*n, D); text (B, L, D), or None when the text lives in ``past_kv`` (cached sampling);
+        ``mask``: the block-causal mask as a bool tensor (SDPA) or a ``BlockMask`` (flex), see attention.py.
 
         Returns (video, text or None, (k, v) over [past | text | video] if ``return_kv`` else None). Every
         returned tensor has its own storage (no views): blocks are FSDP2 units, and FSDP2 warns that an

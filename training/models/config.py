@@ -28,6 +28,8 @@ _UNSUPPORTED = {  # key: the only value we support (CogVideoX-2B's); others woul
     "use_learned_positional_embeddings": False,
 }
 
+ATTENTION_BACKENDS = ("sdpa", "flex")
+
 
 @dataclass
 class TrajectoryEncoderConfig:
@@ -101,6 +103,12 @@ class WorldModelConfig:
     trajectory: TrajectoryEncoderConfig = field(default_factory=TrajectoryEncoderConfig)
     actions: ActionConfig = field(default_factory=ActionConfig)
     gradient_checkpointing: bool = False
+    # kernel for the block-causal mask (attention.py, flex.py): "sdpa" = F.scaled_dot_product_attention with a
+    # boolean (S, S) mask (cuDNN attention on an H100, every tile computed); "flex" = flex_attention with a
+    # BlockMask that skips fully masked tiles (compiled on CUDA; eager and slower than sdpa on CPU). Outputs
+    # agree up to rounding, weights are the same: a model can be trained with one and sampled with the other
+    # (WorldModel.set_attention_backend). Unmasked attention (causal=False) always runs SDPA.
+    attention_backend: Literal["sdpa", "flex"] = "sdpa"
 
     def __post_init__(self) -> None:
         if self.activation_fn != "gelu-approximate" or self.timestep_activation_fn != "silu":
@@ -110,6 +118,8 @@ class WorldModelConfig:
             raise ConfigError("hidden size (heads * head_dim) must be divisible by 16 for 3D sin-cos positions")
         if not 0 <= self.text_timestep_value <= 999:
             raise ConfigError(f"text_timestep_value={self.text_timestep_value} not in [0, 999]")
+        if self.attention_backend not in ATTENTION_BACKENDS:
+            raise ConfigError(f"attention_backend={self.attention_backend!r} is not one of {ATTENTION_BACKENDS}")
         if self.causal and self.text_timestep == "max":
             raise ConfigError("text_timestep='max' with causal=True would make every frame depend on the "
                               "noise level of later frames; use 'fixed' (or 'auto')")

@@ -30,10 +30,10 @@ import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from training.models.attention import KVCache, block_causal_mask
+from training.models.attention import KVCache, block_causal_block_mask, block_causal_mask
 from training.models.blocks import DiTBlock
 from training.models.conditioning import ActionEncoder, TrajectoryEncoder
-from training.models.config import WorldModelConfig
+from training.models.config import ATTENTION_BACKENDS, WorldModelConfig
 from training.models.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
 
 NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.")
@@ -108,6 +108,17 @@ class WorldModel(nn.Module):
             raise ValueError(f"CogVideoX weights do not fit this config: missing={missing[:8]} "
                              f"unexpected={unexpected[:8]} shape mismatches={bad_shape[:8]}")
         self.load_state_dict(state, strict=False)
+
+    def set_attention_backend(self, backend: str) -> None:
+        """Switch the kernel used for the block-causal mask: ``"sdpa"`` or ``"flex"`` (see ``config.py``).
+
+        Weights are unaffected and outputs agree up to rounding, so e.g. a checkpoint trained with ``"sdpa"``
+        can be sampled with ``"flex"``. Takes effect at the next forward.
+        """
+        from resim.config import ConfigError
+        if backend not in ATTENTION_BACKENDS:
+            raise ConfigError(f"attention_backend={backend!r} is not one of {ATTENTION_BACKENDS}")
+        self.cfg.attention_backend = backend
 
     def new_parameters(self) -> list[nn.Parameter]:
         """Parameters of the modules that CogVideoX does not have (trajectory and action encoders)."""
@@ -191,7 +202,9 @@ class WorldModel(nn.Module):
             txt, temb_text, text_len = None, None, kv_cache.text_len
         mask = None
         if cfg.causal:
-            mask = block_causal_mask(text_len, n, nf, prefix, with_text_queries=kv_cache is None, device=x.device)
+            # one mask per forward, shared by every layer; the flex BlockMask is also cached across forwards
+            build = block_causal_block_mask if cfg.attention_backend == "flex" else block_causal_mask
+            mask = build(text_len, n, nf, prefix, with_text_queries=kv_cache is None, device=x.device)
 
         # --- blocks
         keys, values = [], []
