@@ -104,6 +104,10 @@ PRESETS: dict[str, dict] = {
     # DIS medium: about 3x the flow cost of the default (4.5 vs 1.5 ms per 256 px pair), median yaw error
     # 0.94 vs 1.16 deg on the synthetic world (docs/labeling.md)
     "accurate": {"flow": {"flow_preset": "medium", "dis_finest_scale": None, "irls_iters": 3, "foe_iters": 6}},
+    # throughput: 160 px working width (DIS at 80x45 instead of 128x72) and one rotation-only IRLS step;
+    # about half the labeler's own CPU per frame, median yaw error ~0.3-0.5 deg worse on the synthetic
+    # world, command accuracy about the same (docs/labeling.md, bench/label_throughput.py)
+    "fast": {"flow": {"work_width_px": 160, "grid_step_px": 4, "irls_iters": 1}},
 }
 
 

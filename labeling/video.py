@@ -5,11 +5,12 @@ Two decoder paths (``decoder="auto"`` takes PyAV when it is installed):
 * **PyAV** (FFmpeg's own API): the 8-bit luma plane is read straight from the decoded
   frame (no colour conversion), and, where the stream has non-reference
   frames (B-frames) and skipping them still leaves at least ``sample_hz`` frames per
-  second (checked on the first 2 s), they are not decoded at all (``skip_frame=NONREF``:
+  second (checked on the first 2 s of the same decode), they are not decoded at all (``skip_frame=NONREF``:
   ~40 % less decode time on x264's default stream; the frames that are decoded are
   bit-identical). Skipping the deblocking filter too (``skip_loop_filter=all``) saved
   another ~15 % but moved the yaw of the straight real clip by 3 deg over 9 s (block
-  edges fixed in the image pull flow to zero), so it is not done. Samples are then the first decoded
+  edges fixed in the image pull flow to zero), so it is not done; on B-frames only
+  (``bidir``, -10 %) it still moved 4 s windows by up to 0.9 deg on the real clips. Samples are then the first decoded
   frame at or after each tick (at most one source frame late); the labeler's window sums
   of per-pair yaw do not need evenly spaced samples.
 * **OpenCV**: every frame must pass through the decoder (``grab``), but only the frames
@@ -118,13 +119,15 @@ def _luma_plane_ok(path: str, h: int, w: int) -> bool:
 
 def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
                       info: VideoInfo | None = None, use_luma: bool = True,
-                      decoder: str = "auto") -> Iterator[tuple[float, np.ndarray]]:
+                      decoder: str = "auto", stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (t_s, grey uint8 at working width, square pixels) for frames sampled at ``sample_hz``.
 
     Frames are taken at the first decoded frame at or after each tick k / sample_hz (all
     frames when the video is slower than ``sample_hz``). Raises VideoError on undecodable input.
-    ``decoder``: "auto" (PyAV if installed, else OpenCV), "pyav", "opencv".
+    ``decoder``: "auto" (PyAV if installed, else OpenCV), "pyav", "opencv". ``stats``, if given, is
+    filled with ``decoder``, ``frames_decoded`` and ``nonref_skipped`` (PyAV skipped non-reference frames).
     """
+    stats = {} if stats is None else stats
     info = info or probe(path)
     if decoder not in ("auto", "pyav", "opencv"):
         raise ValueError(f"decoder must be auto, pyav or opencv, got {decoder!r}")
@@ -135,9 +138,11 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
             if decoder == "pyav":
                 raise VideoError(info.path, "decoder='pyav' but PyAV is not installed (pip install av)") from None
         else:
-            yield from _iter_pyav(info, sample_hz, work_width_px)
+            stats["decoder"] = "pyav"
+            yield from _iter_pyav(info, sample_hz, work_width_px, stats=stats)
             return
-    yield from _iter_opencv(info, sample_hz, work_width_px, use_luma)
+    stats.update(decoder="opencv", nonref_skipped=False)
+    yield from _iter_opencv(info, sample_hz, work_width_px, use_luma, stats)
 
 
 def _av_open(path: str, skip_nonref: bool):
@@ -160,47 +165,36 @@ def _luma(frame) -> np.ndarray:
     return frame.to_ndarray(format="gray")
 
 
-def _nonref_skip_ok(path: str, fps: float, sample_hz: float, probe_s: float = 2.0) -> bool:
-    """True when decoding only reference frames still leaves a frame at least every 1 / sample_hz s."""
+class _RefsTooSparse(Exception):
+    """Reference frames alone leave a gap longer than one sampling period (raised while probing)."""
+
+
+def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_nonref: bool,
+                  probe_s: float, stats: dict) -> Iterator[tuple[float, np.ndarray]]:
+    """One decode: yield (t_s, grey) at the first decoded frame at or after each tick.
+
+    With ``skip_nonref``, raises ``_RefsTooSparse`` if, within the first ``probe_s`` seconds, two
+    decoded frames are further apart than 1 / sample_hz (+ a quarter frame of slack).
+    """
     import av
 
-    if fps < 1.5 * sample_hz:
-        return False
     try:
-        c, s = _av_open(path, skip_nonref=True)
-    except av.error.FFmpegError:
-        return False
-    times = []
-    try:
-        for fr in c.decode(s):
-            times.append(fr.time if fr.time is not None else len(times) / fps)
-            if times[-1] - times[0] >= probe_s:
-                break
-    except av.error.FFmpegError:
-        return False
-    finally:
-        c.close()
-    if len(times) < 2:
-        return False
-    return float(np.max(np.diff(times))) <= 1.0 / sample_hz + 0.25 / fps
-
-
-def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int) -> Iterator[tuple[float, np.ndarray]]:
-    import av
-
-    skip = _nonref_skip_ok(info.path, info.fps_hz, sample_hz)
-    try:
-        c, s = _av_open(info.path, skip_nonref=skip)
+        c, s = _av_open(info.path, skip_nonref=skip_nonref)
     except av.error.FFmpegError as e:
         raise VideoError(info.path, f"PyAV/FFmpeg cannot open it ({e})") from None
     period, half = 1.0 / sample_hz, 0.5 / info.fps_hz
-    nxt, n, t0 = 0.0, 0, None
+    max_gap = period + 0.25 / info.fps_hz
+    nxt, n, t0, prev = 0.0, 0, None, None
     try:
         for fr in c.decode(s):
             t = fr.time if fr.time is not None else n / info.fps_hz
             t0 = t if t0 is None else t0
             t -= t0                                  # times from the first decoded frame
             n += 1
+            stats["frames_decoded"] = n
+            if skip_nonref and prev is not None and t - prev > max_gap and prev < probe_s:
+                raise _RefsTooSparse
+            prev = t
             if t + half < nxt:
                 continue
             yield t, prepare_frame(_luma(fr), work_width_px, info.pixel_aspect)
@@ -214,8 +208,39 @@ def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int) -> Iterato
         raise VideoError(info.path, "no decodable video frame")
 
 
+def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: float = 2.0,
+               stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """PyAV path: non-reference frames are skipped where reference frames alone still come at least
+    every 1 / sample_hz s. That is checked on the first ``probe_s`` of the same decode, not by a second
+    pass (which cost ~6 % of labeling a 30-s clip): the samples of that stretch are held back until it
+    passes, and where it fails the decode restarts with every frame (nothing has been yielded yet)."""
+    stats = {} if stats is None else stats
+    stats.update(nonref_skipped=False, frames_decoded=0)
+    if info.fps_hz >= 1.5 * sample_hz:
+        held: list[tuple[float, np.ndarray]] = []
+        gen = _pyav_samples(info, sample_hz, work_width_px, True, probe_s, stats)
+        try:
+            for t, g in gen:
+                if t < probe_s:
+                    held.append((t, g))
+                    continue
+                stats["nonref_skipped"] = True
+                yield from held
+                held = []
+                yield t, g
+                yield from gen
+                return
+        except _RefsTooSparse:
+            gen.close()
+        else:                                        # a video shorter than probe_s that passed
+            stats["nonref_skipped"] = True
+            yield from held
+            return
+    yield from _pyav_samples(info, sample_hz, work_width_px, False, probe_s, stats)
+
+
 def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
-                 use_luma: bool) -> Iterator[tuple[float, np.ndarray]]:
+                 use_luma: bool, stats: dict) -> Iterator[tuple[float, np.ndarray]]:
     luma = use_luma and _luma_plane_ok(info.path, info.height_px, info.width_px)
     prev_level = cv2.utils.logging.getLogLevel()
     if luma:
@@ -230,6 +255,7 @@ def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
         while cap.grab():
             t = i / info.fps_hz
             i += 1
+            stats["frames_decoded"] = i
             if t + half < nxt:
                 continue
             ok, img = cap.retrieve()

@@ -30,6 +30,7 @@ class VideoLabels:
     yaw_inc_deg: np.ndarray   # (S-1,) yaw change per sample pair, degrees, left +
     quality: np.ndarray       # (S-1,) per-pair share of grid points kept
     windows: list[WindowLabel]
+    decode: dict              # decoder, frames_decoded, nonref_skipped (labeling/video.py)
 
 
 def window_starts(duration_s: float, window_s: float, stride_s: float, tol_s: float) -> list[tuple[float, float]]:
@@ -55,9 +56,10 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     info = probe(path)
     fc = cfg.flow
     times: list[float] = []
+    stats: dict = {}
 
     def greys():
-        for t, g in iter_grey_samples(path, fc.sample_hz, fc.work_width_px, info, decoder=fc.decoder):
+        for t, g in iter_grey_samples(path, fc.sample_hz, fc.work_width_px, info, decoder=fc.decoder, stats=stats):
             times.append(t)
             yield g
 
@@ -77,4 +79,4 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
         cmd, conf = command_from_yaw(yaw, cfg.command)
         q = window_quality(quality[sel])
         windows.append(WindowLabel(round(s, 3), round(min(e, float(t[-1])), 3), cmd, yaw, conf * q, q))
-    return VideoLabels(info, eff_hz, t, inc, quality, windows)
+    return VideoLabels(info, eff_hz, t, inc, quality, windows, stats)

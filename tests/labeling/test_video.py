@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from labeling.config import FlowConfig, LabelerConfig
-from labeling.video import _nonref_skip_ok, iter_grey_samples, probe
+from labeling.video import iter_grey_samples, probe
 from labeling.windows import label_video
 
 pytest.importorskip("av")
@@ -30,14 +30,33 @@ def h264_30fps(tmp_path_factory, render):
 def test_pyav_skips_nonreference_frames_and_keeps_the_samples(h264_30fps):
     path, _ = h264_30fps
     info = probe(path)
-    assert _nonref_skip_ok(str(path), info.fps_hz, 10.0)          # x264 with B-frames: refs every <= 0.1 s
-    assert not _nonref_skip_ok(str(path), info.fps_hz, 20.0)      # ... but not every 0.05 s
-    t_av = np.array([t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="pyav")])
-    t_cv = np.array([t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="opencv")])
+    st10, st20, stcv = {}, {}, {}
+    t_av = np.array([t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="pyav", stats=st10)])
+    t_cv = np.array([t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="opencv", stats=stcv)])
+    # x264 with B-frames: reference frames come every <= 0.1 s, so the non-reference ones are not decoded
+    assert st10["nonref_skipped"] and st10["frames_decoded"] < 0.8 * stcv["frames_decoded"], (st10, stcv)
+    assert stcv["frames_decoded"] == 91 and not stcv["nonref_skipped"]
     assert abs(len(t_av) - len(t_cv)) <= 1
     n = min(len(t_av), len(t_cv))
     assert np.all(np.abs(t_av[:n] - t_cv[:n]) <= 1 / 30 + 1e-6)   # at most one source frame later
     assert np.all(np.diff(t_av) <= 0.1 + 1 / 30 + 1e-6)
+    # ... but not every 0.05 s: at 20 Hz the reader finds that out in the same decode and restarts with
+    # every frame; nothing from the aborted pass may leak into the output
+    t20 = np.array([t for t, _ in iter_grey_samples(path, 20.0, 128, info, decoder="pyav", stats=st20)])
+    assert not st20["nonref_skipped"] and st20["frames_decoded"] == 91, st20
+    assert np.all(np.diff(t20) > 0) and np.all(np.diff(t20) <= 0.05 + 1 / 30 + 1e-6)
+    assert len(t20) >= 2 * len(t_av) - 2
+
+
+def test_pyav_probe_on_a_clip_shorter_than_the_probe(h264_30fps):
+    path, _ = h264_30fps
+    info = probe(path)
+    st = {}
+    # probe window longer than the 3-s clip: the held-back samples must still all come out, once
+    from labeling.video import _iter_pyav
+    ts = [t for t, _ in _iter_pyav(info, 10.0, 128, probe_s=10.0, stats=st)]
+    ref = [t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="pyav")]
+    assert ts == ref and st["nonref_skipped"]
 
 
 def test_both_decoders_give_the_same_heading(h264_30fps):
