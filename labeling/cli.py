@@ -58,12 +58,14 @@ def _run(args: argparse.Namespace) -> int:
             print(f"{w.start_s:8.2f} {w.end_s:7.2f}  {w.command:<15} {w.yaw_deg:8.2f} {w.confidence:10.3f}")
     info = res.info
     full = [w for w in res.windows if w.end_s - w.start_s + 1e-6 >= args.window_s]
+    n_dec = res.decode.get("frames_decoded", 0)
+    skipped = " (non-reference frames not decoded)" if res.decode.get("nonref_skipped") and n_dec < info.num_frames - 1 else ""
     note = "" if full else f" (shorter than --window-s {args.window_s:g}: one short window)"
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
           f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
           f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {cfg.flow.hfov_deg:g} deg; {res.decode.get('decoder')} "
-          f"decoded {res.decode.get('frames_decoded', 0)} of {info.num_frames} frames"
-          f"{' (non-reference frames skipped)' if res.decode.get('nonref_skipped') else ''}", file=sys.stderr)
+          f"decoded {n_dec} of {info.num_frames} frames"
+          f"{skipped}", file=sys.stderr)
     return 0
 
 
