@@ -78,7 +78,8 @@ def decode_pyav(path: str, sample_hz: float) -> int:
 
     info = probe(path)
     n = 0
-    # work_width = full width: prepare_frame then only copies the luma plane (no resize)
+    # work_width = full width: prepare_frame hands back the decoder's luma plane as it is (no copy, no resize),
+    # so this is the decode of exactly the frames the labeler samples, and nothing else
     for _ in iter_grey_samples(path, sample_hz, info.width_px, info, decoder="pyav"):
         n += 1
     return n

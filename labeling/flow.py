@@ -65,6 +65,8 @@ def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1
     else:
         raise ValueError(f"frame must be (H, W, 3) or (H, W), got shape {frame.shape}")
     out_h = max(8, int(round(work_width_px * h / (w * pixel_aspect))))
+    if frame.ndim == 2 and (out_h, work_width_px) == (h, w):
+        return frame                     # already grey at the working size: no copy
     if w > 3 * work_width_px:
         frame = cv2.resize(frame, (2 * work_width_px, 2 * out_h), interpolation=cv2.INTER_LINEAR)
     small = cv2.resize(frame, (work_width_px, out_h), interpolation=cv2.INTER_AREA)
@@ -138,19 +140,20 @@ class FlowLabeler:
         # edge (or in flat regions) is ambiguous, so weak points get low weight.
         # (OpenCV normalises 8-bit input; sqrt(.)*1000 is ~ a gradient in grey levels per pixel)
         ev = cv2.cornerMinEigenVal(grey, 3, 3)
-        return np.sqrt(np.maximum(ev[rows, cols], 0.0)) * 1000.0
+        return np.sqrt(np.maximum(ev.ravel()[rows * grey.shape[1] + cols], 0.0)) * 1000.0
 
     def _pair(self, g0: np.ndarray, g1: np.ndarray, tex0: np.ndarray) -> _PairData:
         fc = self.flow_cfg
         h, w = g0.shape
         rows, cols = self._grid(h, w)
         flow = self._dis.calc(g0, g1, None)
-        uv = flow[rows, cols]
+        flat = rows * w + cols
+        uv = flow.reshape(-1, 2)[flat]
         u, v = uv[:, 0].astype(np.float64), uv[:, 1].astype(np.float64)
         # photometric check: g1 sampled where the flow says each grid point went must look like g0 there
         # (large motions near the bottom and occlusions fail it; DIS has no confidence output)
-        g1s = g1[np.clip(np.rint(rows + v), 0, h - 1).astype(np.intp), np.clip(np.rint(cols + u), 0, w - 1).astype(np.intp)]
-        photo = np.abs(g1s.astype(np.int16) - g0[rows, cols].astype(np.int16))
+        to = np.clip(np.rint(rows + v), 0, h - 1).astype(np.intp) * w + np.clip(np.rint(cols + u), 0, w - 1).astype(np.intp)
+        photo = np.abs(g1.ravel()[to].astype(np.int16) - g0.ravel()[flat].astype(np.int16))
         mag2 = u * u + v * v
         keep = ((tex0 >= fc.min_texture) & (mag2 >= fc.static_flow_px ** 2)
                 & (mag2 <= (fc.max_flow_frac * w) ** 2) & (photo <= fc.max_photo_err))
@@ -189,39 +192,46 @@ class FlowLabeler:
         fc = self.flow_cfg
         P, N = X.shape
         valid = W0 > 0
-        A, B, C = self._rot_fields(X, Y, f)
-        Ru = np.stack([A[0], B[0], C[0]], axis=-1)          # (P, N, 3)
-        Rv = np.stack([A[1], B[1], C[1]], axis=-1)
+        # the five design columns are kept as separate (P, N) arrays: stacking them as (P, N, 5) cost ~1.5x
+        # the time in temporaries (same numbers to 1e-16)
+        (Au, Av), (Bu, Bv), (Cu, Cv) = self._rot_fields(X, Y, f)     # yaw, pitch, roll fields
         e = np.broadcast_to(np.asarray(e0, np.float64), (P, 2)).copy()
+        e0a = np.asarray(e0, np.float64)
         theta = np.zeros((P, 3))
-        reg = np.diag([1e-6, 1e-6, 1e-6 / f ** 2, 0.0, 0.0]) * f * f
+        reg = np.array([1e-6, 1e-6, 1e-6 / f ** 2, 0.0, 0.0]) * f * f
+        diag = np.arange(5)
         pad = np.where(np.arange(N) % 2 == 0, 0.0, np.inf)[None, :]
         lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
         w = W0
         n_it = fc.irls_iters + fc.foe_iters
         for it in range(n_it):
             dx, dy = X - e[:, :1], Y - e[:, 1:]
-            r = np.maximum(np.hypot(dx, dy), 0.05 * f)
-            Mrot = (Ru * dy[..., None] - Rv * dx[..., None]) / r[..., None]
-            b = (U * dy - V * dx) / r
-            if it == 0:          # rotation only: no translation estimate to linearise the FOE around yet
-                M = np.concatenate([Mrot, np.zeros((P, N, 2))], axis=-1)
-            else:
-                Tu = U - (Ru @ theta[..., None])[..., 0]
-                Tv = V - (Rv @ theta[..., None])[..., 0]
-                M = np.concatenate([Mrot, np.stack([-Tv / r, Tu / r], axis=-1)], axis=-1)
-            MwT = (M * w[..., None]).transpose(0, 2, 1)                          # (P, 5, N)
-            sw = np.maximum(w.sum(1), 1.0)[:, None, None]
-            lam = fc.foe_prior * sw[:, 0, 0]
-            H = MwT @ M + reg * sw
+            ir = 1.0 / np.maximum(np.hypot(dx, dy), 0.05 * f)
+            dxr, dyr = dx * ir, dy * ir
+            cols = [Au * dyr - Av * dxr, Bu * dyr - Bv * dxr, Cu * dyr - Cv * dxr]    # cross(R, p - e) / |p - e|
+            b = U * dyr - V * dxr
+            if it > 0:           # the first step is rotation only: no translation to linearise the FOE around
+                Tu = U - (Au * theta[:, 0:1] + Bu * theta[:, 1:2] + Cu * theta[:, 2:3])
+                Tv = V - (Av * theta[:, 0:1] + Bv * theta[:, 1:2] + Cv * theta[:, 2:3])
+                cols += [-Tv * ir, Tu * ir]
+            k = len(cols)
+            H = np.zeros((P, 5, 5))
+            rhs = np.zeros((P, 5))
+            for i in range(k):
+                wc = cols[i] * w
+                rhs[:, i] = np.einsum("pn,pn->p", wc, b)
+                for j in range(i, k):
+                    H[:, i, j] = H[:, j, i] = np.einsum("pn,pn->p", wc, cols[j])
+            sw = np.maximum(w.sum(1), 1.0)
+            lam = fc.foe_prior * sw
+            H[:, diag, diag] += reg[None, :] * sw[:, None]
             H[:, 3, 3] += lam + 1e-12
             H[:, 4, 4] += lam + 1e-12
-            rhs = (MwT @ b[..., None])[..., 0]
-            rhs[:, 3:] += lam[:, None] * (np.asarray(e0) - e)
+            rhs[:, 3:] += lam[:, None] * (e0a - e)
             sol = np.linalg.solve(H, rhs[..., None])[..., 0]
             theta = sol[:, :3]
             info = H[:, 3, 3] - lam
-            res = b - (M @ sol[..., None])[..., 0]
+            res = b - sum(cols[i] * sol[:, i:i + 1] for i in range(k))
             if it > 0:
                 e = np.clip(e + sol[:, 3:], -lim, lim)
             # median |res| over the valid points of each pair: padding alternates 0 and +inf, which
