@@ -14,23 +14,15 @@ Results (H100, 2026-11-24): docs/benchmarks.md, "flex_attention backend".
 """
 import sys
 import time
+from pathlib import Path
 
 import torch
 from torch.nn.attention.flex_attention import flex_attention
 
 from training.models.attention import block_causal_block_mask
 
-
-def _ms(f, iters: int = 5) -> float:
-    f()
-    torch.cuda.synchronize()
-    s, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    s.record()
-    for _ in range(iters):
-        f()
-    e.record()
-    torch.cuda.synchronize()
-    return s.elapsed_time(e) / iters
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from rollout_gpu_cogvideox2b import _cuda_ms  # noqa: E402  (one CUDA-event timer for the bench scripts)
 
 
 def main() -> None:
@@ -52,7 +44,7 @@ def main() -> None:
             fn(q, k, v, block_mask=bm)
             torch.cuda.synchronize()
             first = time.perf_counter() - t0
-            print(f"{mode:7s} {name}: {_ms(lambda: fn(q, k, v, block_mask=bm)):.2f} ms (first call {first:.1f} s)",
+            print(f"{mode:7s} {name}: {_cuda_ms(lambda: fn(q, k, v, block_mask=bm), iters=5):.2f} ms (first call {first:.1f} s)",
                   flush=True)
 
 
