@@ -1,4 +1,5 @@
 """The flow yaw estimator on video rendered with a known yaw rate (tests/labeling/conftest.py)."""
+import cv2
 import numpy as np
 import pytest
 
@@ -89,3 +90,41 @@ def test_dark_low_contrast_video_is_equalised(render):
     raw = FlowLabeler(_cfg(contrast="none"))
     raw.yaw_rates_deg(dark, FPS)
     assert np.median(lab.last_quality) > 3 * np.median(raw.last_quality)
+
+
+def test_camera_roll_does_not_leak_into_yaw(render):
+    # body roll in and out of a turn: each frame rolled about the image centre (a pure rotation about the
+    # optical axis), +-2 deg; roll is the third rotation of the fit and is discarded
+    frames, poses = render(41, FPS, 10.0, speed_mps=6.0, seed=8)
+    h, w = frames.shape[1:3]
+    rolled = np.stack([
+        cv2.warpAffine(fr, cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), 2.0 * np.sin(2 * np.pi * k / 8), 1.0),
+                       (w, h), borderMode=cv2.BORDER_REPLICATE)
+        for k, fr in enumerate(frames)])
+    true = np.degrees(poses[-1, 2] - poses[0, 2])
+    plain = FlowLabeler(_cfg()).yaw_rates_deg(frames, FPS).sum() / FPS
+    est = FlowLabeler(_cfg()).yaw_rates_deg(rolled, FPS).sum() / FPS
+    assert abs(est - true) <= 0.06 * abs(true), (est, plain, true)
+    assert abs(est - plain) <= 0.03 * abs(true), (est, plain, true)
+
+
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/labeling.md): in a scene with little far texture a "
+                   "strongly textured object crossing below the horizon is taken for rotation (reads ~34 deg)")
+def test_crossing_vehicle_is_an_outlier(render):
+    # straight road; a textured box (a car crossing at an intersection) slides 4 px per frame across the
+    # lower middle of the image, ~7 % of it. Read as rotation it would be ~1.3 deg per pair, ~50 deg over the
+    # 4 s: the robust fit should ignore it, and today does not (strict xfail: this test fails loudly the day
+    # it passes, so the limitation note can go)
+    frames, poses = render(41, FPS, 0.0, speed_mps=6.0, seed=9)
+    frames = frames.copy()
+    h, w = frames.shape[1:3]
+    rng = np.random.default_rng(3)
+    box = cv2.GaussianBlur(rng.integers(0, 256, (40, 60), dtype=np.uint8), (0, 0), 1.0)
+    for k in range(len(frames)):
+        x0 = 20 + 4 * k
+        r0 = int(0.55 * h)
+        x1 = min(w, x0 + 60)
+        if x0 < w:
+            frames[k, r0:r0 + 40, x0:x1] = box[:, : x1 - x0, None]
+    est = FlowLabeler(_cfg()).yaw_rates_deg(frames, FPS).sum() / FPS
+    assert abs(est) <= 1.5, est
