@@ -67,6 +67,12 @@ def test_sample_cli(setup, capsys):
     assert main(args[:-2] + ["--no-kv-cache", "--out", str(out2)]) == 0
     np.testing.assert_allclose(np.load(out2 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
     assert "KV cache off" in capsys.readouterr().out
+    assert run["attention_backend"] == "sdpa"                # the checkpoint's setting, recorded
+    # --attention flex: the same rollout through flex_attention (uncompiled on a CPU), recorded in run.json
+    out3 = setup["root"] / "s3"
+    assert main(args[:-2] + ["--attention", "flex", "--out", str(out3)]) == 0
+    np.testing.assert_allclose(np.load(out3 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
+    assert json.loads((out3 / "run.json").read_text())["attention_backend"] == "flex"
 
 
 def test_sample_cli_errors(setup, capsys):

@@ -61,6 +61,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", default=None, help="HxW pixels for a video history (default: the model's sample size)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16", "float16"])
+    p.add_argument("--attention", default=None, choices=["sdpa", "flex"],
+                   help="kernel for the block-causal attention (default: the checkpoint's model config); flex is "
+                        "1.29x faster per rollout on an H100 (docs/benchmarks.md) and slower than sdpa on a CPU")
     p.add_argument("--out", required=True, help="output folder")
 
 
@@ -103,6 +106,9 @@ class _Setup:
         self.device = args.device or pick_device()
         dtype = getattr(torch, args.dtype)
         self.model, self.model_info = load_world_model(args.checkpoint, self.device, dtype)
+        if args.attention is not None:
+            self.model.set_attention_backend(args.attention)
+        self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend}
         mcfg = self.model.cfg
         self.vae = VideoVAE(args.vae, device=self.device)
         rc = dict(ROLLOUT_PRESETS[args.preset])
