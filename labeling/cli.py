@@ -59,7 +59,8 @@ def _run(args: argparse.Namespace) -> int:
     info = res.info
     full = [w for w in res.windows if w.end_s - w.start_s + 1e-6 >= args.window_s]
     n_dec = res.decode.get("frames_decoded", 0)
-    skipped = " (non-reference frames not decoded)" if res.decode.get("nonref_skipped") and n_dec < info.num_frames - 1 else ""
+    skipped = (" (non-reference frames not decoded)"
+               if res.decode.get("nonref_skipped") and n_dec < info.num_frames - 1 else "")
     note = "" if full else f" (shorter than --window-s {args.window_s:g}: one short window)"
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
           f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
@@ -80,7 +81,8 @@ def register(subparsers) -> None:
     p.add_argument("--stride-s", type=float, default=2.0, help="step between window starts in seconds (default 2)")
     p.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     p.add_argument("--hfov-deg", type=float, default=None, help="assumed horizontal field of view (default 80)")
-    p.add_argument("--preset", default="default", help="labeler preset: default | accurate (DIS medium, ~2.4x the CPU) | fast (160 px, ~half the flow CPU)")
+    p.add_argument("--preset", default="default",
+                   help="labeler preset: default | accurate (DIS medium, ~2.4x the CPU) | fast (160 px, ~half the CPU)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config field, e.g. --set command.turn_threshold_deg=10")
     p.set_defaults(func=_run)

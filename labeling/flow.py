@@ -152,7 +152,8 @@ class FlowLabeler:
         u, v = uv[:, 0].astype(np.float64), uv[:, 1].astype(np.float64)
         # photometric check: g1 sampled where the flow says each grid point went must look like g0 there
         # (large motions near the bottom and occlusions fail it; DIS has no confidence output)
-        to = np.clip(np.rint(rows + v), 0, h - 1).astype(np.intp) * w + np.clip(np.rint(cols + u), 0, w - 1).astype(np.intp)
+        to = (np.clip(np.rint(rows + v), 0, h - 1).astype(np.intp) * w
+              + np.clip(np.rint(cols + u), 0, w - 1).astype(np.intp))
         photo = np.abs(g1.ravel()[to].astype(np.int16) - g0.ravel()[flat].astype(np.int16))
         mag2 = u * u + v * v
         keep = ((tex0 >= fc.min_texture) & (mag2 >= fc.static_flow_px ** 2)

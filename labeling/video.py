@@ -226,7 +226,6 @@ def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: f
                     continue
                 stats["nonref_skipped"] = True
                 yield from held
-                held = []
                 yield t, g
                 yield from gen
                 return

@@ -31,6 +31,11 @@ _UNSUPPORTED = {  # key: the only value we support (CogVideoX-2B's); others woul
 ATTENTION_BACKENDS = ("sdpa", "flex")
 
 
+def check_attention_backend(backend: str) -> None:
+    if backend not in ATTENTION_BACKENDS:
+        raise ConfigError(f"attention_backend={backend!r} is not one of {ATTENTION_BACKENDS}")
+
+
 @dataclass
 class TrajectoryEncoderConfig:
     """ReSim's trajectory encoder: waypoints → 2 attention blocks → linear head (App. B.2)."""
@@ -118,8 +123,7 @@ class WorldModelConfig:
             raise ConfigError("hidden size (heads * head_dim) must be divisible by 16 for 3D sin-cos positions")
         if not 0 <= self.text_timestep_value <= 999:
             raise ConfigError(f"text_timestep_value={self.text_timestep_value} not in [0, 999]")
-        if self.attention_backend not in ATTENTION_BACKENDS:
-            raise ConfigError(f"attention_backend={self.attention_backend!r} is not one of {ATTENTION_BACKENDS}")
+        check_attention_backend(self.attention_backend)
         if self.causal and self.text_timestep == "max":
             raise ConfigError("text_timestep='max' with causal=True would make every frame depend on the "
                               "noise level of later frames; use 'fixed' (or 'auto')")

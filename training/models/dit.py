@@ -33,7 +33,7 @@ from torch.utils.checkpoint import checkpoint
 from training.models.attention import KVCache, block_causal_block_mask, block_causal_mask
 from training.models.blocks import DiTBlock
 from training.models.conditioning import ActionEncoder, TrajectoryEncoder
-from training.models.config import ATTENTION_BACKENDS, WorldModelConfig
+from training.models.config import WorldModelConfig, check_attention_backend
 from training.models.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
 
 NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.")
@@ -115,9 +115,7 @@ class WorldModel(nn.Module):
         Weights are unaffected and outputs agree up to rounding, so e.g. a checkpoint trained with ``"sdpa"``
         can be sampled with ``"flex"``. Takes effect at the next forward.
         """
-        from resim.config import ConfigError
-        if backend not in ATTENTION_BACKENDS:
-            raise ConfigError(f"attention_backend={backend!r} is not one of {ATTENTION_BACKENDS}")
+        check_attention_backend(backend)
         self.cfg.attention_backend = backend
 
     def new_parameters(self) -> list[nn.Parameter]:
