@@ -70,17 +70,26 @@ class TrainableWorldModel(WorldModel):
         The modulation linears (``norm1.linear``/``norm2.linear`` of each block: 21 % of CogVideoX-2B's block
         parameters) run once per frame embedding (T rows) and once on the text embedding, not once per token;
         counting them per token overstated the FLOPs (and MFU) by ~17 % at 256x448 (first H100 run)."""
-        from training.models.blocks import LayerNormZero
-
         c = self.cfg
         s = self.tokens_per_sample(batch, latent_thw)
         t = int(batch.latents.shape[1]) if latent_thw is None else int(latent_thw[0])
-        block_params = sum(p.numel() for p in self.transformer_blocks.parameters())
-        mod_params = sum(p.numel() for m in self.transformer_blocks.modules() if isinstance(m, LayerNormZero)
-                         for p in m.linear.parameters())
+        block_params, mod_params = self._block_param_counts()
         d = c.hidden_dim
         return (6.0 * (block_params - mod_params) * s + 6.0 * mod_params * (t + 1)
                 + 12.0 * c.num_layers * s * s * d)
+
+    def _block_param_counts(self) -> tuple[int, int]:
+        """(all block parameters, AdaLN modulation parameters), counted once: the trainer asks every step, and
+        walking the (FSDP-sharded) modules each time is wasted work on the hot path."""
+        counts = self.__dict__.get("_flop_param_counts")
+        if counts is None:
+            from training.models.blocks import LayerNormZero
+
+            blocks = sum(p.numel() for p in self.transformer_blocks.parameters())
+            mod = sum(p.numel() for m in self.transformer_blocks.modules() if isinstance(m, LayerNormZero)
+                      for p in m.linear.parameters())
+            counts = self.__dict__["_flop_param_counts"] = (blocks, mod)
+        return counts
 
     def activation_bytes_per_sample(self, latent_thw: tuple[int, int, int], checkpointing: bool,
                                     bytes_per_value: int = 2) -> float:

@@ -1,7 +1,9 @@
 """Real torchrun (gloo, CPU): 2 processes train the tiny world model from shards through `resim train launch`."""
 import json
+import shutil
 import subprocess
 import sys
+import warnings
 
 import pytest
 
@@ -17,6 +19,14 @@ def _launch(ds, out, env, *extra, nproc=2, steps=10):
            "--set", "optim.lr=3e-3", "--set", "data.open_shards_per_worker=1",
            "--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false", *extra]
     p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
+    if p.returncode != 0 and "terminate called without an active exception" in p.stderr:
+        # A rank sometimes aborts in C++ at its first step when the 2-core machine is loaded (SIGABRT,
+        # "terminate called without an active exception"): measured ~10 % of runs under a busy second core,
+        # on the code before this test's session too (3 of 20), never with a Python error. One retry in a
+        # clean output folder for exactly that signature; any other failure, or a second abort, fails.
+        warnings.warn(f"torchrun rank aborted (known gloo/CPU-load crash), retrying once: {p.stderr[-300:]}")
+        shutil.rmtree(out, ignore_errors=True)
+        p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     return p.stdout + p.stderr
 
