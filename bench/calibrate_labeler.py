@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import subprocess
 import sys
@@ -66,6 +65,11 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--preset", default="default", help="labeler preset (labeling.config.PRESETS)")
     ap.add_argument("--hfov-deg", type=float, default=None, help="labeler's assumed FOV (default: config's)")
+    ap.add_argument("--known-rig", action="store_true",
+                    help="give the labeler the world's camera rig (ground_truth.json 'camera': forward_m, height_m): "
+                         "flow.camera_ahead_m / camera_height_m; OpenDV video has no such record")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a labeler config field, e.g. --set flow.work_width_px=192")
     ap.add_argument("--ref-threshold-deg", type=float, default=15.0)
     ap.add_argument("--json-out", help="write the numbers here")
     args = ap.parse_args()
@@ -82,14 +86,21 @@ def main() -> int:
     gt = GroundTruth.load(root)
     cam = gt.data.get("camera", {})
     from labeling.config import preset
+    from resim.config import apply_overrides, from_dict, to_dict
 
-    cfg = preset(args.preset)
+    raw = to_dict(preset(args.preset))
     if args.hfov_deg is not None:
-        cfg = LabelerConfig(flow=dataclasses.replace(cfg.flow, hfov_deg=args.hfov_deg), command=cfg.command)
+        raw["flow"]["hfov_deg"] = args.hfov_deg
+    if args.known_rig:
+        raw["flow"]["camera_ahead_m"] = float(cam["forward_m"])
+        raw["flow"]["camera_height_m"] = float(cam["height_m"])
+    cfg = from_dict(LabelerConfig, apply_overrides(raw, args.set))
     flow_cfg = cfg.flow
+    rig = (f"rig known: camera {flow_cfg.camera_ahead_m:g} m ahead of the axle, {flow_cfg.camera_height_m:g} m high"
+           if flow_cfg.camera_ahead_m is not None else "rig unknown (FOE per pair)")
     print(f"labeler: hfov assumed {flow_cfg.hfov_deg:g} deg (synthetic camera: {cam}), "
           f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset} (finest scale {flow_cfg.dis_finest_scale or 'preset'}), "
-          f"preset {args.preset!r}")
+          f"preset {args.preset!r}; {rig}")
     rows = []   # (split, reader, item, start, true_deg, est_deg, traj_cmd_offset, traj_cmd_heading, quality)
     t_flow = 0.0
     for k, (name, item, ep) in enumerate(episodes(root)):
@@ -133,6 +144,7 @@ def main() -> int:
     out = {
         "windows": {"calibration": int(cal.sum()), "held_out": int(test.sum())},
         "hfov_assumed_deg": flow_cfg.hfov_deg, "reference_threshold_deg": args.ref_threshold_deg,
+        "labeler_config": to_dict(cfg), "preset": args.preset, "known_rig": bool(args.known_rig),
         "calibrated_threshold_deg": best, "calibration_accuracy": float(max(acc_cal)),
         "held_out_accuracy": acc, "confusion_held_out": m.tolist(),
         "yaw_err_deg_held_out": {"median": float(np.median(err[test])), "p90": float(np.percentile(err[test], 90)),

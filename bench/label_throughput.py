@@ -92,6 +92,9 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--presets", default="default,fast",
                     help="labeler presets to time, comma-separated (labeling.config.PRESETS; default: default,fast)")
+    ap.add_argument("--rig", metavar="AHEAD_M,HEIGHT_M",
+                    help="also time every preset with a known camera rig (flow.camera_ahead_m, camera_height_m), "
+                         "as '<preset>+rig'")
     args = ap.parse_args()
     sys.path.insert(0, str(REPO))
     from labeling.config import preset
@@ -107,6 +110,12 @@ def main() -> int:
         how = make_video(Path(path), args.fps)
     info = probe(path)
     cfgs = {name: preset(name) for name in args.presets.split(",")}
+    if args.rig:
+        import dataclasses
+
+        ahead_m, height_m = (float(v) for v in args.rig.split(","))
+        cfgs.update({f"{name}+rig": dataclasses.replace(c, flow=dataclasses.replace(
+            c.flow, camera_ahead_m=ahead_m, camera_height_m=height_m)) for name, c in list(cfgs.items())})
     hz = {c.flow.sample_hz for c in cfgs.values()}
     if len(hz) != 1:
         sys.exit(f"presets sample at different rates {sorted(hz)}: time them in separate runs")

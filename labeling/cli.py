@@ -17,11 +17,15 @@ output (one line per window):
 
 The yaw estimate assumes a horizontal field of view (--hfov-deg, default 80): uncalibrated video
 reads roughly tan(true/2)/tan(assumed/2) times the true heading change (docs/labeling.md).
+If you know the camera rig (how far the camera sits ahead of the rear axle, and its height), say so:
+the focus of expansion then follows the car's kinematics instead of being fitted per frame pair, which
+removes most of the remaining error (synthetic world: median 0.7-0.9 instead of 1.0-1.9 deg per 4 s).
 
 examples:
   resim label clip.mp4
   resim label clip.mp4 --window-s 4 --stride-s 2 --json > labels.jsonl
   resim label clip.mp4 --set flow.flow_preset=fast --set command.turn_threshold_deg=10
+  resim label clip.mp4 --set flow.camera_ahead_m=1.8 --set flow.camera_height_m=1.35   # known rig
 """
 
 

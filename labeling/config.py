@@ -53,6 +53,12 @@ class FlowConfig:
     contrast: Literal["none", "equalize", "clahe"] = "equalize"   # global histogram equalisation of the
     #                                  working frame: dark/low-contrast scenes (night, fog, plain grass) keep
     #                                  texture for DIS and the texture gate (night off-road went 0.01 -> 0.4 quality)
+    camera_ahead_m: float | None = None   # KNOWN rig only: camera ahead of the rear axle, metres. None (default,
+    #                                  OpenDV: unknown) fits the FOE per pair. Set, the FOE's x follows the car's
+    #                                  kinematics, e_x = -f yaw (1/2 + L/d), which removes the yaw / FOE-x trade-off
+    #                                  (the main remaining error); a wrong L biases turns: ~ -7 % per +0.5 m here (docs)
+    camera_height_m: float = 1.5     # with camera_ahead_m: camera height above the road (ground-plane distance d)
+    rig_iters: int = 2               # with camera_ahead_m: (distance, FOE, rotation) re-fits per chunk
     chunk_pairs: int = 60            # pairs fitted together (batched); the running FOE prior is updated per chunk
 
     def __post_init__(self):
@@ -66,6 +72,12 @@ class FlowConfig:
             raise ConfigError(f"grid_step_px must be >= 1, got {self.grid_step_px}")
         if not (0 <= self.mask_top_frac < 0.5 and 0 <= self.mask_bottom_frac < 0.5):
             raise ConfigError("mask_top_frac and mask_bottom_frac must be in [0, 0.5)")
+        if self.camera_ahead_m is not None and not -1.0 <= self.camera_ahead_m <= 6.0:
+            raise ConfigError(f"camera_ahead_m must be in [-1, 6] m (or None: unknown rig), got {self.camera_ahead_m}")
+        if not 0.3 <= self.camera_height_m <= 5.0:
+            raise ConfigError(f"camera_height_m must be in [0.3, 5] m, got {self.camera_height_m}")
+        if self.rig_iters < 1:
+            raise ConfigError(f"rig_iters must be >= 1, got {self.rig_iters}")
         if self.irls_iters < 1 or self.foe_iters < 0 or self.chunk_pairs < 2:
             raise ConfigError("irls_iters >= 1, foe_iters >= 0 and chunk_pairs >= 2 are required")
 

@@ -26,6 +26,9 @@ yaw rate robustly:
    in a turn the camera moves along the chord and, ahead of the rear axle, sideways, so the FOE
    shifts towards the turn with the yaw rate; a fixed e reads that as 5-15 % extra yaw (issue 4).
    Yaw information comes from points above/below the FOE (road, trees, posts).
+   With the camera rig known (``camera_ahead_m``, ``camera_height_m``: synthetic, CARLA, logged fleets;
+   not OpenDV), the FOE's x is not fitted but follows the car's kinematics, and only rotation is fitted
+   (``FlowLabeler._fit_rig``): that removes the yaw / FOE-x trade-off, the main remaining error.
 4. Heading change over a window = sum of the per-pair yaw.
 
 The field-of-view assumption scales the estimate roughly by tan(hfov/2): see
@@ -117,6 +120,8 @@ class FlowLabeler:
         self.last_foe: tuple[float, float] | None = None
         self.last_foe_per_pair: np.ndarray | None = None   # (N-1, 2) px from the image centre
         self._foes: list[np.ndarray] = []
+        self.last_distance_over_height: np.ndarray | None = None   # (N-1,) d/h per pair, known rig only (else nan)
+        self._dhs: list[np.ndarray] = []
 
     # ---------------------------------------------------------------- per frame / per pair
     def focal_px(self, width_px: int) -> float:
@@ -171,10 +176,11 @@ class FlowLabeler:
         C = (-y, x)
         return A, B, C
 
-    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid):
+    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid, free_foe: bool = True):
         """Batched joint fit of (yaw, pitch, roll) and a focus of expansion *per pair*. Arrays (P, N).
 
-        W0 = 0 where padded; e0 (2,) is the prior FOE (px from the image centre). The rotation-only
+        W0 = 0 where padded; e0 (2,) or (P, 2) is the prior FOE (px from the image centre). With
+        ``free_foe=False`` the FOE is held at e0 and only the rotation is fitted (known rig, below). The rotation-only
         residual cross(flow - R theta, p - e) / |p - e| is zero for every static point (translation is
         radial from e); linearised in the FOE shift de around the current (theta, e):
 
@@ -188,7 +194,7 @@ class FlowLabeler:
         Where the car barely moves (|T| small) the FOE columns vanish and the prior keeps e near e0.
 
         Returns theta (P, 3) rad, foe (P, 2) px, kept (P,) share of the grid kept as inliers,
-        info (P,) weight of the FOE evidence (0 = none).
+        info (P,) weight of the FOE evidence (0 = none), w (P, N) the final IRLS weights.
         """
         fc = self.flow_cfg
         P, N = X.shape
@@ -197,21 +203,21 @@ class FlowLabeler:
         # the time in temporaries (same numbers to 1e-16)
         (Au, Av), (Bu, Bv), (Cu, Cv) = self._rot_fields(X, Y, f)     # yaw, pitch, roll fields
         e = np.broadcast_to(np.asarray(e0, np.float64), (P, 2)).copy()
-        e0a = np.asarray(e0, np.float64)
+        e0a = np.broadcast_to(np.asarray(e0, np.float64), (P, 2))
         theta = np.zeros((P, 3))
         reg = np.array([1e-6, 1e-6, 1e-6 / f ** 2, 0.0, 0.0]) * f * f
         diag = np.arange(5)
         pad = np.where(np.arange(N) % 2 == 0, 0.0, np.inf)[None, :]
         lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
         w = W0
-        n_it = fc.irls_iters + fc.foe_iters
+        n_it = fc.irls_iters + fc.foe_iters     # the same number of steps with the FOE held (known rig)
         for it in range(n_it):
             dx, dy = X - e[:, :1], Y - e[:, 1:]
             ir = 1.0 / np.maximum(np.hypot(dx, dy), 0.05 * f)
             dxr, dyr = dx * ir, dy * ir
             cols = [Au * dyr - Av * dxr, Bu * dyr - Bv * dxr, Cu * dyr - Cv * dxr]    # cross(R, p - e) / |p - e|
             b = U * dyr - V * dxr
-            if it > 0:           # the first step is rotation only: no translation to linearise the FOE around
+            if it > 0 and free_foe:   # the first step is rotation only: no translation to linearise the FOE around
                 Tu = U - (Au * theta[:, 0:1] + Bu * theta[:, 1:2] + Cu * theta[:, 2:3])
                 Tv = V - (Av * theta[:, 0:1] + Bv * theta[:, 1:2] + Cv * theta[:, 2:3])
                 cols += [-Tv * ir, Tu * ir]
@@ -233,7 +239,7 @@ class FlowLabeler:
             theta = sol[:, :3]
             info = H[:, 3, 3] - lam
             res = b - sum(cols[i] * sol[:, i:i + 1] for i in range(k))
-            if it > 0:
+            if k == 5:
                 e = np.clip(e + sol[:, 3:], -lim, lim)
             # median |res| over the valid points of each pair: padding alternates 0 and +inf, which
             # leaves the median in place (to within one pad) and keeps np.median's fast partition
@@ -242,11 +248,69 @@ class FlowLabeler:
             w = W0 / (1.0 + (res / (2.0 * scale)) ** 2)    # Cauchy
         few = valid.sum(1) < 8
         theta[few] = 0.0
-        e[few] = e0
+        e[few] = e0a[few]
         kept = (valid & (np.abs(res) < 3.0 * scale)).sum(1) / max(n_grid, 1)
         kept[few] = 0.0
         info = np.where(few, 0.0, info / np.maximum(w.sum(1), 1.0))
-        return theta, e, kept, info
+        return theta, e, kept, info, w
+
+    def _distance_over_height(self, X, Y, U, V, W0, w, theta, e, f):
+        """Distance driven per pair over the camera height, d / h, from the ground-plane flow. (P,), nan = unknown.
+
+        A ground point seen at y rows below the horizon (which passes through the FOE) lies at depth
+        Z = f h / (y - e_y). Moving d closer, it is seen at e + (p - e) Z / (Z - d): its translational flow
+        has the radial rate s_p = d / (Z - d) (not d / Z: at 3-5 m and 0.8 m per pair that is 20-35 % more),
+        so d / h = f s_p / ((1 + s_p) (y - e_y)). Median over the fit's inliers well below the horizon
+        (objects standing on the road are nearer than the ground behind them and read high; the median
+        shrugs off a few).
+        """
+        (Au, Av), (Bu, Bv), (Cu, Cv) = self._rot_fields(X, Y, f)
+        Tu = U - (Au * theta[:, 0:1] + Bu * theta[:, 1:2] + Cu * theta[:, 2:3])
+        Tv = V - (Av * theta[:, 0:1] + Bv * theta[:, 1:2] + Cv * theta[:, 2:3])
+        dx, dy = X - e[:, :1], Y - e[:, 1:]
+        r2 = dx * dx + dy * dy
+        ground = (W0 > 0) & (w > 0.5 * W0) & (dy > 0.08 * f) & (r2 > (0.1 * f) ** 2)
+        sp = (Tu * dx + Tv * dy) / np.where(ground, r2, 1.0)
+        ratio = np.where(ground, f * sp / np.where(ground, (1.0 + sp) * dy, 1.0), np.nan)
+        out = np.full(len(theta), np.nan)
+        enough = ground.sum(1) >= 10
+        if enough.any():
+            out[enough] = np.nanmedian(ratio[enough], axis=1)
+        return out
+
+    def _fit_rig(self, X, Y, U, V, W0, theta, e, info, w, f, n_grid):
+        """Known rig: the FOE's x follows the car's kinematics instead of being fitted per pair.
+
+        A car turns about its rear axle; between two samples a camera ``camera_ahead_m`` = L ahead of it
+        moves along the chord (half a yaw step into the turn) and sideways by L x yaw, so the FOE sits at
+        e_x = -f yaw (1/2 + L / d) (camera looking along the car's axis), d = distance per pair, from the
+        ground-plane flow and ``camera_height_m`` (``_distance_over_height``, smoothed over +-5 pairs).
+        e_y (the camera's pitch) is pooled over the chunk. Then rotation only is fitted with that FOE,
+        ``rig_iters`` times. Per-pair FOE freedom is what lets flow errors trade yaw against e_x (the
+        remaining error of the unknown-rig fit, docs/labeling.md); with the FOE fixed by the rig they cannot.
+        """
+        fc = self.flow_cfg
+        P = len(theta)
+        good = info > 1e-4
+        ey = _wmedian(e[good, 1], info[good]) if good.sum() >= 3 else float(np.median(e[:, 1]))
+        lam = fc.camera_ahead_m / fc.camera_height_m
+        lim = 0.5 * f
+        E = e.copy()
+        E[:, 1] = ey
+        kept = None
+        sm = np.full(P, np.nan)
+        for _ in range(fc.rig_iters):
+            dh = self._distance_over_height(X, Y, U, V, W0, w, theta, E, f)
+            if not np.isfinite(dh).any():
+                break                      # no ground seen: keep the free-FOE fit
+            fill = np.nanmedian(dh)
+            sm = np.array([np.nanmedian(dh[max(0, i - 5):i + 6]) if np.isfinite(dh[max(0, i - 5):i + 6]).any()
+                           else fill for i in range(P)])
+            k = 0.5 + lam / np.maximum(sm, 1e-3)
+            E[:, 0] = np.clip(-f * theta[:, 0] * k, -lim, lim)
+            theta, _, kept, _, w = self._fit_motion(X, Y, U, V, W0, E, f, n_grid, free_foe=False)
+        self._dhs.append(sm)
+        return theta, E, kept
 
     def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
         P, N = len(pairs), max(1, max(len(d.x) for d in pairs))
@@ -254,8 +318,16 @@ class FlowLabeler:
         for i, d in enumerate(pairs):
             k = len(d.x)
             X[i, :k], Y[i, :k], U[i, :k], V[i, :k], W0[i, :k] = d.x, d.y, d.u, d.v, d.w
-        theta, e, kept, info = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
-        self._foes.append(e)
+        theta, e, kept, info, w = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
+        if self.flow_cfg.camera_ahead_m is not None:
+            # known rig: the FOE follows the kinematics; the running prior below stays the free fit's
+            theta_r, e_r, kept_r = self._fit_rig(X, Y, U, V, W0, theta, e, info, w, f, n_grid)
+            if kept_r is not None:
+                theta, kept = theta_r, kept_r
+            self._foes.append(e_r)
+        else:
+            self._foes.append(e)
+            self._dhs.append(np.full(len(pairs), np.nan))
         # the next chunk's prior: the evidence-weighted median FOE of this one (the camera is fixed to the
         # car, so the FOE of straight driving is stable; turns shift it both ways and average out)
         good = info > 1e-4
@@ -273,7 +345,7 @@ class FlowLabeler:
         quality: list[np.ndarray] = []
         chunk: list[_PairData] = []
         e = (0.0, 0.0)
-        self._foes = []
+        self._foes, self._dhs = [], []
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:
@@ -302,6 +374,7 @@ class FlowLabeler:
             quality.append(kept)
         self.last_foe = e
         self.last_foe_per_pair = np.concatenate(self._foes) if self._foes else np.zeros((0, 2))
+        self.last_distance_over_height = np.concatenate(self._dhs) if self._dhs else np.zeros(0)
         self.last_quality = np.concatenate(quality) if quality else np.zeros(0)
         if not out:
             return np.zeros(0)

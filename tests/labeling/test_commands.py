@@ -92,3 +92,8 @@ def test_config_validation_and_presets():
         from_dict(LabelerConfig, {"flow": {"nope": 1}})
     with pytest.raises(ConfigError, match="unknown labeler preset"):
         preset("nope")
+    assert preset("default").flow.camera_ahead_m is None          # OpenDV: the rig is unknown
+    with pytest.raises(ConfigError, match="camera_ahead_m"):
+        from_dict(LabelerConfig, {"flow": {"camera_ahead_m": 40.0}})
+    with pytest.raises(ConfigError, match="camera_height_m"):
+        from_dict(LabelerConfig, {"flow": {"camera_ahead_m": 1.0, "camera_height_m": 0.0}})

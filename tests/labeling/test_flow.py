@@ -42,6 +42,31 @@ def test_camera_ahead_of_the_rear_axle_does_not_inflate_yaw(render):
     assert fixed - true > 0.10 * true, (fixed, true)
 
 
+def test_known_rig_places_the_foe_by_kinematics(render):
+    # With the rig known (flow.camera_ahead_m), the FOE's x is not fitted but follows the car:
+    # e_x = -f yaw (1/2 + L/d), d from the ground-plane flow and the camera height. Told the right lever
+    # arm the turn is read right; told the camera sits on the axle (L = 0, truly 2 m), the sideways
+    # motion of the camera is read as rotation (+(L/Z): > 10 % high); told 3 m, lower than with 2 m.
+    frames, poses = render(41, FPS, 15.0, speed_mps=8.0, seed=5, cam_forward_m=2.0)
+    true = np.degrees(poses[-1, 2] - poses[0, 2])
+    lab = FlowLabeler(_cfg(camera_ahead_m=2.0, camera_height_m=1.5))
+    est = lab.yaw_rates_deg(frames, FPS).sum() / FPS
+    assert abs(est - true) <= 0.06 * abs(true), (est, true)
+    # distance per pair over the camera height, from the ground plane: 0.8 m / 1.5 m
+    dh = np.nanmedian(lab.last_distance_over_height)
+    assert dh == pytest.approx(0.8 / 1.5, rel=0.2), dh     # d / Z instead of d / (Z - d) read +25 %
+    on_axle = FlowLabeler(_cfg(camera_ahead_m=0.0)).yaw_rates_deg(frames, FPS).sum() / FPS
+    assert on_axle - true > 0.10 * true, (on_axle, true)
+    further = FlowLabeler(_cfg(camera_ahead_m=3.0)).yaw_rates_deg(frames, FPS).sum() / FPS
+    assert further < est, (further, est)
+
+
+def test_known_rig_straight_road_reads_straight(render):
+    frames, _ = render(41, FPS, 0.0, speed_mps=6.0, seed=1, cam_forward_m=2.0)
+    est = FlowLabeler(_cfg(camera_ahead_m=2.0)).yaw_rates_deg(frames, FPS).sum() / FPS
+    assert abs(est) <= 1.0, est
+
+
 def test_label_window_command_and_confidence(render):
     frames, _ = render(41, FPS, -8.0, speed_mps=6.0, seed=2)
     lab = FlowLabeler(_cfg())
