@@ -19,7 +19,9 @@ The yaw estimate assumes a horizontal field of view (--hfov-deg, default 80): un
 reads roughly tan(true/2)/tan(assumed/2) times the true heading change (docs/labeling.md).
 If you know the camera rig (how far the camera sits ahead of the rear axle, and its height), say so:
 the focus of expansion then follows the car's kinematics instead of being fitted per frame pair, which
-removes most of the remaining error (synthetic world: median 0.7-0.9 instead of 1.0-1.9 deg per 4 s).
+removes most of the remaining error (synthetic world: median 0.5-0.8 instead of 1.0-1.9 deg per 4 s).
+Not for fast footage: there the distance per frame pair, read from the road surface, comes out far too
+short (real freeway clips: ~20x) and the correction overshoots (docs/labeling.md, "Fourth look").
 
 examples:
   resim label clip.mp4

@@ -56,7 +56,9 @@ class FlowConfig:
     camera_ahead_m: float | None = None   # KNOWN rig only: camera ahead of the rear axle, metres. None (default,
     #                                  OpenDV: unknown) fits the FOE per pair. Set, the FOE's x follows the car's
     #                                  kinematics, e_x = -f yaw (1/2 + L/d), which removes the yaw / FOE-x trade-off
-    #                                  (the main remaining error); a wrong L biases turns: ~ -7 % per +0.5 m here (docs)
+    #                                  (the main remaining error); a wrong L biases turns: ~ -6 % per +0.5 m (docs).
+    #                                  Validated on the synthetic world only: on real freeway video the ground-plane
+    #                                  distance per pair reads ~20x short (docs/labeling.md "Fourth look")
     camera_height_m: float = 1.5     # with camera_ahead_m: camera height above the road (ground-plane distance d)
     rig_iters: int = 2               # with camera_ahead_m: (distance, FOE, rotation) re-fits per chunk
     chunk_pairs: int = 60            # pairs fitted together (batched); the running FOE prior is updated per chunk
