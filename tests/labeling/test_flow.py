@@ -67,6 +67,20 @@ def test_known_rig_straight_road_reads_straight(render):
     assert abs(est) <= 1.0, est
 
 
+def test_known_rig_without_visible_ground_falls_back_to_the_free_fit(render):
+    # the distance per pair needs textured ground below the horizon; with the lower half blanked there
+    # is none, and the known-rig fit must hand back the per-pair FOE fit unchanged (not zeros, not NaN)
+    frames, _ = render(21, FPS, 10.0, speed_mps=6.0, seed=4, cam_forward_m=1.0)
+    frames = frames.copy()
+    frames[:, frames.shape[1] // 2 + 4:] = 128
+    free = FlowLabeler(_cfg()).yaw_rates_deg(frames, FPS)
+    lab = FlowLabeler(_cfg(camera_ahead_m=1.0))
+    rig = lab.yaw_rates_deg(frames, FPS)
+    assert np.isnan(lab.last_distance_over_height).all()
+    assert np.abs(free).sum() > 0
+    np.testing.assert_array_equal(rig, free)
+
+
 def test_label_window_command_and_confidence(render):
     frames, _ = render(41, FPS, -8.0, speed_mps=6.0, seed=2)
     lab = FlowLabeler(_cfg())
