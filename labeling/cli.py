@@ -68,9 +68,12 @@ def _run(args: argparse.Namespace) -> int:
     skipped = (" (non-reference frames not decoded)"
                if res.decode.get("nonref_skipped") and n_dec < info.num_frames - 1 else "")
     note = "" if full else f" (shorter than --window-s {args.window_s:g}: one short window)"
+    fc = cfg.flow
+    rig = (f"rig: camera {fc.camera_ahead_m:g} m ahead of the rear axle, {fc.camera_height_m:g} m high"
+           if fc.camera_ahead_m is not None else "rig unknown")
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
           f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
-          f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {cfg.flow.hfov_deg:g} deg; {res.decode.get('decoder')} "
+          f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "
           f"decoded {n_dec} of {info.num_frames} frames"
           f"{skipped}", file=sys.stderr)
     return 0

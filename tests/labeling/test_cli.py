@@ -29,7 +29,17 @@ def test_label_json_lines(left_turn_video, capsys):
         assert r["command"] == "Turning left"
         assert 28 < r["yaw_deg"] < 36                          # 8 deg/s x 4 s = 32
         assert 0.5 < r["confidence"] <= 1
-    assert "left.mp4" in out.err and "10 Hz" in out.err
+    assert "left.mp4" in out.err and "10 Hz" in out.err and "rig unknown" in out.err
+
+
+def test_label_with_known_rig(left_turn_video, capsys):
+    # the renderer's camera is on the pose point (0 m ahead), 1.5 m high
+    assert main(["label", str(left_turn_video), "--json", "--set", "flow.camera_ahead_m=0",
+                 "--set", "flow.camera_height_m=1.5"]) == 0
+    out = capsys.readouterr()
+    rows = [json.loads(line) for line in out.out.splitlines()]
+    assert rows and all(r["command"] == "Turning left" and 28 < r["yaw_deg"] < 36 for r in rows), rows
+    assert "rig: camera 0 m ahead of the rear axle, 1.5 m high" in out.err
 
 
 def test_label_table_and_short_video(left_turn_video, capsys):
