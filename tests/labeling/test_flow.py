@@ -167,3 +167,14 @@ def test_crossing_vehicle_is_an_outlier(render):
             frames[k, r0:r0 + 40, x0:x1] = box[:, : x1 - x0, None]
     est = FlowLabeler(_cfg()).yaw_rates_deg(frames, FPS).sum() / FPS
     assert abs(est) <= 1.5, est
+
+
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/labeling.md 'Speed'): a gentle curve at highway speed "
+                   "(6 deg/s at 20 m/s, radius ~190 m) reads ~13.5 of 24 deg on this renderer")
+def test_gentle_curve_at_highway_speed(render):
+    # the synthetic world never drives faster than ~10 m/s; this pins what happens above it (strict xfail:
+    # fails loudly the day it passes, so the limitation note can go)
+    frames, poses = render(41, FPS, 6.0, speed_mps=20.0, seed=7, cam_forward_m=1.5)
+    true = np.degrees(poses[-1, 2] - poses[0, 2])
+    est = FlowLabeler(_cfg()).yaw_rates_deg(frames, FPS).sum() / FPS
+    assert abs(est - true) <= 0.10 * abs(true), (est, true)
