@@ -179,10 +179,10 @@ class FlowLabeler:
     def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid, free_foe: bool = True):
         """Batched joint fit of (yaw, pitch, roll) and a focus of expansion *per pair*. Arrays (P, N).
 
-        W0 = 0 where padded; e0 (2,) or (P, 2) is the prior FOE (px from the image centre). With
-        ``free_foe=False`` the FOE is held at e0 and only the rotation is fitted (known rig, below). The rotation-only
-        residual cross(flow - R theta, p - e) / |p - e| is zero for every static point (translation is
-        radial from e); linearised in the FOE shift de around the current (theta, e):
+        W0 = 0 where padded; e0 (2,) or (P, 2) is the prior FOE (px from the image centre); with
+        ``free_foe=False`` the FOE is held at e0 and only the rotation is fitted (known rig, ``_fit_rig``).
+        The rotation-only residual cross(flow - R theta, p - e) / |p - e| is zero for every static point
+        (translation is radial from e); linearised in the FOE shift de around the current (theta, e):
 
             cross(flow, p - e) = theta . cross(R, p - e) + cross(T, de),   T = flow - R theta
 
@@ -324,7 +324,7 @@ class FlowLabeler:
             theta_r, e_r, kept_r = self._fit_rig(X, Y, U, V, W0, theta, e, info, w, f, n_grid)
             if kept_r is not None:
                 theta, kept = theta_r, kept_r
-            self._foes.append(e_r)
+            self._foes.append(e_r if kept_r is not None else e)
         else:
             self._foes.append(e)
             self._dhs.append(np.full(len(pairs), np.nan))
