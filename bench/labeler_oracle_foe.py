@@ -50,11 +50,8 @@ def yaw_per_pair(lab: FlowLabeler, frames, mode: str, poses: np.ndarray, ahead_m
     rows, cols = lab._grid(h, w)
     tex = [lab._texture(g, rows, cols) for g in greys]
     pairs = [lab._pair(greys[i], greys[i + 1], tex[i]) for i in range(len(greys) - 1)]
-    P, N = len(pairs), max(1, max(len(d.x) for d in pairs))
-    X, Y, U, V, W0 = (np.zeros((P, N)) for _ in range(5))
-    for i, d in enumerate(pairs):
-        k = len(d.x)
-        X[i, :k], Y[i, :k], U[i, :k], V[i, :k], W0[i, :k] = d.x, d.y, d.u, d.v, d.w
+    X, Y, U, V, W0 = lab._stack(pairs)
+    P = len(pairs)
     E = np.zeros((P, 2))
     E[:, 1] = ey_px
     if mode == "oracle":

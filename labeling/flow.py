@@ -170,6 +170,13 @@ class FlowLabeler:
 
     # ---------------------------------------------------------------- robust fits
     @staticmethod
+    def _translation(fields, U, V, theta):
+        """Flow left after the rotation theta (P, 3): (Tu, Tv), radial from the FOE for static points."""
+        (Au, Av), (Bu, Bv), (Cu, Cv) = fields
+        return (U - (Au * theta[:, 0:1] + Bu * theta[:, 1:2] + Cu * theta[:, 2:3]),
+                V - (Av * theta[:, 0:1] + Bv * theta[:, 1:2] + Cv * theta[:, 2:3]))
+
+    @staticmethod
     def _rot_fields(x, y, f):
         A = (f + x * x / f, x * y / f)
         B = (x * y / f, f + y * y / f)
@@ -201,7 +208,8 @@ class FlowLabeler:
         valid = W0 > 0
         # the five design columns are kept as separate (P, N) arrays: stacking them as (P, N, 5) cost ~1.5x
         # the time in temporaries (same numbers to 1e-16)
-        (Au, Av), (Bu, Bv), (Cu, Cv) = self._rot_fields(X, Y, f)     # yaw, pitch, roll fields
+        fields = self._rot_fields(X, Y, f)
+        (Au, Av), (Bu, Bv), (Cu, Cv) = fields     # yaw, pitch, roll fields
         e = np.broadcast_to(np.asarray(e0, np.float64), (P, 2)).copy()
         e0a = np.broadcast_to(np.asarray(e0, np.float64), (P, 2))
         theta = np.zeros((P, 3))
@@ -218,8 +226,7 @@ class FlowLabeler:
             cols = [Au * dyr - Av * dxr, Bu * dyr - Bv * dxr, Cu * dyr - Cv * dxr]    # cross(R, p - e) / |p - e|
             b = U * dyr - V * dxr
             if it > 0 and free_foe:   # the first step is rotation only: no translation to linearise the FOE around
-                Tu = U - (Au * theta[:, 0:1] + Bu * theta[:, 1:2] + Cu * theta[:, 2:3])
-                Tv = V - (Av * theta[:, 0:1] + Bv * theta[:, 1:2] + Cv * theta[:, 2:3])
+                Tu, Tv = self._translation(fields, U, V, theta)
                 cols += [-Tv * ir, Tu * ir]
             k = len(cols)
             H = np.zeros((P, 5, 5))
@@ -264,9 +271,7 @@ class FlowLabeler:
         (objects standing on the road are nearer than the ground behind them and read high; the median
         shrugs off a few).
         """
-        (Au, Av), (Bu, Bv), (Cu, Cv) = self._rot_fields(X, Y, f)
-        Tu = U - (Au * theta[:, 0:1] + Bu * theta[:, 1:2] + Cu * theta[:, 2:3])
-        Tv = V - (Av * theta[:, 0:1] + Bv * theta[:, 1:2] + Cv * theta[:, 2:3])
+        Tu, Tv = self._translation(self._rot_fields(X, Y, f), U, V, theta)
         dx, dy = X - e[:, :1], Y - e[:, 1:]
         r2 = dx * dx + dy * dy
         ground = (W0 > 0) & (w > 0.5 * W0) & (dy > 0.08 * f) & (r2 > (0.1 * f) ** 2)
@@ -303,21 +308,26 @@ class FlowLabeler:
             dh = self._distance_over_height(X, Y, U, V, W0, w, theta, E, f)
             if not np.isfinite(dh).any():
                 break                      # no ground seen: keep the free-FOE fit
-            fill = np.nanmedian(dh)
-            sm = np.array([np.nanmedian(dh[max(0, i - 5):i + 6]) if np.isfinite(dh[max(0, i - 5):i + 6]).any()
-                           else fill for i in range(P)])
+            sm = _running_nanmedian(dh, 5)
+            sm = np.where(np.isfinite(sm), sm, np.nanmedian(dh))
             k = 0.5 + lam / np.maximum(sm, 1e-3)
             E[:, 0] = np.clip(-f * theta[:, 0] * k, -lim, lim)
             theta, _, kept, _, w = self._fit_motion(X, Y, U, V, W0, E, f, n_grid, free_foe=False)
         self._dhs.append(sm)
         return theta, E, kept
 
-    def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
+    @staticmethod
+    def _stack(pairs: list[_PairData]) -> tuple[np.ndarray, ...]:
+        """Pairs' samples as (P, N) arrays X, Y, U, V, W0, zero-padded (W0 = 0 marks padding)."""
         P, N = len(pairs), max(1, max(len(d.x) for d in pairs))
         X, Y, U, V, W0 = (np.zeros((P, N)) for _ in range(5))
         for i, d in enumerate(pairs):
             k = len(d.x)
             X[i, :k], Y[i, :k], U[i, :k], V[i, :k], W0[i, :k] = d.x, d.y, d.u, d.v, d.w
+        return X, Y, U, V, W0
+
+    def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
+        X, Y, U, V, W0 = self._stack(pairs)
         theta, e, kept, info, w = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
         if self.flow_cfg.camera_ahead_m is not None:
             # known rig: the FOE follows the kinematics; the running prior below stays the free fit's
@@ -401,6 +411,16 @@ class FlowLabeler:
         cmd, conf = command_from_yaw(yaw, self.cfg.command)
         q = window_quality(quality)
         return FlowLabel(command=cmd, yaw_deg=yaw, confidence=conf * q, quality=q)
+
+
+def _running_nanmedian(x: np.ndarray, half: int) -> np.ndarray:
+    """Median of the finite values of x[i - half : i + half + 1] for every i (nan where there are none)."""
+    padded = np.pad(x, half, constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)      # (len(x), 2 half + 1)
+    out = np.full(len(x), np.nan)
+    some = np.isfinite(win).any(1)
+    out[some] = np.nanmedian(win[some], axis=1)
+    return out
 
 
 def _wmedian(x: np.ndarray, w: np.ndarray) -> float:

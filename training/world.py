@@ -81,14 +81,14 @@ class TrainableWorldModel(WorldModel):
     def _block_param_counts(self) -> tuple[int, int]:
         """(all block parameters, AdaLN modulation parameters), counted once: the trainer asks every step, and
         walking the (FSDP-sharded) modules each time is wasted work on the hot path."""
-        counts = self.__dict__.get("_flop_param_counts")
+        counts = getattr(self, "_flop_param_counts", None)
         if counts is None:
             from training.models.blocks import LayerNormZero
 
             blocks = sum(p.numel() for p in self.transformer_blocks.parameters())
             mod = sum(p.numel() for m in self.transformer_blocks.modules() if isinstance(m, LayerNormZero)
                       for p in m.linear.parameters())
-            counts = self.__dict__["_flop_param_counts"] = (blocks, mod)
+            counts = self._flop_param_counts = (blocks, mod)
         return counts
 
     def activation_bytes_per_sample(self, latent_thw: tuple[int, int, int], checkpointing: bool,
