@@ -97,7 +97,7 @@ def main() -> int:
     cfg = from_dict(LabelerConfig, apply_overrides(raw, args.set))
     flow_cfg = cfg.flow
     rig = (f"rig known: camera {flow_cfg.camera_ahead_m:g} m ahead of the axle, {flow_cfg.camera_height_m:g} m high"
-           if flow_cfg.camera_ahead_m is not None else "rig unknown (FOE per pair)")
+           if flow_cfg.camera_ahead_m is not None else f"rig unknown (FOE {flow_cfg.foe_model})")
     print(f"labeler: hfov assumed {flow_cfg.hfov_deg:g} deg (synthetic camera: {cam}), "
           f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset} (finest scale {flow_cfg.dis_finest_scale or 'preset'}), "
           f"preset {args.preset!r}; {rig}")

@@ -17,6 +17,7 @@ dashcam clip (../shared/data/dashcam/solidWhiteRight.mp4, looped 3x) to 1280x720
 where that clip is absent, from frames of the tests' renderer. Pass --video to use your own.
 
     PYTHONPATH=. python bench/label_throughput.py [--video V] [--fps 30] [--repeats 3] [--presets default,fast]
+        [--rig AHEAD_M,HEIGHT_M] [--per-pair]
 """
 from __future__ import annotations
 
@@ -95,6 +96,9 @@ def main() -> int:
     ap.add_argument("--rig", metavar="AHEAD_M,HEIGHT_M",
                     help="also time every preset with a known camera rig (flow.camera_ahead_m, camera_height_m), "
                          "as '<preset>+rig'")
+    ap.add_argument("--per-pair", action="store_true",
+                    help="also time every preset with the per-pair FOE (flow.foe_model=per_pair, the labeler before "
+                         "the pooled FOE model), as '<preset>+per_pair'")
     args = ap.parse_args()
     sys.path.insert(0, str(REPO))
     from labeling.config import preset
@@ -116,6 +120,11 @@ def main() -> int:
         ahead_m, height_m = (float(v) for v in args.rig.split(","))
         cfgs.update({f"{name}+rig": dataclasses.replace(c, flow=dataclasses.replace(
             c.flow, camera_ahead_m=ahead_m, camera_height_m=height_m)) for name, c in list(cfgs.items())})
+    if args.per_pair:
+        import dataclasses
+
+        cfgs.update({f"{name}+per_pair": dataclasses.replace(c, flow=dataclasses.replace(c.flow, foe_model="per_pair"))
+                     for name, c in list(cfgs.items()) if c.flow.camera_ahead_m is None})
     hz = {c.flow.sample_hz for c in cfgs.values()}
     if len(hz) != 1:
         sys.exit(f"presets sample at different rates {sorted(hz)}: time them in separate runs")

@@ -71,6 +71,12 @@ def _run(args: argparse.Namespace) -> int:
     fc = cfg.flow
     rig = (f"rig: camera {fc.camera_ahead_m:g} m ahead of the rear axle, {fc.camera_height_m:g} m high"
            if fc.camera_ahead_m is not None else "rig unknown")
+    src = res.foe_sources       # what placed the FOE, per chunk of pairs (labeling/flow.py)
+    if src:
+        rig += ", FOE " + " / ".join(x if src.count(x) == len(src) else f"{x} in {src.count(x)} of {len(src)} chunks"
+                                     for x in dict.fromkeys(src))
+        if fc.camera_ahead_m is None and fc.foe_model == "pooled" and "per_pair" in src:
+            rig += f" (per pair until {fc.foe_min_straight_s:g} s of straight driving is seen)"
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
           f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
           f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "

@@ -50,6 +50,17 @@ class FlowConfig:
     foe_prior: float = 1e-7          # weight pulling each pair's FOE to the running FOE, per unit of fit weight;
     #                                  must be weak: yaw and the FOE's x are only separable through depth
     #                                  variation, and 1e-4 left half of the chord/lever-arm bias (flow.py)
+    foe_model: Literal["pooled", "per_pair"] = "pooled"   # how the FOE's x is placed after the per-pair fit.
+    #                                  "pooled": e_x = a - f k yaw, the car's kinematics with the camera's own
+    #                                  straight-driving FOE a (mount yaw; median over the video's straight pairs)
+    #                                  and k = 1/2 + L/d (chord + lever arm over distance per pair) regressed from
+    #                                  the per-pair FOEs of the last foe_pool_pairs pairs; then rotation only.
+    #                                  "per_pair": the free per-pair FOE (noisier: yaw trades against it). flow.py
+    foe_pool_pairs: int = 300        # "pooled": trailing pairs whose per-pair FOEs give k (30 s at 10 Hz)
+    straight_yaw_deg_s: float = 1.0  # "pooled": pairs turning slower than this (per-pair fit) give a
+    foe_min_straight_s: float = 3.0  # "pooled" needs this much straight driving seen (else the chunk keeps the
+    #                                  per-pair fit): a short clip all in one curve has no straight FOE to pool
+    foe_k_max: float = 5.0           # "pooled": k is clipped to [0, this] (L <= ~2.5 m ahead at d >= 0.5 m per pair)
     contrast: Literal["none", "equalize", "clahe"] = "equalize"   # global histogram equalisation of the
     #                                  working frame: dark/low-contrast scenes (night, fog, plain grass) keep
     #                                  texture for DIS and the texture gate (night off-road went 0.01 -> 0.4 quality)
@@ -78,6 +89,10 @@ class FlowConfig:
             raise ConfigError(f"camera_ahead_m must be in [-1, 6] m (or None: unknown rig), got {self.camera_ahead_m}")
         if not 0.3 <= self.camera_height_m <= 5.0:
             raise ConfigError(f"camera_height_m must be in [0.3, 5] m, got {self.camera_height_m}")
+        if (self.foe_pool_pairs < 2 or self.straight_yaw_deg_s <= 0 or self.foe_k_max < 0
+                or self.foe_min_straight_s < 0):
+            raise ConfigError("foe_pool_pairs >= 2, straight_yaw_deg_s > 0, foe_k_max >= 0 and "
+                              "foe_min_straight_s >= 0 are required")
         if self.rig_iters < 1:
             raise ConfigError(f"rig_iters must be >= 1, got {self.rig_iters}")
         if self.irls_iters < 1 or self.foe_iters < 0 or self.chunk_pairs < 2:

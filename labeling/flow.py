@@ -122,6 +122,12 @@ class FlowLabeler:
         self._foes: list[np.ndarray] = []
         self.last_distance_over_height: np.ndarray | None = None   # (N-1,) d/h per pair, known rig only (else nan)
         self._dhs: list[np.ndarray] = []
+        self.last_foe_model: tuple[float, float] | None = None   # "pooled": (a px, k) of the last chunk
+        self._straight: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pool: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._fps_hz = 10.0
+        self._sources: list[str] = []
+        self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
 
     # ---------------------------------------------------------------- per frame / per pair
     def focal_px(self, width_px: int) -> float:
@@ -283,6 +289,51 @@ class FlowLabeler:
             out[enough] = np.nanmedian(ratio[enough], axis=1)
         return out
 
+    def _fit_pooled(self, X, Y, U, V, W0, theta, e, info, f, n_grid):
+        """Unknown rig: the FOE's x follows the car's kinematics with parameters pooled over time.
+
+        A car turns about its rear axle, so the FOE sits at e_x = a - f k yaw per pair (``_fit_rig``):
+        a is the FOE of straight driving (the camera's mount yaw; fixed for a video), k = 1/2 + L/d
+        (chord + lever arm over distance per pair; changes slowly with speed). Neither is known for
+        OpenDV, but both are shared by many pairs, while the per-pair fit lets flow errors trade yaw
+        against e_x pair by pair: on the synthetic world, a taken as the median of *all* per-pair FOEs
+        was off by up to 8 px (turns pull it), from straight pairs only by <= 2.5 px; and a yaw bias per
+        pair of (d / Z) (delta a / f) is 5 deg per 4 s at 2 deg of mount yaw (docs/labeling.md "Fifth look").
+        So: a = evidence-weighted median of the per-pair FOE over the video's straight pairs so far
+        (|yaw rate| over +-0.5 s < ``straight_yaw_deg_s``); k = weighted least squares of (a - e_x) on f yaw over the
+        last ``foe_pool_pairs`` pairs, clipped to [0, ``foe_k_max``]; e_y pooled over the chunk; then
+        rotation only, twice (the FOE follows the re-fitted yaw). Returns (theta, FOE, kept), or None while
+        less than ``foe_min_straight_s`` of straight driving has been seen (the caller keeps the per-pair fit).
+        """
+        fc = self.flow_cfg
+        good = info > 1e-4
+        yaw = theta[:, 0]
+        # straight = the yaw rate averaged over +-0.5 s is small (a per-pair rate is too noisy to tell)
+        smooth = _running_mean(yaw, max(1, int(round(0.5 * self._fps_hz))))
+        straight = good & (np.abs(smooth) < math.radians(fc.straight_yaw_deg_s / self._fps_hz))
+        self._straight.append((e[straight, 0], info[straight]))
+        sx = np.concatenate([s_[0] for s_ in self._straight])
+        sw = np.concatenate([s_[1] for s_ in self._straight])
+        self._pool.append((e[:, 0], yaw, np.where(good, info, 0.0)))
+        ex, yw, iw = (np.concatenate([p_[i] for p_ in self._pool])[-fc.foe_pool_pairs:] for i in range(3))
+        while sum(len(p_[0]) for p_ in self._pool[1:]) >= fc.foe_pool_pairs:
+            self._pool.pop(0)                                   # keep only what the trailing pool needs
+        if len(sx) < max(3, fc.foe_min_straight_s * self._fps_hz):
+            return None                 # no straight driving seen yet (e.g. a short clip in one long curve)
+        a = _wmedian(sx, sw)
+        den = float(np.sum(iw * (f * yw) ** 2))
+        k = float(np.clip(np.sum(iw * (a - ex) * f * yw) / den, 0.0, fc.foe_k_max)) if den > 0 else 0.5
+        ey = _wmedian(e[good, 1], info[good]) if good.sum() >= 3 else float(np.median(e[:, 1]))
+        lim = 0.5 * f
+        E = np.empty_like(e)
+        E[:, 1] = ey
+        kept = None
+        for _ in range(2):
+            E[:, 0] = np.clip(a - f * k * theta[:, 0], -lim, lim)
+            theta, _, kept, _, _ = self._fit_motion(X, Y, U, V, W0, E, f, n_grid, free_foe=False)
+        self.last_foe_model = (a, k)
+        return theta, E, kept
+
     def _fit_rig(self, X, Y, U, V, W0, theta, e, info, w, f, n_grid):
         """Known rig: the FOE's x follows the car's kinematics instead of being fitted per pair.
 
@@ -329,21 +380,27 @@ class FlowLabeler:
     def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
         X, Y, U, V, W0 = self._stack(pairs)
         theta, e, kept, info, w = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
+        out_theta, out_e, out_kept = theta, e, kept       # the free per-pair fit ("per_pair")
+        rig_ok = False
         if self.flow_cfg.camera_ahead_m is not None:
             # known rig: the FOE follows the kinematics; the running prior below stays the free fit's
             theta_r, e_r, kept_r = self._fit_rig(X, Y, U, V, W0, theta, e, info, w, f, n_grid)
             if kept_r is not None:
-                theta, kept = theta_r, kept_r
-            self._foes.append(e_r if kept_r is not None else e)
+                out_theta, out_e, out_kept, rig_ok = theta_r, e_r, kept_r, True
         else:
-            self._foes.append(e)
             self._dhs.append(np.full(len(pairs), np.nan))
+        if not rig_ok and self.flow_cfg.foe_model == "pooled":     # a known rig without visible ground lands here
+            pooled = self._fit_pooled(X, Y, U, V, W0, theta, e, info, f, n_grid)
+            if pooled is not None:
+                out_theta, out_e, out_kept = pooled
+        self._foes.append(out_e)
+        self._sources.append("rig" if rig_ok else ("pooled" if out_theta is not theta else "per_pair"))
         # the next chunk's prior: the evidence-weighted median FOE of this one (the camera is fixed to the
         # car, so the FOE of straight driving is stable; turns shift it both ways and average out)
         good = info > 1e-4
         if good.sum() >= 3:
             e0 = (_wmedian(e[good, 0], info[good]), _wmedian(e[good, 1], info[good]))
-        return theta[:, 0].copy(), kept, e0
+        return out_theta[:, 0].copy(), out_kept, e0
 
     # ---------------------------------------------------------------- public API
     def yaw_rates_from_grey(self, greys: Iterable[np.ndarray], fps_hz: float) -> np.ndarray:
@@ -356,6 +413,9 @@ class FlowLabeler:
         chunk: list[_PairData] = []
         e = (0.0, 0.0)
         self._foes, self._dhs = [], []
+        self._straight, self._pool, self._fps_hz = [], [], fps_hz     # the pooled FOE model's state (one video)
+        self.last_foe_model = None
+        self._sources = []
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:
@@ -386,6 +446,7 @@ class FlowLabeler:
         self.last_foe_per_pair = np.concatenate(self._foes) if self._foes else np.zeros((0, 2))
         self.last_distance_over_height = np.concatenate(self._dhs) if self._dhs else np.zeros(0)
         self.last_quality = np.concatenate(quality) if quality else np.zeros(0)
+        self.last_foe_sources = list(self._sources)
         if not out:
             return np.zeros(0)
         return np.degrees(np.concatenate(out)) * fps_hz
@@ -421,6 +482,14 @@ def _running_nanmedian(x: np.ndarray, half: int) -> np.ndarray:
     some = np.isfinite(win).any(1)
     out[some] = np.nanmedian(win[some], axis=1)
     return out
+
+
+def _running_mean(x: np.ndarray, half: int) -> np.ndarray:
+    """Mean of x[i - half : i + half + 1] (cut at the ends) for every i."""
+    c = np.concatenate([[0.0], np.cumsum(x)])
+    i = np.arange(len(x))
+    lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, len(x))
+    return (c[hi] - c[lo]) / (hi - lo)
 
 
 def _wmedian(x: np.ndarray, w: np.ndarray) -> float:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ class VideoLabels:
     quality: np.ndarray       # (S-1,) per-pair share of grid points kept
     windows: list[WindowLabel]
     decode: dict              # decoder, frames_decoded, nonref_skipped (labeling/video.py)
+    foe_sources: list[str] = field(default_factory=list)   # per chunk of pairs: "rig" / "pooled" / "per_pair"
 
 
 def window_starts(duration_s: float, window_s: float, stride_s: float, tol_s: float) -> list[tuple[float, float]]:
@@ -93,4 +94,4 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
         cmd, conf = command_from_yaw(yaw, cfg.command)
         q = window_quality(quality[sel])
         windows.append(WindowLabel(round(s, 3), round(min(e, float(t[-1])), 3), cmd, yaw, conf * q, q))
-    return VideoLabels(info, eff_hz, t, inc, quality, windows, stats)
+    return VideoLabels(info, eff_hz, t, inc, quality, windows, stats, list(labeler.last_foe_sources))

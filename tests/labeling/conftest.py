@@ -16,13 +16,14 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 
-def render_drive(num_frames: int, fps_hz: float, yaw_rate_deg_s: float, speed_mps: float = 10.0,
+def render_drive(num_frames: int, fps_hz: float, yaw_rate_deg_s, speed_mps: float = 10.0,
                  size_hw: tuple[int, int] = (144, 256), hfov_deg: float = 70.0, cam_height_m: float = 1.5,
-                 seed: int = 0, cam_forward_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Frames (T, H, W, 3) uint8 RGB of a car driving at constant speed and yaw rate, and poses (T, 3).
+                 seed: int = 0, cam_forward_m: float = 0.0, cam_yaw_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Frames (T, H, W, 3) uint8 RGB of a car driving at constant speed, and poses (T, 3).
 
-    The car moves on arcs (chord along the mean heading); the camera sits ``cam_forward_m`` ahead of
-    the pose point (the rear axle), looking along the heading, so it also moves sideways in turns.
+    ``yaw_rate_deg_s``: one rate, or (T-1,) rates per step. The car moves on arcs (chord along the mean
+    heading); the camera sits ``cam_forward_m`` ahead of the pose point (the rear axle), so it also moves
+    sideways in turns, and looks ``cam_yaw_deg`` left of the heading (a dashcam mounted askew).
     """
     import cv2
 
@@ -40,17 +41,19 @@ def render_drive(num_frames: int, fps_hz: float, yaw_rate_deg_s: float, speed_mp
     t = np.where(ground, cam_height_m / np.where(ground, Y, 1.0), 0.0)
     posts = [(float(d), float(s) * float(rng.uniform(4, 12))) for d in np.arange(8, 400, 9) for s in (-1, 1)]
     dt = 1.0 / fps_hz
+    rates = np.broadcast_to(np.radians(np.asarray(yaw_rate_deg_s, np.float64)), (num_frames - 1,))
     poses = np.zeros((num_frames, 3))
     for i in range(1, num_frames):
         x, y, a = poses[i - 1]
-        a_mid = a + math.radians(yaw_rate_deg_s) * dt / 2
+        a_mid = a + rates[i - 1] * dt / 2
         poses[i] = (x + speed_mps * dt * math.cos(a_mid), y + speed_mps * dt * math.sin(a_mid),
-                    a + math.radians(yaw_rate_deg_s) * dt)
+                    a + rates[i - 1] * dt)
     frames = np.zeros((num_frames, h, w, 3), np.uint8)
     sky = np.linspace(200, 150, h)[:, None].repeat(w, 1)
     for i, (px, py, a) in enumerate(poses):
+        px, py = px + cam_forward_m * math.cos(a), py + cam_forward_m * math.sin(a)
+        a = a + math.radians(cam_yaw_deg)           # from here on: the camera's axes
         fwd, left = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
-        px, py = px + cam_forward_m * fwd[0], py + cam_forward_m * fwd[1]
         gx = px + t * (fwd[0] - X * left[0])        # world point of each ground pixel (right = -left)
         gy = py + t * (fwd[1] - X * left[1])
         img = cv2.remap(tex, (gx / texel_m).astype(np.float32), (gy / texel_m).astype(np.float32),

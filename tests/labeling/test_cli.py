@@ -30,6 +30,8 @@ def test_label_json_lines(left_turn_video, capsys):
         assert 28 < r["yaw_deg"] < 36                          # 8 deg/s x 4 s = 32
         assert 0.5 < r["confidence"] <= 1
     assert "left.mp4" in out.err and "10 Hz" in out.err and "rig unknown" in out.err
+    # one curve from the first frame: no straight driving to pool the FOE over, and the summary says so
+    assert "FOE per_pair (per pair until 3 s of straight driving is seen)" in out.err
 
 
 def test_label_with_known_rig(left_turn_video, capsys):

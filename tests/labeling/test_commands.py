@@ -97,3 +97,8 @@ def test_config_validation_and_presets():
         from_dict(LabelerConfig, {"flow": {"camera_ahead_m": 40.0}})
     with pytest.raises(ConfigError, match="camera_height_m"):
         from_dict(LabelerConfig, {"flow": {"camera_ahead_m": 1.0, "camera_height_m": 0.0}})
+    assert preset("default").flow.foe_model == "pooled"
+    with pytest.raises(ConfigError, match="foe_model"):
+        from_dict(LabelerConfig, {"flow": {"foe_model": "global"}})
+    with pytest.raises(ConfigError, match="foe_min_straight_s"):
+        from_dict(LabelerConfig, {"flow": {"foe_min_straight_s": -1.0}})

@@ -81,6 +81,34 @@ def test_known_rig_without_visible_ground_falls_back_to_the_free_fit(render):
     np.testing.assert_array_equal(rig, free)
 
 
+def test_pooled_foe_finds_the_mount_yaw_and_the_lever_arm(render):
+    # Rig unknown (OpenDV): the FOE's x is placed at a - f k yaw, a = the FOE of straight driving (here the
+    # camera looks 3 deg left of the car's axis: a = f tan 3 deg, right of centre), k = 1/2 + L/d (2 m ahead,
+    # 0.8 m per pair: 3.0) regressed from the per-pair FOEs. Both must come out near the truth, and the turn
+    # after 3.5 s of straight driving must read within 3 % (the per-pair fit reads 4-5 % short here).
+    rates = np.r_[np.zeros(35), np.full(40, 12.0)]
+    frames, poses = render(76, FPS, rates, speed_mps=8.0, seed=5, cam_forward_m=2.0, cam_yaw_deg=3.0)
+    lab = FlowLabeler(_cfg())
+    inc = lab.yaw_rates_deg(frames, FPS) / FPS
+    true = np.degrees(np.diff(poses[:, 2]))
+    assert lab.last_foe_sources == ["pooled", "pooled"]
+    a, k = lab.last_foe_model
+    assert a == pytest.approx(lab.focal_px(256) * np.tan(np.radians(3.0)), abs=1.5), a
+    assert k == pytest.approx(0.5 + 2.0 / 0.8, rel=0.25), k
+    assert abs(inc[:35].sum()) <= 1.0, inc[:35].sum()      # a held at 0 instead reads -9.2 deg over these 3.5 s
+    assert inc[35:].sum() == pytest.approx(true[35:].sum(), rel=0.03)
+
+
+def test_pooled_foe_needs_straight_driving_first(render):
+    # a clip that is one curve from start to end shows no FOE of straight driving: every chunk keeps the
+    # per-pair fit (bit for bit), and says so
+    frames, _ = render(41, FPS, 8.0, speed_mps=6.0, seed=2, cam_forward_m=1.0)
+    lab = FlowLabeler(_cfg())
+    pooled = lab.yaw_rates_deg(frames, FPS)
+    assert lab.last_foe_sources == ["per_pair"] and lab.last_foe_model is None
+    np.testing.assert_array_equal(pooled, FlowLabeler(_cfg(foe_model="per_pair")).yaw_rates_deg(frames, FPS))
+
+
 def test_label_window_command_and_confidence(render):
     frames, _ = render(41, FPS, -8.0, speed_mps=6.0, seed=2)
     lab = FlowLabeler(_cfg())
