@@ -17,9 +17,12 @@ output (one line per window):
 
 The yaw estimate assumes a horizontal field of view (--hfov-deg, default 80): uncalibrated video
 reads roughly tan(true/2)/tan(assumed/2) times the true heading change (docs/labeling.md).
-If you know the camera rig (how far the camera sits ahead of the rear axle, and its height), say so:
-the focus of expansion then follows the car's kinematics instead of being fitted per frame pair, which
-removes most of the remaining error (synthetic world: median 0.5-0.8 instead of 1.0-1.9 deg per 4 s).
+The focus of expansion (where the car is heading in the image) is placed by the car's kinematics with two
+numbers pooled over the video: the camera's straight-ahead point, learnt from >= 3 s of straight driving (a
+clip that is one curve throughout keeps the per-pair fit; the summary line says which was used), and the shift
+in turns. If you know the camera rig (how far the camera sits ahead of the rear axle, and its height), say so:
+the shift then comes from the rig and the road surface, which removes most of the remaining error on the
+synthetic world (median 0.5-0.8 deg per 4 s).
 Not for fast footage: there the distance per frame pair, read from the road surface, comes out far too
 short (real freeway clips: ~20x) and the correction overshoots (docs/labeling.md, "Fourth look").
 

@@ -26,6 +26,10 @@ yaw rate robustly:
    in a turn the camera moves along the chord and, ahead of the rear axle, sideways, so the FOE
    shifts towards the turn with the yaw rate; a fixed e reads that as 5-15 % extra yaw (issue 4).
    Yaw information comes from points above/below the FOE (road, trees, posts).
+   The per-pair FOE is then replaced by a pooled model (``foe_model="pooled"``, default): the car's kinematics put
+   it at e_x = a - f k yaw, with a (the FOE of straight driving) and k (1/2 + lever arm / distance per pair)
+   shared by many pairs and estimated from the per-pair fits (``_pool_add``, ``_pool_params``); rotation alone is
+   re-fitted with that FOE. Per-pair FOE freedom lets flow errors trade yaw against e_x pair by pair.
    With the camera rig known (``camera_ahead_m``, ``camera_height_m``: synthetic, CARLA, logged fleets;
    not OpenDV), the FOE's x is not fitted but follows the car's kinematics, and only rotation is fitted
    (``FlowLabeler._fit_rig``): that removes the yaw / FOE-x trade-off, the main remaining error.
@@ -119,14 +123,14 @@ class FlowLabeler:
         self.last_quality: np.ndarray | None = None   # per-pair share of points kept by the fit
         self.last_foe: tuple[float, float] | None = None
         self.last_foe_per_pair: np.ndarray | None = None   # (N-1, 2) px from the image centre
-        self._foes: list[np.ndarray] = []
+        self._results: list[tuple] = []     # per chunk: (yaw rad (P,), kept (P,), FOE (P, 2), source)
         self.last_distance_over_height: np.ndarray | None = None   # (N-1,) d/h per pair, known rig only (else nan)
         self._dhs: list[np.ndarray] = []
         self.last_foe_model: tuple[float, float] | None = None   # "pooled": (a px, k) of the last chunk
         self._straight: list[tuple[np.ndarray, np.ndarray]] = []
         self._pool: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._fps_hz = 10.0
-        self._sources: list[str] = []
+        self._pending: list[tuple] = []     # pooled FOE: chunks waiting for enough straight driving
         self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
 
     # ---------------------------------------------------------------- per frame / per pair
@@ -189,7 +193,7 @@ class FlowLabeler:
         C = (-y, x)
         return A, B, C
 
-    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid, free_foe: bool = True):
+    def _fit_motion(self, X, Y, U, V, W0, e0, f, n_grid, free_foe: bool = True, w_start=None, iters=None):
         """Batched joint fit of (yaw, pitch, roll) and a focus of expansion *per pair*. Arrays (P, N).
 
         W0 = 0 where padded; e0 (2,) or (P, 2) is the prior FOE (px from the image centre); with
@@ -205,6 +209,8 @@ class FlowLabeler:
         sideways by (lever arm x yaw): the FOE shifts towards the turn by f (dt/2 + L/v) yaw_rate. A FOE
         held fixed turns that shift into a yaw bias of (d/2 + L) / Z (5-15 % on the road, measured: issue 4).
         Where the car barely moves (|T| small) the FOE columns vanish and the prior keeps e near e0.
+
+        ``w_start`` (P, N) starts the IRLS from earlier weights (a re-fit), ``iters`` overrides the number of steps.
 
         Returns theta (P, 3) rad, foe (P, 2) px, kept (P,) share of the grid kept as inliers,
         info (P,) weight of the FOE evidence (0 = none), w (P, N) the final IRLS weights.
@@ -223,8 +229,8 @@ class FlowLabeler:
         diag = np.arange(5)
         pad = np.where(np.arange(N) % 2 == 0, 0.0, np.inf)[None, :]
         lim = 0.5 * f     # the FOE of a forward camera stays well inside the frame
-        w = W0
-        n_it = fc.irls_iters + fc.foe_iters     # the same number of steps with the FOE held (known rig)
+        w = W0 if w_start is None else w_start
+        n_it = fc.irls_iters + fc.foe_iters if iters is None else iters   # the same with the FOE held (known rig)
         for it in range(n_it):
             dx, dy = X - e[:, :1], Y - e[:, 1:]
             ir = 1.0 / np.maximum(np.hypot(dx, dy), 0.05 * f)
@@ -289,40 +295,49 @@ class FlowLabeler:
             out[enough] = np.nanmedian(ratio[enough], axis=1)
         return out
 
-    def _fit_pooled(self, X, Y, U, V, W0, theta, e, info, f, n_grid):
-        """Unknown rig: the FOE's x follows the car's kinematics with parameters pooled over time.
+    def _pool_add(self, theta, e, info) -> None:
+        """Unknown rig, pooled FOE model: add one chunk's per-pair fit to the video's statistics.
 
         A car turns about its rear axle, so the FOE sits at e_x = a - f k yaw per pair (``_fit_rig``):
         a is the FOE of straight driving (the camera's mount yaw; fixed for a video), k = 1/2 + L/d
         (chord + lever arm over distance per pair; changes slowly with speed). Neither is known for
         OpenDV, but both are shared by many pairs, while the per-pair fit lets flow errors trade yaw
-        against e_x pair by pair: on the synthetic world, a taken as the median of *all* per-pair FOEs
-        was off by up to 8 px (turns pull it), from straight pairs only by <= 2.5 px; and a yaw bias per
-        pair of (d / Z) (delta a / f) is 5 deg per 4 s at 2 deg of mount yaw (docs/labeling.md "Fifth look").
-        So: a = evidence-weighted median of the per-pair FOE over the video's straight pairs so far
-        (|yaw rate| over +-0.5 s < ``straight_yaw_deg_s``); k = weighted least squares of (a - e_x) on f yaw over the
-        last ``foe_pool_pairs`` pairs, clipped to [0, ``foe_k_max``]; e_y pooled over the chunk; then
-        rotation only, twice (the FOE follows the re-fitted yaw). Returns (theta, FOE, kept), or None while
-        less than ``foe_min_straight_s`` of straight driving has been seen (the caller keeps the per-pair fit).
+        against e_x pair by pair. a = evidence-weighted median of the per-pair FOE over the video's straight
+        pairs, those whose yaw rate averaged over +-0.5 s is below ``straight_yaw_deg_s`` (one pair's rate is
+        too noisy to tell: +-1-3 deg/s on the tests' renderer). On the synthetic world a from all pairs was off
+        by up to 8 px (turns pull it), from straight pairs by a median 0.5 px; a yaw bias per pair of
+        (d / Z) (delta a / f) is 5 deg per 4 s at 2 deg of mount yaw (docs/labeling.md "Fifth look").
+        k = weighted least squares of (a - e_x) on f yaw over the last ``foe_pool_pairs`` pairs.
         """
         fc = self.flow_cfg
         good = info > 1e-4
         yaw = theta[:, 0]
-        # straight = the yaw rate averaged over +-0.5 s is small (a per-pair rate is too noisy to tell)
+        lim = math.radians(fc.straight_yaw_deg_s / self._fps_hz)
         smooth = _running_mean(yaw, max(1, int(round(0.5 * self._fps_hz))))
-        straight = good & (np.abs(smooth) < math.radians(fc.straight_yaw_deg_s / self._fps_hz))
+        straight = good & (np.abs(smooth) < lim)
         self._straight.append((e[straight, 0], info[straight]))
-        sx = np.concatenate([s_[0] for s_ in self._straight])
-        sw = np.concatenate([s_[1] for s_ in self._straight])
         self._pool.append((e[:, 0], yaw, np.where(good, info, 0.0)))
-        ex, yw, iw = (np.concatenate([p_[i] for p_ in self._pool])[-fc.foe_pool_pairs:] for i in range(3))
         while sum(len(p_[0]) for p_ in self._pool[1:]) >= fc.foe_pool_pairs:
             self._pool.pop(0)                                   # keep only what the trailing pool needs
+
+    def _pool_params(self, f: float) -> tuple[float, float] | None:
+        """(a px, k) of the pooled FOE model, or None while less than ``foe_min_straight_s`` of straight
+        driving has been seen (a short clip all in one curve has no FOE of straight driving to pool)."""
+        fc = self.flow_cfg
+        sx = np.concatenate([s_[0] for s_ in self._straight])
         if len(sx) < max(3, fc.foe_min_straight_s * self._fps_hz):
-            return None                 # no straight driving seen yet (e.g. a short clip in one long curve)
-        a = _wmedian(sx, sw)
+            return None
+        a = _wmedian(sx, np.concatenate([s_[1] for s_ in self._straight]))
+        ex, yw, iw = (np.concatenate([p_[i] for p_ in self._pool])[-fc.foe_pool_pairs:] for i in range(3))
         den = float(np.sum(iw * (f * yw) ** 2))
         k = float(np.clip(np.sum(iw * (a - ex) * f * yw) / den, 0.0, fc.foe_k_max)) if den > 0 else 0.5
+        return a, k
+
+    def _fit_pooled(self, X, Y, U, V, W0, theta, e, info, w, f, n_grid, a, k):
+        """Rotation-only re-fit with the FOE at (a - f k yaw, e_y pooled over the chunk), twice (the FOE
+        follows the re-fitted yaw), each two IRLS steps from the per-pair fit's weights ``w`` (on the synthetic
+        world as good as five steps from scratch, at 40 % of the CPU). Returns (theta, FOE, kept)."""
+        good = info > 1e-4
         ey = _wmedian(e[good, 1], info[good]) if good.sum() >= 3 else float(np.median(e[:, 1]))
         lim = 0.5 * f
         E = np.empty_like(e)
@@ -330,8 +345,7 @@ class FlowLabeler:
         kept = None
         for _ in range(2):
             E[:, 0] = np.clip(a - f * k * theta[:, 0], -lim, lim)
-            theta, _, kept, _, _ = self._fit_motion(X, Y, U, V, W0, E, f, n_grid, free_foe=False)
-        self.last_foe_model = (a, k)
+            theta, _, kept, _, w = self._fit_motion(X, Y, U, V, W0, E, f, n_grid, free_foe=False, w_start=w, iters=2)
         return theta, E, kept
 
     def _fit_rig(self, X, Y, U, V, W0, theta, e, info, w, f, n_grid):
@@ -378,29 +392,41 @@ class FlowLabeler:
         return X, Y, U, V, W0
 
     def _solve_chunk(self, pairs: list[_PairData], n_grid: int, f: float, e0: tuple[float, float]):
+        """Fit one chunk; its result goes to ``self._results`` (now, or later for a deferred pooled chunk).
+
+        Returns the next chunk's FOE prior: the evidence-weighted median FOE of this one's per-pair fit."""
         X, Y, U, V, W0 = self._stack(pairs)
         theta, e, kept, info, w = self._fit_motion(X, Y, U, V, W0, e0, f, n_grid)
-        out_theta, out_e, out_kept = theta, e, kept       # the free per-pair fit ("per_pair")
+        idx = len(self._results)
+        self._results.append((theta[:, 0].copy(), kept, e, "per_pair"))      # the free per-pair fit
         rig_ok = False
         if self.flow_cfg.camera_ahead_m is not None:
             # known rig: the FOE follows the kinematics; the running prior below stays the free fit's
             theta_r, e_r, kept_r = self._fit_rig(X, Y, U, V, W0, theta, e, info, w, f, n_grid)
             if kept_r is not None:
-                out_theta, out_e, out_kept, rig_ok = theta_r, e_r, kept_r, True
+                self._results[idx] = (theta_r[:, 0].copy(), kept_r, e_r, "rig")
+                rig_ok = True
         else:
             self._dhs.append(np.full(len(pairs), np.nan))
         if not rig_ok and self.flow_cfg.foe_model == "pooled":     # a known rig without visible ground lands here
-            pooled = self._fit_pooled(X, Y, U, V, W0, theta, e, info, f, n_grid)
-            if pooled is not None:
-                out_theta, out_e, out_kept = pooled
-        self._foes.append(out_e)
-        self._sources.append("rig" if rig_ok else ("pooled" if out_theta is not theta else "per_pair"))
+            self._pool_add(theta, e, info)
+            self._pending.append((idx, X, Y, U, V, W0, theta, e, info, w))
+            params = self._pool_params(f)
+            if params is not None:
+                # chunks seen before enough straight driving get the model too (labels are returned at the end)
+                for j, *arrays in self._pending:
+                    th_p, e_p, kept_p = self._fit_pooled(*arrays, f, n_grid, *params)
+                    self._results[j] = (th_p[:, 0].copy(), kept_p, e_p, "pooled")
+                self._pending = []
+                self.last_foe_model = params
+            elif len(self._pending) > _MAX_PENDING_CHUNKS:
+                self._pending.pop(0)                       # memory bound: the oldest keeps its per-pair fit
         # the next chunk's prior: the evidence-weighted median FOE of this one (the camera is fixed to the
         # car, so the FOE of straight driving is stable; turns shift it both ways and average out)
         good = info > 1e-4
         if good.sum() >= 3:
             e0 = (_wmedian(e[good, 0], info[good]), _wmedian(e[good, 1], info[good]))
-        return out_theta[:, 0].copy(), out_kept, e0
+        return e0
 
     # ---------------------------------------------------------------- public API
     def yaw_rates_from_grey(self, greys: Iterable[np.ndarray], fps_hz: float) -> np.ndarray:
@@ -408,14 +434,11 @@ class FlowLabeler:
         if fps_hz <= 0:
             raise ValueError(f"fps_hz must be > 0, got {fps_hz}")
         fc = self.flow_cfg
-        out: list[np.ndarray] = []
-        quality: list[np.ndarray] = []
         chunk: list[_PairData] = []
         e = (0.0, 0.0)
-        self._foes, self._dhs = [], []
-        self._straight, self._pool, self._fps_hz = [], [], fps_hz     # the pooled FOE model's state (one video)
+        self._results, self._dhs = [], []
+        self._straight, self._pool, self._pending, self._fps_hz = [], [], [], fps_hz   # pooled FOE state (one video)
         self.last_foe_model = None
-        self._sources = []
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:
@@ -433,23 +456,20 @@ class FlowLabeler:
             if prev is not None:
                 chunk.append(self._pair(prev, g, prev_tex))
                 if len(chunk) >= fc.chunk_pairs:
-                    yaw, kept, e = self._solve_chunk(chunk, n_grid, f, e)
-                    out.append(yaw)
-                    quality.append(kept)
+                    e = self._solve_chunk(chunk, n_grid, f, e)
                     chunk = []
             prev, prev_tex = g, tex
         if chunk:
-            yaw, kept, e = self._solve_chunk(chunk, n_grid, f, e)
-            out.append(yaw)
-            quality.append(kept)
+            e = self._solve_chunk(chunk, n_grid, f, e)
+        res, self._results, self._pending = self._results, [], []
         self.last_foe = e
-        self.last_foe_per_pair = np.concatenate(self._foes) if self._foes else np.zeros((0, 2))
+        self.last_foe_per_pair = np.concatenate([r[2] for r in res]) if res else np.zeros((0, 2))
         self.last_distance_over_height = np.concatenate(self._dhs) if self._dhs else np.zeros(0)
-        self.last_quality = np.concatenate(quality) if quality else np.zeros(0)
-        self.last_foe_sources = list(self._sources)
-        if not out:
+        self.last_quality = np.concatenate([r[1] for r in res]) if res else np.zeros(0)
+        self.last_foe_sources = [r[3] for r in res]
+        if not res:
             return np.zeros(0)
-        return np.degrees(np.concatenate(out)) * fps_hz
+        return np.degrees(np.concatenate([r[0] for r in res])) * fps_hz
 
     def yaw_rates_deg(self, frames: Iterable[np.ndarray], fps_hz: float, pixel_aspect: float = 1.0) -> np.ndarray:
         """RGB uint8 frames (H, W, 3), consecutive at ``fps_hz`` -> (N-1,) yaw rate per pair, deg/s, left +.
@@ -472,6 +492,11 @@ class FlowLabeler:
         cmd, conf = command_from_yaw(yaw, self.cfg.command)
         q = window_quality(quality)
         return FlowLabel(command=cmd, yaw_deg=yaw, confidence=conf * q, quality=q)
+
+
+# pooled FOE model: chunks (60 pairs, ~4 MB of flow samples and weights each) are held back until enough straight
+# driving has been seen to place their FOE; beyond this many the oldest keeps its per-pair fit (10 = 60 s at 10 Hz)
+_MAX_PENDING_CHUNKS = 10
 
 
 def _running_nanmedian(x: np.ndarray, half: int) -> np.ndarray:
