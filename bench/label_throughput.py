@@ -22,6 +22,7 @@ where that clip is absent, from frames of the tests' renderer. Pass --video to u
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import subprocess
 import sys
@@ -115,14 +116,10 @@ def main() -> int:
     info = probe(path)
     cfgs = {name: preset(name) for name in args.presets.split(",")}
     if args.rig:
-        import dataclasses
-
         ahead_m, height_m = (float(v) for v in args.rig.split(","))
         cfgs.update({f"{name}+rig": dataclasses.replace(c, flow=dataclasses.replace(
             c.flow, camera_ahead_m=ahead_m, camera_height_m=height_m)) for name, c in list(cfgs.items())})
     if args.per_pair:
-        import dataclasses
-
         cfgs.update({f"{name}+per_pair": dataclasses.replace(c, flow=dataclasses.replace(c.flow, foe_model="per_pair"))
                      for name, c in list(cfgs.items()) if c.flow.camera_ahead_m is None})
     hz = {c.flow.sample_hz for c in cfgs.values()}

@@ -57,7 +57,7 @@ class FlowConfig:
     #                                  the per-pair FOEs of the last foe_pool_pairs pairs; then rotation only.
     #                                  "per_pair": the free per-pair FOE (noisier: yaw trades against it). flow.py
     foe_pool_pairs: int = 300        # "pooled": trailing pairs whose per-pair FOEs give k (30 s at 10 Hz)
-    straight_yaw_deg_s: float = 1.0  # "pooled": pairs turning slower than this (per-pair fit) give a
+    straight_yaw_deg_s: float = 1.0  # "pooled": pairs whose yaw rate over +-0.5 s is below this give a
     foe_min_straight_s: float = 3.0  # "pooled" needs this much straight driving seen (else the chunk keeps the
     #                                  per-pair fit): a short clip all in one curve has no straight FOE to pool
     foe_k_max: float = 5.0           # "pooled": k is clipped to [0, this] (L <= ~2.5 m ahead at d >= 0.5 m per pair)

@@ -337,11 +337,9 @@ class FlowLabeler:
         """Rotation-only re-fit with the FOE at (a - f k yaw, e_y pooled over the chunk), twice (the FOE
         follows the re-fitted yaw), each two IRLS steps from the per-pair fit's weights ``w`` (on the synthetic
         world as good as five steps from scratch, at 40 % of the CPU). Returns (theta, FOE, kept)."""
-        good = info > 1e-4
-        ey = _wmedian(e[good, 1], info[good]) if good.sum() >= 3 else float(np.median(e[:, 1]))
         lim = 0.5 * f
         E = np.empty_like(e)
-        E[:, 1] = ey
+        E[:, 1] = _chunk_foe_y(e, info)
         kept = None
         for _ in range(2):
             E[:, 0] = np.clip(a - f * k * theta[:, 0], -lim, lim)
@@ -361,8 +359,7 @@ class FlowLabeler:
         """
         fc = self.flow_cfg
         P = len(theta)
-        good = info > 1e-4
-        ey = _wmedian(e[good, 1], info[good]) if good.sum() >= 3 else float(np.median(e[:, 1]))
+        ey = _chunk_foe_y(e, info)
         lam = fc.camera_ahead_m / fc.camera_height_m
         lim = 0.5 * f
         E = e.copy()
@@ -515,6 +512,12 @@ def _running_mean(x: np.ndarray, half: int) -> np.ndarray:
     i = np.arange(len(x))
     lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, len(x))
     return (c[hi] - c[lo]) / (hi - lo)
+
+
+def _chunk_foe_y(e: np.ndarray, info: np.ndarray) -> float:
+    """The FOE's y (the camera's pitch) pooled over a chunk: evidence-weighted median of the per-pair fit's."""
+    good = info > 1e-4
+    return _wmedian(e[good, 1], info[good]) if good.sum() >= 3 else float(np.median(e[:, 1]))
 
 
 def _wmedian(x: np.ndarray, w: np.ndarray) -> float:
