@@ -114,3 +114,16 @@ def test_cli_writes_dataset_and_contact_sheet(tmp_path, capsys):
     assert summary["parts"] == {"opendv": 1, "navsim": 1, "carla": 1}
     assert (tmp_path / "sheet.png").stat().st_size > 1000
     assert (tmp_path / "w" / "ground_truth.json").is_file() and not (tmp_path / "w.partial").exists()
+
+
+def test_random_explorer_drives_past_its_64_random_segments():
+    # the random explorer draws 64 segments of 0.5-1.5 s; a longer episode (--set episode_s=64) indexed past
+    # them and crashed the generator. Segments now repeat; shorter episodes keep their bytes.
+    from pipelines.sources.synth.drivers import _segment, simulate
+    from pipelines.sources.synth.world import build_world
+
+    changes = np.array([1.0, 2.0, 3.0])
+    assert [_segment(changes, t) for t in (0.5, 1.5, 2.5, 3.5, 4.5)] == [0, 1, 2, 0, 1]
+    rng = np.random.default_rng(3)
+    trace = simulate(build_world(rng, 80.0, 8.0), 80.0, 10.0, rng, "explorer", "random")
+    assert trace is not None

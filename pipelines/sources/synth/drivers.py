@@ -95,6 +95,11 @@ def _curve_speed(world: World, j, v_max):
     return min(v_max, math.sqrt(A_LAT_MAX / kmax)) if kmax > 1e-6 else v_max
 
 
+def _segment(changes: np.ndarray, t: float) -> int:
+    """Index of the random explorer's segment at time t; past the last change the segments repeat."""
+    return int(np.searchsorted(changes, t % changes[-1]))
+
+
 def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Generator,
              driver: str = "expert", pattern: str | None = None) -> Trace:
     n = int(round(duration_s * sim_hz))
@@ -112,6 +117,8 @@ def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Gene
         p["amp"] = float(rng.uniform(0.05, 0.12))
         p["period"] = float(rng.uniform(2.0, 4.0))
         p["stop_for"] = float(rng.uniform(4.0, 8.0))
+        # 64 random segments (~64 s); longer episodes cycle through them again (``_segment``), which keeps
+        # the random stream, hence every shorter episode, byte-identical to before
         p["changes"] = np.cumsum(rng.uniform(0.5, 1.5, 64))
         p["rand_k"] = rng.uniform(-0.12, 0.12, 64)
         p["rand_a"] = rng.uniform(-3.0, 2.5, 64)
@@ -135,7 +142,7 @@ def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Gene
             elif pattern == "swerve":
                 k_cmd = k_pp + p["amp"] * math.sin(2 * math.pi * t / p["period"])
             elif pattern == "random":
-                idx = int(np.searchsorted(p["changes"], t))
+                idx = _segment(p["changes"], t)
                 k_cmd = float(p["rand_k"][idx])
             elif pattern == "stop" and p["t0"] <= t < p["t0"] + p["stop_for"]:
                 v_des = 0.0
@@ -144,7 +151,7 @@ def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Gene
         if crashed_at is not None:
             v_des, k_cmd = 0.0, 0.0
         if driver == "explorer" and pattern == "random" and crashed_at is None:
-            idx = int(np.searchsorted(p["changes"], t))
+            idx = _segment(p["changes"], t)
             acc = float(p["rand_a"][idx]) if v > 0.5 or p["rand_a"][idx] > 0 else 0.0
         else:
             acc = min(A_MAX, max(A_MIN, 1.2 * (v_des - v)))
