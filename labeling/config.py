@@ -31,6 +31,10 @@ class FlowConfig:
     flow_preset: Literal["ultrafast", "fast", "medium"] = "ultrafast"   # cv2.DISOpticalFlow preset
     dis_finest_scale: int | None = 1  # DIS overrides (None = the preset's). ultrafast stops at scale 2 (a
     #                                   64 px flow field at 256 px); scale 1 halves the yaw error (issue 4)
+    dis_warm_start: bool = True      # each pair's DIS starts from the previous pair's flow (OpenCV's input flow: a
+    #                                  candidate per patch at every scale, kept where it matches better); the flow
+    #                                  of a car's camera changes little in 0.1 s. Median window error on the
+    #                                  synthetic world 0.95/1.51/1.30 -> 0.81/1.10/1.01 deg (`default`), same CPU
     dis_patch_size: int | None = None
     dis_patch_stride: int | None = None
     dis_grad_iters: int | None = None

@@ -132,6 +132,7 @@ class FlowLabeler:
         self._fps_hz = 10.0
         self._pending: list[tuple] = []     # pooled FOE: chunks waiting for enough straight driving
         self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
+        self._prev_flow: np.ndarray | None = None   # the last pair's flow (DIS warm start)
 
     # ---------------------------------------------------------------- per frame / per pair
     def focal_px(self, width_px: int) -> float:
@@ -161,7 +162,11 @@ class FlowLabeler:
         fc = self.flow_cfg
         h, w = g0.shape
         rows, cols = self._grid(h, w)
-        flow = self._dis.calc(g0, g1, None)
+        # warm start (``dis_warm_start``): OpenCV's DIS takes a flow of the right size as a per-patch candidate at every
+        # scale and keeps it where it matches better than its own; the output overwrites it, which is fine here
+        init = self._prev_flow if self.flow_cfg.dis_warm_start else None
+        flow = self._dis.calc(g0, g1, init)
+        self._prev_flow = flow
         flat = rows * w + cols
         uv = flow.reshape(-1, 2)[flat]
         u, v = uv[:, 0].astype(np.float64), uv[:, 1].astype(np.float64)
@@ -436,6 +441,7 @@ class FlowLabeler:
         self._results, self._dhs = [], []
         self._straight, self._pool, self._pending, self._fps_hz = [], [], [], fps_hz   # pooled FOE state (one video)
         self.last_foe_model = None
+        self._prev_flow = None
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:
