@@ -34,7 +34,8 @@ class FlowConfig:
     dis_warm_start: bool = True      # each pair's DIS starts from the previous pair's flow (OpenCV's input flow: a
     #                                  candidate per patch at every scale, kept where it matches better); the flow
     #                                  of a car's camera changes little in 0.1 s. Median window error on the
-    #                                  synthetic world 0.95/1.51/1.30 -> 0.81/1.10/1.01 deg (`default`), same CPU
+    #                                  synthetic world 0.95/1.51/1.30 -> 0.81/1.10/1.01 deg (`default`, seeds
+    #                                  11/14/16) for ~12 % more DIS CPU (docs/labeling.md "Sixth look")
     dis_patch_size: int | None = None
     dis_patch_stride: int | None = None
     dis_grad_iters: int | None = None
@@ -140,7 +141,9 @@ PRESETS: dict[str, dict] = {
     # throughput: 160 px working width (DIS at 80x45 instead of 128x72) and one rotation-only IRLS step;
     # about half the labeler's own CPU per frame, median yaw error ~0.3-0.5 deg worse on the synthetic
     # world, command accuracy about the same (docs/labeling.md, bench/label_throughput.py)
-    "fast": {"flow": {"work_width_px": 160, "grid_step_px": 4, "irls_iters": 1}},
+    # no DIS warm start: it costs ~0.05 ms per frame here (+1.5 % of b/a', which `fast` has little of to spare) and
+    # changed `fast`'s command accuracy by -3 ... +3 windows per world for a 0.05-0.15 deg better median
+    "fast": {"flow": {"work_width_px": 160, "grid_step_px": 4, "irls_iters": 1, "dis_warm_start": False}},
 }
 
 
