@@ -99,7 +99,8 @@ def main() -> int:
     rig = (f"rig known: camera {flow_cfg.camera_ahead_m:g} m ahead of the axle, {flow_cfg.camera_height_m:g} m high"
            if flow_cfg.camera_ahead_m is not None else f"rig unknown (FOE {flow_cfg.foe_model})")
     print(f"labeler: hfov assumed {flow_cfg.hfov_deg:g} deg (synthetic camera: {cam}), "
-          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset} (finest scale {flow_cfg.dis_finest_scale or 'preset'}), "
+          f"{flow_cfg.work_width_px} px, DIS {flow_cfg.flow_preset} (finest scale {flow_cfg.dis_finest_scale or 'preset'}"
+          f"{', warm start' if flow_cfg.dis_warm_start else ''}), "
           f"preset {args.preset!r}; {rig}")
     rows = []   # (split, reader, item, start, true_deg, est_deg, traj_cmd_offset, traj_cmd_heading, quality)
     t_flow = 0.0
