@@ -107,17 +107,7 @@ class FlowLabeler:
         self.cfg = cfg if isinstance(cfg, LabelerConfig) else LabelerConfig(flow=cfg)
         fc = self.cfg.flow
         self.flow_cfg = fc
-        self._dis = cv2.DISOpticalFlow_create(_PRESETS[fc.flow_preset])
-        if fc.dis_finest_scale is not None:
-            self._dis.setFinestScale(fc.dis_finest_scale)
-        if fc.dis_patch_size is not None:
-            self._dis.setPatchSize(fc.dis_patch_size)
-        if fc.dis_patch_stride is not None:
-            self._dis.setPatchStride(fc.dis_patch_stride)
-        if fc.dis_grad_iters is not None:
-            self._dis.setGradientDescentIterations(fc.dis_grad_iters)
-        if fc.dis_var_iters is not None:
-            self._dis.setVariationalRefinementIterations(fc.dis_var_iters)
+        self._dis = self._make_dis()
         self._clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4))
         self._grid_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.last_quality: np.ndarray | None = None   # per-pair share of points kept by the fit
@@ -133,6 +123,21 @@ class FlowLabeler:
         self._pending: list[tuple] = []     # pooled FOE: chunks waiting for enough straight driving
         self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
         self._prev_flow: np.ndarray | None = None   # the last pair's flow (DIS warm start)
+
+    def _make_dis(self):
+        fc = self.flow_cfg
+        dis = cv2.DISOpticalFlow_create(_PRESETS[fc.flow_preset])
+        if fc.dis_finest_scale is not None:
+            dis.setFinestScale(fc.dis_finest_scale)
+        if fc.dis_patch_size is not None:
+            dis.setPatchSize(fc.dis_patch_size)
+        if fc.dis_patch_stride is not None:
+            dis.setPatchStride(fc.dis_patch_stride)
+        if fc.dis_grad_iters is not None:
+            dis.setGradientDescentIterations(fc.dis_grad_iters)
+        if fc.dis_var_iters is not None:
+            dis.setVariationalRefinementIterations(fc.dis_var_iters)
+        return dis
 
     # ---------------------------------------------------------------- per frame / per pair
     def focal_px(self, width_px: int) -> float:
@@ -442,6 +447,12 @@ class FlowLabeler:
         self._straight, self._pool, self._pending, self._fps_hz = [], [], [], fps_hz   # pooled FOE state (one video)
         self.last_foe_model = None
         self._prev_flow = None
+        if fc.dis_warm_start:
+            # a new DIS per video: OpenCV keeps the last input flow's pyramid (initial_Ux/Uy) inside the object and
+            # tries it on every later call, even without an input flow (collectGarbage does not clear it), so the
+            # first pair of a video would start from the previous video's flow, and read a buffer of the wrong
+            # size if that video's frames were larger
+            self._dis = self._make_dis()
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:

@@ -244,3 +244,18 @@ def test_dis_warm_start_survives_a_scene_cut(render):
     true = np.degrees(poses[-1, 2] - poses[0, 2])
     assert joined[30:].sum() == pytest.approx(true, rel=0.06)
     assert joined[31:].sum() == pytest.approx(alone[1:].sum(), abs=1.0)
+
+
+def test_one_labeler_gives_each_video_the_same_result_as_a_fresh_one(render):
+    # the pipeline's label stage keeps one FlowLabeler for every clip it sees (Ray actors see them in any order).
+    # OpenCV's DIS keeps the last warm start's flow inside the object and tries it on later calls, so without a
+    # fresh DIS per video the first pair of a clip depended on the clip labelled before it (found by the pipeline's
+    # kill-and-rerun test: shards not byte-identical)
+    a, _ = render(21, FPS, 12.0, speed_mps=9.0, seed=4)
+    b, _ = render(21, FPS, -5.0, speed_mps=6.0, seed=6)
+    other, _ = render(11, FPS, 3.0, speed_mps=6.0, seed=8, size_hw=(96, 160))      # 256 x 154 at working size
+    lab = FlowLabeler(_cfg())
+    lab.yaw_rates_deg(a, FPS)
+    np.testing.assert_array_equal(lab.yaw_rates_deg(b, FPS), FlowLabeler(_cfg()).yaw_rates_deg(b, FPS))
+    lab.yaw_rates_deg(b, FPS)                        # then a video of another size: no stale buffer is read
+    np.testing.assert_array_equal(lab.yaw_rates_deg(other, FPS), FlowLabeler(_cfg()).yaw_rates_deg(other, FPS))
