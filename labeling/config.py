@@ -142,7 +142,7 @@ PRESETS: dict[str, dict] = {
     # about half the labeler's own CPU per frame, median yaw error ~0.3-0.5 deg worse on the synthetic
     # world, command accuracy about the same (docs/labeling.md, bench/label_throughput.py)
     # no DIS warm start: it costs ~0.05 ms per frame here (+1.5 % of b/a', which `fast` has little of to spare) and
-    # changed `fast`'s command accuracy by -3 ... +3 windows per world for a 0.05-0.15 deg better median
+    # moved `fast`'s command accuracy by -3 ... +4 windows per world for a 0.0-0.25 deg better median (docs)
     "fast": {"flow": {"work_width_px": 160, "grid_step_px": 4, "irls_iters": 1, "dis_warm_start": False}},
 }
 

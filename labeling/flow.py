@@ -447,12 +447,11 @@ class FlowLabeler:
         self._straight, self._pool, self._pending, self._fps_hz = [], [], [], fps_hz   # pooled FOE state (one video)
         self.last_foe_model = None
         self._prev_flow = None
-        if fc.dis_warm_start:
-            # a new DIS per video: OpenCV keeps the last input flow's pyramid (initial_Ux/Uy) inside the object and
-            # tries it on every later call, even without an input flow (collectGarbage does not clear it), so the
-            # first pair of a video would start from the previous video's flow, and read a buffer of the wrong
-            # size if that video's frames were larger
-            self._dis = self._make_dis()
+        # a new DIS per video: OpenCV keeps the last input flow's pyramid (initial_Ux/Uy, the warm start) inside the
+        # object and tries it on every later call, even without an input flow (collectGarbage does not clear it),
+        # so the first pair of a video would start from the previous video's flow, and read a buffer of the wrong
+        # size if that video's frames were larger
+        self._dis = self._make_dis()
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:

@@ -126,4 +126,4 @@ def test_random_explorer_drives_past_its_64_random_segments():
     assert [_segment(changes, t) for t in (0.5, 1.5, 2.5, 3.5, 4.5)] == [0, 1, 2, 0, 1]
     rng = np.random.default_rng(3)
     trace = simulate(build_world(rng, 80.0, 8.0), 80.0, 10.0, rng, "explorer", "random")
-    assert trace is not None
+    assert len(trace.t_s) > 0 and np.isfinite(trace.poses).all()
