@@ -11,7 +11,7 @@
 4. Flow-vs-trajectory agreement: on episodes with poses (CARLA), the command from flow against
    ``command_from_trajectory`` (lateral-offset rule, the default, and the heading rule).
 
-    PYTHONPATH=. python bench/calibrate_labeler.py [--data DIR [--data DIR2 ...] | --episodes 48 --seed 11] [--hfov-deg 80]
+    PYTHONPATH=. python bench/calibrate_labeler.py [--data DIR [--data DIR2 ...] | --episodes 48 --seed 11] [--hfov-deg 80] [--plot held_out.png]
 """
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -74,6 +75,8 @@ def main() -> int:
                     help="override a labeler config field, e.g. --set flow.work_width_px=192")
     ap.add_argument("--ref-threshold-deg", type=float, default=15.0)
     ap.add_argument("--json-out", help="write the numbers here")
+    ap.add_argument("--plot", metavar="PNG", help="draw the held-out windows here: flow vs true heading change with "
+                                                   "the thresholds, and the error distribution (needs matplotlib)")
     args = ap.parse_args()
 
     tmp = tempfile.TemporaryDirectory()
@@ -84,11 +87,11 @@ def main() -> int:
                         "--seed", str(args.seed), "--quiet"], check=True, cwd=REPO, stdout=subprocess.DEVNULL,
                        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
         print(f"synthetic world: {args.episodes} episodes, seed {args.seed}, {time.perf_counter() - t0:.0f} s")
-    results, errs, correct = {}, [], 0
+    results, errs, correct, held = {}, [], 0, {}
     for root in roots:
         if len(roots) > 1:
             print(f"== {root}")
-        out, err_w, correct_w = calibrate_world(root, args)
+        out, err_w, correct_w, held[root.name] = calibrate_world(root, args)
         results[str(root)] = out
         errs.append(err_w)
         correct += correct_w
@@ -102,12 +105,61 @@ def main() -> int:
     if args.json_out:
         doc = results[str(roots[0])] if len(roots) == 1 else {"worlds": results, "all_worlds": union}
         Path(args.json_out).write_text(json.dumps(doc, indent=2))
+    if args.plot:
+        plot_held_out(held, args.ref_threshold_deg, f"preset {args.preset!r}", Path(args.plot))
+        print(f"plot: {args.plot}")
     return 0
 
 
-def calibrate_world(root: Path, args) -> tuple[dict, np.ndarray, int]:
+def plot_held_out(held: dict, ref_deg: float, title: str, path: Path) -> None:
+    """Left: flow vs true heading change per held-out window (wrong commands in red), the turn definition (dashed,
+    vertical) and each world's calibrated flow threshold (dotted, horizontal). Middle: the error against the true
+    heading change (a scale error is a slope; noise of the yaw / FOE split a band). Right: |error| distribution."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, cx, bx) = plt.subplots(1, 3, figsize=(17, 5.5))
+    lim = max(max(np.abs(h["true"]).max(), np.abs(h["est"]).max()) for h in held.values()) * 1.05
+    ax.plot([-lim, lim], [-lim, lim], color="0.7", lw=0.8)
+    for x in (-ref_deg, ref_deg):
+        ax.axvline(x, color="0.4", ls="--", lw=0.8)
+    for name, h in held.items():
+        ok = h["correct"]
+        ax.scatter(h["true"][ok], h["est"][ok], s=6, alpha=0.5, label=f"{name} ({len(ok)} windows)")
+        ax.scatter(h["true"][~ok], h["est"][~ok], s=22, marker="x", color="red")
+        cx.scatter(h["true"][ok], h["est"][ok] - h["true"][ok], s=6, alpha=0.5)
+        cx.scatter(h["true"][~ok], h["est"][~ok] - h["true"][~ok], s=22, marker="x", color="red")
+        for y in (-h["threshold_deg"], h["threshold_deg"]):
+            ax.axhline(y, color="0.4", ls=":", lw=0.8)
+    err = np.concatenate([np.abs(h["est"] - h["true"]) for h in held.values()])
+    acc = np.mean(np.concatenate([h["correct"] for h in held.values()]))
+    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), xlabel="true heading change over 4 s (deg, left +)",
+           ylabel="flow estimate (deg)", title=f"{title}: held-out accuracy {acc:.3f} (x = wrong command)")
+    if len(held) <= 10:
+        ax.legend(fontsize=7, loc="upper left", markerscale=2)
+    cx.axhline(0, color="0.7", lw=0.8)
+    for x in (-ref_deg, ref_deg):
+        cx.axvline(x, color="0.4", ls="--", lw=0.8)
+    cx.set(xlim=(-lim, lim), xlabel="true heading change over 4 s (deg, left +)", ylabel="flow - true (deg)",
+           title="error against the true heading change")
+    bins = np.linspace(0, max(np.percentile(err, 99), 1.0), 60)
+    bx.hist(err, bins=bins, color="tab:blue", alpha=0.8)
+    for q, ls in ((50, "-"), (90, "--")):
+        v = np.percentile(err, q)
+        bx.axvline(v, color="k", ls=ls, lw=1, label=f"p{q} {v:.2f} deg")
+    bx.axvline(1.0, color="tab:green", lw=1, label="target median 1 deg")
+    bx.set(xlabel="|flow - true| per 4-s window (deg)", ylabel="held-out windows", title="yaw error")
+    bx.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def calibrate_world(root: Path, args) -> tuple[dict, np.ndarray, int, dict]:
     """One world: calibrate on its even episodes, report on its odd ones. Returns (numbers, held-out |error| deg,
-    held-out windows labelled right)."""
+    held-out windows labelled right, held-out arrays for the plot)."""
     from pipelines.sources.synth.ground_truth import GroundTruth
 
     gt = GroundTruth.load(root)
@@ -131,7 +183,8 @@ def calibrate_world(root: Path, args) -> tuple[dict, np.ndarray, int]:
           f"preset {args.preset!r}; {rig}")
     rows = []   # (split, reader, item, start, true_deg, est_deg, traj_cmd_offset, traj_cmd_heading, quality)
     t_flow = 0.0
-    for k, (name, item, ep) in enumerate(episodes(root)):
+    for k, (name, item, ep) in enumerate(tqdm(list(episodes(root)), desc=f"flow {root.name}", unit="episode",
+                                              disable=not sys.stderr.isatty())):
         if abs(ep.fps_hz - FPS) > 1e-6:
             continue
         t0 = time.process_time()
@@ -204,7 +257,9 @@ def calibrate_world(root: Path, args) -> tuple[dict, np.ndarray, int]:
     for e in out["held_out_errors"]:
         print(f"  held-out error: {e['reader']} {e['item']} frame {e['start_frame']}: true {e['true_deg']:+.1f}, "
               f"flow {e['est_deg']:+.1f} deg (quality {e['quality']:.2f})")
-    return out, err[test], int(np.trace(m))
+    ok = np.array([r == p for r, p in zip(ref, pred)])
+    held = {"true": true[test], "est": est[test], "correct": ok[test], "threshold_deg": best}
+    return out, err[test], int(np.trace(m)), held
 
 
 if __name__ == "__main__":

@@ -53,7 +53,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"resim label: bad configuration: {e}", file=sys.stderr)
         return 2
     try:
-        res = label_video(args.video, cfg, window_s=args.window_s, stride_s=args.stride_s)
+        res = label_video(args.video, cfg, window_s=args.window_s, stride_s=args.stride_s,
+                          progress=not args.quiet and sys.stderr.isatty())
     except VideoError as e:
         print(f"resim label: cannot label {e.path}: {e.reason}", file=sys.stderr)
         return 1
@@ -98,6 +99,8 @@ def register(subparsers) -> None:
     p.add_argument("--window-s", type=float, default=4.0, help="window length in seconds (default 4, ReSim's future)")
     p.add_argument("--stride-s", type=float, default=2.0, help="step between window starts in seconds (default 2)")
     p.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bar (it is drawn on stderr only when stderr is a terminal)")
     p.add_argument("--hfov-deg", type=float, default=None, help="assumed horizontal field of view (default 80)")
     p.add_argument("--preset", default="default",
                    help="labeler preset: default | accurate (DIS medium, ~2.4x the CPU) | fast (160 px, ~half the CPU)")

@@ -66,3 +66,19 @@ def test_unreadable_input_names_file_and_reason(tmp_path, capsys, content, reaso
 def test_bad_override_is_a_config_error(left_turn_video, capsys):
     assert main(["label", str(left_turn_video), "--set", "flow.hfov_deg=500"]) == 2
     assert "hfov_deg" in capsys.readouterr().err
+
+
+def test_progress_bar_reports_video_seconds_and_changes_nothing(left_turn_video, capsys):
+    from labeling.windows import label_video
+
+    quiet = label_video(left_turn_video)
+    assert capsys.readouterr().err == ""                     # the library is silent unless asked
+    shown = label_video(left_turn_video, progress=True)
+    err = capsys.readouterr().err
+    assert "left.mp4" in err and "/6 s of video" in err and "100%" in err, err
+    assert [w.yaw_deg for w in shown.windows] == [w.yaw_deg for w in quiet.windows]
+
+
+def test_cli_draws_no_progress_bar_when_stderr_is_not_a_terminal(left_turn_video, capsys):
+    assert main(["label", str(left_turn_video), "--json"]) == 0
+    assert "s of video" not in capsys.readouterr().err     # logs and pipes get the summary line only
