@@ -76,7 +76,8 @@ def main() -> int:
     ap.add_argument("--ref-threshold-deg", type=float, default=15.0)
     ap.add_argument("--json-out", help="write the numbers here")
     ap.add_argument("--plot", metavar="PNG", help="draw the held-out windows here: flow vs true heading change with "
-                                                   "the thresholds, and the error distribution (needs matplotlib)")
+                                                   "the thresholds, the error against the truth, and the error "
+                                                   "distribution (needs matplotlib)")
     args = ap.parse_args()
 
     tmp = tempfile.TemporaryDirectory()
@@ -91,7 +92,8 @@ def main() -> int:
     for root in roots:
         if len(roots) > 1:
             print(f"== {root}")
-        out, err_w, correct_w, held[root.name] = calibrate_world(root, args)
+        key = root.name if root.name not in held else str(root)      # the plot's legend
+        out, err_w, correct_w, held[key] = calibrate_world(root, args)
         results[str(root)] = out
         errs.append(err_w)
         correct += correct_w
