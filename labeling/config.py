@@ -63,6 +63,8 @@ class FlowConfig:
     #                                  "per_pair": the free per-pair FOE (noisier: yaw trades against it). flow.py
     foe_pool_pairs: int = 300        # "pooled": trailing pairs whose per-pair FOEs give k (30 s at 10 Hz)
     straight_yaw_deg_s: float = 1.0  # "pooled": pairs whose yaw rate over +-0.5 s is below this give a
+    foe_straight_pool_pairs: int = 3000   # "pooled": a is the median over at most this many trailing straight pairs
+    #                                  (5 min of straight driving at 10 Hz): bounded work per chunk on hour-long videos
     foe_min_straight_s: float = 3.0  # "pooled" needs this much straight driving seen (else the chunk keeps the
     #                                  per-pair fit): a short clip all in one curve has no straight FOE to pool
     foe_k_max: float = 5.0           # "pooled": k is clipped to [0, this] (L <= ~2.5 m ahead at d >= 0.5 m per pair)
@@ -94,6 +96,9 @@ class FlowConfig:
             raise ConfigError(f"camera_ahead_m must be in [-1, 6] m (or None: unknown rig), got {self.camera_ahead_m}")
         if not 0.3 <= self.camera_height_m <= 5.0:
             raise ConfigError(f"camera_height_m must be in [0.3, 5] m, got {self.camera_height_m}")
+        if self.foe_straight_pool_pairs < max(3, self.foe_min_straight_s * self.sample_hz):
+            raise ConfigError(f"foe_straight_pool_pairs ({self.foe_straight_pool_pairs}) must hold foe_min_straight_s "
+                              f"of straight pairs at sample_hz (>= {max(3, self.foe_min_straight_s * self.sample_hz):g})")
         if (self.foe_pool_pairs < 2 or self.straight_yaw_deg_s <= 0 or self.foe_k_max < 0
                 or self.foe_min_straight_s < 0):
             raise ConfigError("foe_pool_pairs >= 2, straight_yaw_deg_s > 0, foe_k_max >= 0 and "

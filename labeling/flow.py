@@ -107,22 +107,31 @@ class FlowLabeler:
         self.cfg = cfg if isinstance(cfg, LabelerConfig) else LabelerConfig(flow=cfg)
         fc = self.cfg.flow
         self.flow_cfg = fc
-        self._dis = self._make_dis()
         self._clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4))
         self._grid_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.last_quality: np.ndarray | None = None   # per-pair share of points kept by the fit
         self.last_foe: tuple[float, float] | None = None
         self.last_foe_per_pair: np.ndarray | None = None   # (N-1, 2) px from the image centre
-        self._results: list[tuple] = []     # per chunk: (yaw rad (P,), kept (P,), FOE (P, 2), source)
         self.last_distance_over_height: np.ndarray | None = None   # (N-1,) d/h per pair, known rig only (else nan)
+        self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
+        self._start_video(10.0)
+
+    def _start_video(self, fps_hz: float) -> None:
+        """Per-video state, reset at the start of every video (``yaw_rates_from_grey``)."""
+        self._fps_hz = fps_hz
+        self._results: list[tuple] = []     # per chunk: (yaw rad (P,), kept (P,), FOE (P, 2), source)
         self._dhs: list[np.ndarray] = []
         self.last_foe_model: tuple[float, float] | None = None   # "pooled": (a px, k) of the last chunk
+        # pooled FOE model: per chunk (FOE x, evidence) of its straight pairs, and (FOE x, yaw, evidence) of all pairs
         self._straight: list[tuple[np.ndarray, np.ndarray]] = []
         self._pool: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._fps_hz = 10.0
         self._pending: list[tuple] = []     # pooled FOE: chunks waiting for enough straight driving
-        self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
         self._prev_flow: np.ndarray | None = None   # the last pair's flow (DIS warm start)
+        # a new DIS per video: OpenCV keeps the last input flow's pyramid (initial_Ux/Uy, the warm start) inside the
+        # object and tries it on every later call, even without an input flow (collectGarbage does not clear it),
+        # so the first pair of a video would start from the previous video's flow, and read a buffer of the wrong
+        # size if that video's frames were larger
+        self._dis = self._make_dis()
 
     def _make_dis(self):
         fc = self.flow_cfg
@@ -313,7 +322,7 @@ class FlowLabeler:
         (chord + lever arm over distance per pair; changes slowly with speed). Neither is known for
         OpenDV, but both are shared by many pairs, while the per-pair fit lets flow errors trade yaw
         against e_x pair by pair. a = evidence-weighted median of the per-pair FOE over the video's straight
-        pairs, those whose yaw rate averaged over +-0.5 s is below ``straight_yaw_deg_s`` (one pair's rate is
+        pairs (the last ``foe_straight_pool_pairs`` of them), those whose yaw rate averaged over +-0.5 s is below ``straight_yaw_deg_s`` (one pair's rate is
         too noisy to tell: +-1-3 deg/s on the tests' renderer). On the synthetic world a from all pairs was off
         by up to 8 px (turns pull it), from straight pairs by a median 0.5 px; a yaw bias per pair of
         (d / Z) (delta a / f) is 5 deg per 4 s at 2 deg of mount yaw (docs/labeling.md "Fifth look").
@@ -327,8 +336,12 @@ class FlowLabeler:
         straight = good & (np.abs(smooth) < lim)
         self._straight.append((e[straight, 0], info[straight]))
         self._pool.append((e[:, 0], yaw, np.where(good, info, 0.0)))
+        # keep only what the trailing pools need: a is re-estimated every chunk, and over a video of hours a median
+        # over every straight pair seen would grow the per-chunk cost without bound (8 ms per chunk at 100k pairs)
+        while sum(len(s_[0]) for s_ in self._straight[1:]) >= fc.foe_straight_pool_pairs:
+            self._straight.pop(0)
         while sum(len(p_[0]) for p_ in self._pool[1:]) >= fc.foe_pool_pairs:
-            self._pool.pop(0)                                   # keep only what the trailing pool needs
+            self._pool.pop(0)
 
     def _pool_params(self, f: float) -> tuple[float, float] | None:
         """(a px, k) of the pooled FOE model, or None while less than ``foe_min_straight_s`` of straight
@@ -443,15 +456,7 @@ class FlowLabeler:
         fc = self.flow_cfg
         chunk: list[_PairData] = []
         e = (0.0, 0.0)
-        self._results, self._dhs = [], []
-        self._straight, self._pool, self._pending, self._fps_hz = [], [], [], fps_hz   # pooled FOE state (one video)
-        self.last_foe_model = None
-        self._prev_flow = None
-        # a new DIS per video: OpenCV keeps the last input flow's pyramid (initial_Ux/Uy, the warm start) inside the
-        # object and tries it on every later call, even without an input flow (collectGarbage does not clear it),
-        # so the first pair of a video would start from the previous video's flow, and read a buffer of the wrong
-        # size if that video's frames were larger
-        self._dis = self._make_dis()
+        self._start_video(fps_hz)
         prev = prev_tex = None
         f = n_grid = None
         for g in greys:

@@ -64,8 +64,8 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
                 stride_s: float = 2.0, progress: bool = False) -> VideoLabels:
     """Per-pair yaw over the whole video, then one label per window. Raises VideoError on bad input.
 
-    ``progress``: a tqdm bar on stderr in seconds of video (OpenDV videos run for hours: ~1 min of CPU per hour of
-    720p video at 18-20x real time per core).
+    ``progress``: a tqdm bar on stderr in seconds of video (OpenDV videos run for hours: at 15-22x real time per
+    core, an hour of 720p video is ~3-4 min of CPU).
     """
     cfg = cfg or LabelerConfig()
     if stride_s <= 0:

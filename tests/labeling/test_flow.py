@@ -5,6 +5,7 @@ import pytest
 
 from labeling.config import FlowConfig, LabelerConfig
 from labeling.flow import FlowLabeler
+from resim.config import ConfigError
 from shards.schema import COMMANDS
 
 FPS = 10.0
@@ -259,3 +260,21 @@ def test_one_labeler_gives_each_video_the_same_result_as_a_fresh_one(render):
     np.testing.assert_array_equal(lab.yaw_rates_deg(b, FPS), FlowLabeler(_cfg()).yaw_rates_deg(b, FPS))
     lab.yaw_rates_deg(b, FPS)                        # then a video of another size: no stale buffer is read
     np.testing.assert_array_equal(lab.yaw_rates_deg(other, FPS), FlowLabeler(_cfg()).yaw_rates_deg(other, FPS))
+
+
+def test_pooled_foe_keeps_a_bounded_trailing_pool_of_straight_pairs():
+    # an hour-long video must not grow the per-chunk work: a is the median over the last foe_straight_pool_pairs
+    # straight pairs, so it also follows a camera that was re-mounted (FOE of straight driving 10 px -> -6 px)
+    lab = FlowLabeler(_cfg(foe_straight_pool_pairs=300))
+    lab._start_video(FPS)
+    P, f = 60, lab.focal_px(256)
+    theta = np.zeros((P, 3))                       # straight driving
+    for i in range(40):
+        e = np.zeros((P, 2))
+        e[:, 0] = 10.0 if i < 20 else -6.0
+        lab._pool_add(theta, e, np.ones(P))
+        assert sum(len(s[0]) for s in lab._straight) <= 300 + P
+    a, _ = lab._pool_params(f)
+    assert a == -6.0
+    with pytest.raises(ConfigError, match="foe_straight_pool_pairs"):
+        _cfg(foe_straight_pool_pairs=10)          # cannot hold the 3 s of straight driving the model needs
