@@ -10,7 +10,7 @@ DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
 
 STATS_EPILOG = """\
 --json prints one JSON object with these keys:
-  root, num_shards, num_samples, shard_bytes, uncommitted_shards, schema_versions, config_hashes
+  root, num_shards, num_samples, shard_bytes, uncommitted_shards, manifest_mismatch, schema_versions, config_hashes
   by_source, by_command, by_command_source, by_hazard ("true"/"false"/"null"), by_source_command
   turning_share            fraction of samples whose command is not "Moving forward"
   quarantine               {num_items, by_source, by_stage, by_reason, items[:20]} from DIR/quarantine/*.parquet
@@ -153,6 +153,35 @@ def _cmd_preview(args) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return v
+
+
+def _on_dataset(cmd):
+    """Runs ``cmd`` on an existing dataset folder; a dataset it cannot read (corrupt index or manifest, missing
+    files) is a clear one-line error and exit status 1, not a traceback. Our own bugs still raise."""
+    import functools
+
+    @functools.wraps(cmd)
+    def run(args) -> int:
+        from pathlib import Path
+
+        from shards.reader import ShardReadError
+
+        if not Path(args.dir).is_dir():
+            print(f"resim shards {args.shards_command}: error: {args.dir} is not a folder", file=sys.stderr)
+            return 1
+        try:
+            return cmd(args)
+        except (ShardReadError, OSError) as e:
+            print(f"resim shards {args.shards_command}: error: {e}", file=sys.stderr)
+            return 1
+    return run
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "shards",
@@ -166,7 +195,7 @@ def register(subparsers) -> None:
                        description="List shards with sample counts and sizes (uncommitted shards are marked).")
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("--json", action="store_true", help="one JSON list of {shard, num_samples, bytes, committed, sha256}")
-    s.set_defaults(func=_cmd_ls)
+    s.set_defaults(func=_on_dataset(_cmd_ls))
 
     s = sub.add_parser("stats", help="totals by source/command/hazard, bytes per sample, prompt table",
                        description="Totals by source, command and hazard; turning share; quarantined items; bytes "
@@ -175,14 +204,14 @@ def register(subparsers) -> None:
                        epilog=STATS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("--json", action="store_true", help="print one machine-readable JSON object (keys below)")
-    s.set_defaults(func=_cmd_stats)
+    s.set_defaults(func=_on_dataset(_cmd_stats))
 
     s = sub.add_parser("show", help="one sample's metadata and field shapes",
                        description="Print one sample's metadata and the shape/dtype/size of each member.")
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("key", help="sample key (see `resim shards ls`/the manifest)")
     s.add_argument("--json", action="store_true", help="print {key, shard, meta, fields} as JSON")
-    s.set_defaults(func=_cmd_show)
+    s.set_defaults(func=_on_dataset(_cmd_show))
 
     s = sub.add_parser("verify", help="check shards against indexes, samples against the schema; exit 1 on problems",
                        description="Check every shard against its index (sha256, size, counts, keys), that every "
@@ -192,17 +221,17 @@ def register(subparsers) -> None:
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("--no-video", action="store_true", help="skip decoding frames.mp4 (faster)")
     s.add_argument("-q", "--quiet", action="store_true", help="no per-shard progress on stderr")
-    s.set_defaults(func=_cmd_verify)
+    s.set_defaults(func=_on_dataset(_cmd_verify))
 
     s = sub.add_parser("preview", help="PNG contact sheet of a sample (frames, command, heading, trajectory)",
                        description="Write a PNG contact sheet of a sample's frames with its command, heading change "
                        "and trajectory (top-down inset). Needs matplotlib and OpenCV.")
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("key", nargs="?", help="sample key (or use --random N)")
-    s.add_argument("--random", type=int, metavar="N", help="preview N random samples instead of KEY")
+    s.add_argument("--random", type=_positive_int, metavar="N", help="preview N random samples instead of KEY")
     s.add_argument("--seed", type=int, default=0, help="seed for --random (default 0)")
     s.add_argument("--out", help="PNG path for KEY (default preview-KEY.png); folder for --random (default previews/)")
-    s.set_defaults(func=_cmd_preview)
+    s.set_defaults(func=_on_dataset(_cmd_preview))
 
     s = sub.add_parser("schema", help="print the sample schema (members, metadata fields) as JSON")
     s.set_defaults(func=_cmd_schema)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 from shards import layout
+from shards.reader import ShardReadError
 from shards.schema import MANIFEST_COLUMNS
 
 
@@ -24,7 +25,10 @@ def read_manifest(root, committed_only: bool = True):
             continue
         if committed_only and not layout.index_path(root, p.stem + ".tar").is_file():
             continue
-        tables.append(pq.read_table(p).select(list(MANIFEST_COLUMNS)).cast(manifest_schema()))
+        try:
+            tables.append(pq.read_table(p).select(list(MANIFEST_COLUMNS)).cast(manifest_schema()))
+        except (pa.ArrowException, KeyError) as e:   # not Parquet, truncated, or missing/mistyped columns
+            raise ShardReadError(f"manifest {p}: unreadable: {e} (`resim shards verify` lists every problem)") from e
     if not tables:
         return manifest_schema().empty_table()
     return pa.concat_tables(tables)
@@ -36,8 +40,14 @@ def read_indexes(root) -> list[dict]:
     out = []
     for p in sorted(d.glob("*.json")) if d.is_dir() else []:
         if not p.name.startswith("."):
-            with open(p) as fh:
-                out.append(json.load(fh))
+            try:
+                with open(p) as fh:
+                    idx = json.load(fh)
+            except (OSError, ValueError) as e:
+                raise ShardReadError(f"index {p}: unreadable: {e} (`resim shards verify` lists every problem)") from e
+            if not isinstance(idx, dict) or not {"shard", "num_samples", "bytes"} <= set(idx):
+                raise ShardReadError(f"index {p}: not a shard index (a JSON object with shard, num_samples, bytes)")
+            out.append(idx)
     return out
 
 

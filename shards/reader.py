@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import re
-import tarfile
 from functools import partial
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -25,7 +24,7 @@ import numpy as np
 from shards import layout
 from shards.npy import decode_npy, decode_npy_view, stored_to_float32
 from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS
-from shards.validate import is_forbidden_ext
+from shards.validate import LATENT_DTYPES, is_forbidden_ext
 
 _BASE_PLUS_EXT = re.compile(r"^((?:.*/|)[^.]+)[.]([^/]*)$")  # the same split WebDataset uses
 LATENT_AS = ("float32", "stored")
@@ -86,9 +85,17 @@ def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "fl
                 out[ext] = bytes(value)
         except (ValueError, UnicodeDecodeError) as e:
             raise ShardReadError(f"{where}: member {ext} cannot be decoded: {e}") from e
+    if "meta.json" in out and not isinstance(out["meta.json"], dict):
+        raise ShardReadError(f"{where}: meta.json is a JSON {type(out['meta.json']).__name__}, not an object")
     if latent_as == "float32" and isinstance(out.get("latent.npy"), np.ndarray):
-        dtype = (out.get("meta.json") or {}).get("latent_dtype", out["latent.npy"].dtype.name)
-        out["latent.npy"] = stored_to_float32(out["latent.npy"], dtype)
+        lat = out["latent.npy"]
+        dtype = (out.get("meta.json") or {}).get("latent_dtype", lat.dtype.name)
+        # the stored dtype must be the one meta declares: uint16 read as float16 (or the reverse) would give
+        # finite, silently wrong latents
+        if dtype not in LATENT_DTYPES or lat.dtype != LATENT_DTYPES[dtype]:
+            raise ShardReadError(f"{where}: latent.npy is stored as {lat.dtype} but meta.latent_dtype is {dtype!r} "
+                                 f"(float16 is stored as float16, bfloat16 as uint16 bits)")
+        out["latent.npy"] = stored_to_float32(lat, dtype)
     if decode_video and "frames.mp4" in out:
         from shards.video import decode_mp4
 
@@ -98,39 +105,18 @@ def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "fl
 
 # ---- local reading --------------------------------------------------------------------------------
 def iter_raw_shard(path) -> Iterator[dict]:
-    """Raw samples of one tar, grouped like WebDataset; refuses the shard up front if any member is forbidden."""
-    path = Path(path)
+    """Raw samples of one local tar, grouped like WebDataset (``shards.tario``).
+
+    The whole shard's headers are read first (data seeked over), so a shard with a forbidden member, a
+    corrupt header or a cut end is refused before any sample is yielded. (``tarfile``, used here before,
+    ends quietly at a corrupt header after the first member: a silently short shard.)"""
+    from shards.tario import count_records, open_records   # tario imports this module
+
+    path = str(path)
     try:
-        with tarfile.open(path, "r:") as tar:
-            members = tar.getmembers()  # headers only: check the whole shard before yielding anything
-            for ti in members:
-                key, ext = split_member_name(ti.name)
-                if ti.isfile() and ext and is_forbidden_ext(ext.lower()):
-                    raise ForbiddenMemberError(
-                        f"shard {path}: sample {key!r} carries member '{ti.name}', a code-executing format "
-                        f"(forbidden: {', '.join(FORBIDDEN_EXTENSIONS)}); refusing this shard")
-            cur: dict | None = None
-            for ti in members:
-                if not ti.isfile():
-                    continue
-                key, ext = split_member_name(ti.name)
-                if key is None or Path(key).name.startswith("__"):
-                    continue  # WebDataset skips these too
-                ext = ext.lower()
-                if cur is None or cur["__key__"] != key:
-                    if cur is not None:
-                        yield cur
-                    cur = {"__key__": key, "__url__": str(path)}
-                if ext in cur:
-                    raise ShardReadError(f"shard {path}: sample {key!r} has member {ext} twice")
-                fh = tar.extractfile(ti)
-                data = fh.read()
-                if len(data) != ti.size:
-                    raise ShardReadError(f"shard {path}: member {ti.name} is truncated")
-                cur[ext] = data
-            if cur is not None:
-                yield cur
-    except (tarfile.TarError, EOFError, OSError) as e:
+        count_records(path)
+        yield from open_records(path)
+    except OSError as e:
         raise ShardReadError(f"shard {path}: cannot read the tar: {e}") from e
 
 

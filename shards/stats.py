@@ -40,6 +40,11 @@ def compute_stats(root) -> dict:
     indexes = [i for i in read_indexes(root) if (layout.shards_dir(root) / i["shard"]).is_file()]
     man = read_manifest(root).to_pydict()
     n = len(man["key"])
+    # sample counts come from the manifests, shard counts and bytes from the indexes: say where they disagree
+    # (a lost or stale manifest) instead of printing totals and bytes per sample that do not add up
+    rows = Counter(man["shard"])
+    mismatch = [f"{i['shard']}: index says {i['num_samples']} samples, its manifest has {rows.get(i['shard'], 0)} rows"
+                for i in indexes if rows.get(i["shard"], 0) != i["num_samples"]]
     hazard = ["null" if h is None else ("true" if h else "false") for h in man["hazard"]]
     by_sc: dict[str, Counter] = {}
     for s, c in zip(man["source"], man["command"]):
@@ -56,12 +61,13 @@ def compute_stats(root) -> dict:
     entries = table.entries()
     ptab_bytes = table.total_bytes()
     bps: dict = {}
-    if n:
+    n_idx = sum(i["num_samples"] for i in indexes)   # bytes come from the indexes: divide by their counts
+    if n_idx:
         for ext in MEMBERS:
-            bps[ext] = member_bytes.get(ext, 0) / n
-        bps["tar_overhead"] = (shard_bytes - sum(member_bytes.values())) / n
-        bps["in_shards"] = shard_bytes / n
-        bps["prompt_table_amortised"] = ptab_bytes / n
+            bps[ext] = member_bytes.get(ext, 0) / n_idx
+        bps["tar_overhead"] = (shard_bytes - sum(member_bytes.values())) / n_idx
+        bps["in_shards"] = shard_bytes / n_idx
+        bps["prompt_table_amortised"] = ptab_bytes / n_idx
         bps["total"] = bps["in_shards"] + bps["prompt_table_amortised"]
     q = read_quarantine(root)
     quarantine = {"num_items": 0, "by_source": {}, "by_stage": {}, "by_reason": {}, "items": []}
@@ -81,6 +87,7 @@ def compute_stats(root) -> dict:
         "num_samples": n,
         "shard_bytes": shard_bytes,
         "uncommitted_shards": sum(p.name not in committed for p in layout.all_shard_files(root)),
+        "manifest_mismatch": mismatch,
         "schema_versions": sorted({i.get("schema_version") for i in indexes}),
         "config_hashes": sorted({i.get("config_hash", "") for i in indexes}),
         "by_source": _counts(man["source"]),
@@ -118,6 +125,10 @@ def format_stats(st: dict) -> str:
     lines = [f"dataset {st['root']}: {n} samples in {st['num_shards']} shards ({_h(st['shard_bytes'])})"]
     if st["uncommitted_shards"]:
         lines.append(f"  ! {st['uncommitted_shards']} uncommitted shard(s) (no index; run `resim shards verify`)")
+    if st["manifest_mismatch"]:
+        lines.append(f"  ! {len(st['manifest_mismatch'])} shard(s) whose manifest does not match the index; the "
+                     "counts below are from the manifests (run `resim shards verify`):")
+        lines += [f"    {m}" for m in st["manifest_mismatch"][:5]]
 
     def block(title, d):
         lines.append(f"{title}:")

@@ -114,14 +114,16 @@ def iter_members(src: _Source, select) -> Iterator[tuple[str, str, bytes | None]
     """``(key, ext, data)`` of the regular members in order, for which ``select(name)`` returns
     ``(key, ext, read)`` (None: member ignored, data seeked over); ``data`` is None where ``read`` is
     false (seeked over). Handles ustar prefixes, pax ``path``/``size`` and GNU long names; stops at the
-    first zero block or at EOF on a block boundary."""
+    first zero block (the end-of-archive marker). EOF before that marker is a truncated shard: a tar cut
+    on a block boundary would otherwise end early and look whole, its last sample missing members."""
     long_name: str | None = None
     pax: dict[str, str] = {}
     while True:
         where = f"shard {src.url} offset {src.pos}"
         hdr = src.f.read(BLOCK)
         if not hdr:
-            return
+            # every tar writer (ours, tarfile, GNU tar) ends with zero blocks; their absence means the file was cut
+            raise ShardReadError(f"{where}: truncated: the file ends without the tar end-of-archive marker")
         if len(hdr) != BLOCK:
             raise ShardReadError(f"{where}: truncated tar header ({len(hdr)} of {BLOCK} bytes)")
         src.pos += BLOCK
@@ -250,6 +252,21 @@ def open_records(url: str, *, start: int = 0, skip_exts=()) -> Iterator[dict]:
         finally:
             f.close()
     yield from _general(url, start, skip_exts)
+
+
+def count_records(path: str) -> int:
+    """Number of samples in the local tar at ``path``, reading headers only (member data seeked over).
+
+    Raises like :func:`open_records` on a corrupt header, a truncated file or a forbidden member, so a
+    caller can refuse a shard before yielding any of its samples (``shards.reader.iter_raw_shard``)."""
+    with open(path, "rb", buffering=BLOCK * 128) as f:
+        src = _Source(f, path, os.fstat(f.fileno()).st_size)
+
+        def select(name: str):
+            key, ext = _split(name)
+            return None if key is None else (key, ext, False)
+
+        return sum(1 for _ in _group(iter_members(src, select), path, 0))
 
 
 def _general(url: str, start: int, skip_exts: frozenset) -> Iterator[dict]:

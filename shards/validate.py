@@ -84,6 +84,9 @@ def meta_problems(meta: Any, key: str | None = None) -> list[str]:
     for f in META_FIELDS:
         if f.name in meta and not _type_ok(meta[f.name], f.type):
             p.append(f"meta.{f.name} = {meta[f.name]!r} is not of type {f.type}")
+    # a sample from another schema version explains the field problems above: say so first, always
+    if "schema_version" in meta and meta["schema_version"] != SCHEMA_VERSION:
+        p.insert(0, f"meta.schema_version = {meta['schema_version']!r} but this reader knows {SCHEMA_VERSION}")
     if p:
         return p  # the checks below assume well-typed fields
 
@@ -92,8 +95,6 @@ def meta_problems(meta: Any, key: str | None = None) -> list[str]:
         if not (v in allowed or (nullable and v is None)):
             p.append(f"meta.{field} = {v!r} is not one of {tuple(allowed)}")
 
-    if meta["schema_version"] != SCHEMA_VERSION:
-        p.append(f"meta.schema_version = {meta['schema_version']} but this reader knows {SCHEMA_VERSION}")
     enum("source", SOURCES)
     enum("command", COMMANDS)
     enum("command_source", COMMAND_SOURCES)
@@ -156,9 +157,12 @@ def sample_problems(sample: dict) -> list[str]:
     unknown = sorted(members - set(MEMBERS) - set(forbidden))
     if unknown:
         p.append(f"members {unknown} are not in the schema (known: {list(MEMBERS)})")
-    missing = sorted(e for e, m in MEMBERS.items() if not m.optional and e not in sample)
+    missing = sorted(e for e, m in MEMBERS.items() if not m.optional and sample.get(e) is None)
     if missing:
         p.append(f"required members {missing} are missing")
+    nones = sorted(e for e, m in MEMBERS.items() if m.optional and e in sample and sample[e] is None)
+    if nones:
+        p.append(f"optional members {nones} are None (leave an absent member out of the sample)")
     meta = sample.get("meta.json")
     mp = meta_problems(meta, key) if meta is not None else []
     p += mp

@@ -111,6 +111,9 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
         except (OSError, ValueError) as e:
             problems.append(Problem(shard, None, f"index {ip} unreadable: {e}"))
             continue
+        if not isinstance(index, dict):
+            problems.append(Problem(shard, None, f"index {ip} is a JSON {type(index).__name__}, not an object"))
+            continue
         if index.get("schema_version") != SCHEMA_VERSION:
             problems.append(Problem(shard, None, f"index schema_version {index.get('schema_version')} "
                                                  f"!= {SCHEMA_VERSION}"))
@@ -126,6 +129,7 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
                                                  "(corrupted or modified)"))
         keys: list[str] = []
         hist = {k: Counter() for k in ("command", "source", "hazard")}
+        undecoded = 0   # samples whose members or meta could not be read: the histograms cannot be compared
         try:
             for raw in iter_raw_shard(path):
                 key = raw["__key__"]
@@ -137,19 +141,26 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
                     s = decode_sample(raw, latent_as="stored")
                 except ShardReadError as e:
                     problems.append(Problem(shard, key, str(e)))
+                    undecoded += 1
                     continue
                 for msg in sample_problems(s):
                     problems.append(Problem(shard, key, msg))
                 meta = s.get("meta.json")
                 if not isinstance(meta, dict):
+                    undecoded += 1
                     continue
-                hist["command"][meta.get("command")] += 1
-                hist["source"][meta.get("source")] += 1
+                # a field of the wrong type (reported by sample_problems above) is counted by its repr: a list or
+                # dict is unhashable and would end the whole check with a TypeError
+                for name in ("command", "source"):
+                    v = meta.get(name)
+                    hist[name][v if v is None or isinstance(v, str) else repr(v)] += 1
                 h = meta.get("hazard")
                 hist["hazard"]["null" if h is None else ("true" if h else "false")] += 1
                 for field in ("prompt_id", "null_prompt_id"):
                     pid = meta.get(field)
-                    if pid not in prompts:
+                    if not isinstance(pid, str):
+                        problems.append(Problem(shard, key, f"meta.{field} {pid!r} is not a prompt id (a string)"))
+                    elif pid not in prompts:
                         problems.append(Problem(shard, key, f"meta.{field} {pid} does not resolve in the prompt table"))
                     elif field == "prompt_id" and prompts[pid].get("role") == "command" \
                             and prompts[pid].get("command") not in (None, meta.get("command")):
@@ -180,7 +191,7 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
             problems.append(Problem(shard, k, "in the shard but not listed in the index"))
         ih = index.get("histograms", {})
         for name, c in hist.items():
-            if set(ikeys) == set(keys) and dict(c) != ih.get(name):
+            if set(ikeys) == set(keys) and not undecoded and dict(c) != ih.get(name):
                 problems.append(Problem(shard, None, f"index histogram {name} {ih.get(name)} != samples {dict(c)}"))
         mp = layout.manifest_path(root, shard)
         if not mp.is_file():

@@ -156,7 +156,11 @@ class ShardWriter:
             raise SampleError(str(key), problems)
         payloads = [(ext, encode_member(ext, sample[ext])) for ext in MEMBERS if ext in sample]
         size = sum(_tar_size(len(b)) for _, b in payloads)
-        if self._tar is not None and (self._count >= self.max_samples or self._bytes + size > self.max_bytes):
+        # tarfile pads the closed file to whole 10 KiB records (RECORDSIZE): count that too, or a shard could end
+        # up to 10 KiB over max_bytes
+        if self._tar is not None and (self._count >= self.max_samples
+                                      or -(-(self._bytes + size) // tarfile.RECORDSIZE) * tarfile.RECORDSIZE
+                                      > self.max_bytes):
             self._finish_shard()
         if self._tar is None:
             self._open_shard()
