@@ -33,7 +33,7 @@ typical flow:
   resim train reward --preset tiny --shards out/shards --out runs/reward
   resim sample --checkpoint runs/wm --shards out/shards --history KEY --command "Turning left" --out out/samples
   resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --out out/plan
-  resim eval quality --checkpoint runs/wm --shards out/shards --idm runs/idm --out out/eval
+  resim eval quality --checkpoint runs/wm --shards out/shards --heldout-from runs/idm --out out/eval
   resim demo                                        # all of the above, small, on a CPU, with an HTML report
 
 Every subcommand has its own --help.

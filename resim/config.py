@@ -117,7 +117,7 @@ def from_dict(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
         raise TypeError(f"{cls!r} is not a dataclass")
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - set(fields))
+    unknown = sorted(set(data) - set(fields), key=str)   # YAML keys may be bools (`on:`, `yes:`) or ints
     if unknown:
         where = f"{prefix}." if prefix else ""
         raise ConfigError(
@@ -190,7 +190,10 @@ def _parse_value(v: str) -> Any:
     """YAML-parse an override value; YAML 1.1 reads ``1e-4`` (no dot) as a string, so read it as a float."""
     if not v.strip():
         return ""
-    out = yaml.safe_load(v)
+    try:
+        out = yaml.safe_load(v)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"--set value {v!r} is not valid YAML: {str(e).splitlines()[0]}") from None
     if isinstance(out, str) and _FLOAT_RE.match(out.strip()):
         return float(out)
     return out
@@ -204,7 +207,10 @@ def load(cls: type[T], path: str | Path | None = None, overrides: typing.Iterabl
         p = Path(path)
         if not p.is_file():
             raise ConfigError(f"config file {p} does not exist")
-        loaded = yaml.safe_load(p.read_text()) or {}
+        try:
+            loaded = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:   # names the file, with the line and column YAML gives
+            raise ConfigError(f"config file {p}: invalid YAML: {e}".replace('"<unicode string>"', str(p))) from None
         if not isinstance(loaded, dict):
             raise ConfigError(f"config file {p}: top level must be a mapping")
         _deep_update(data, loaded)

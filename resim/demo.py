@@ -7,17 +7,20 @@ episodes the IDM held out) → one HTML report.
 
 Each step runs the same entry point a user would (``resim <command> ...``, in this
 process), writes into its own folder under ``--out`` and leaves a ``.done`` marker
-holding the step's arguments; a second run reuses finished steps unless ``--fresh``
-(or unless the step's arguments changed). All models are the tiny random-init
+holding the step's arguments; a second run reuses finished steps unless ``--fresh``,
+unless the step's arguments changed, or unless an earlier step was redone (every
+step reads what the ones before it wrote). All models are the tiny random-init
 *placeholders* shipped in the repo, trained for seconds: the report shows the
 machinery working end to end, not a good world model.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import html
 import json
 import shutil
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +59,8 @@ class DemoConfig:
             raise ConfigError("world_steps, reward_epochs, ddim_steps, idm_epochs and quality_clips must be >= 1")
         if self.eval_clips < 2:
             raise ConfigError("eval_clips must be >= 2 (control pairs clips of two episodes)")
+        if self.workers < 1 or not self.sample_seconds > 0 or not self.plan_candidates:
+            raise ConfigError("workers must be >= 1, sample_seconds > 0 and plan_candidates not empty")
         if self.idm_heldout_episodes < 2:
             raise ConfigError("idm_heldout_episodes must be >= 2 (non-expert trajectories come from another "
                               "held-out episode)")
@@ -79,10 +84,14 @@ class Step:
     def marker(self) -> Path:
         return self.dir / ".done"
 
-    def is_done(self) -> bool:
-        return self.marker.is_file() and json.loads(self.marker.read_text()).get("argv") == self.argv
+    def is_done(self, upstream: str = "") -> bool:
+        """Finished with these arguments on top of these earlier steps (``upstream``: a digest of their markers)."""
+        if not self.marker.is_file():
+            return False
+        m = json.loads(self.marker.read_text())
+        return m.get("argv") == self.argv and m.get("upstream", "") == upstream
 
-    def run(self) -> float:
+    def run(self, upstream: str = "") -> float:
         from resim.cli import main
 
         if self.dir.exists():
@@ -93,8 +102,32 @@ class Step:
             raise SystemExit(f"demo step {self.name!r} failed (exit {rc}): resim {' '.join(self.argv)}")
         dt = time.perf_counter() - t0
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.marker.write_text(json.dumps({"argv": self.argv, "seconds": dt}))
+        self.marker.write_text(json.dumps({"argv": self.argv, "seconds": dt, "upstream": upstream}))
         return dt
+
+
+class StepRunner:
+    """Runs steps in order, reusing a finished one only on top of the same earlier steps: a digest of their
+    markers (a redone step writes a new one) goes into each marker. E.g. --set world_steps=300 retrains the
+    world model, so the rollouts, planning and evaluations of the old model are redone too, not reused."""
+
+    def __init__(self):
+        self._chain = hashlib.sha256()
+        self.timings: dict[str, float] = {}
+
+    def go(self, step: Step, i: int, n: int) -> bool:
+        """Runs or reuses ``step`` (``i`` of ``n``, for the log); True if it ran."""
+        upstream = self._chain.hexdigest()[:16]
+        ran = not step.is_done(upstream)
+        if ran:
+            print(f"[demo {i}/{n}] {step.name}: resim {' '.join(step.argv)}", flush=True)
+            self.timings[step.name] = step.run(upstream)
+            print(f"[demo {i}/{n}] {step.name}: done in {self.timings[step.name]:.1f} s", flush=True)
+        else:
+            print(f"[demo {i}/{n}] {step.name}: reusing {step.dir} (--fresh to redo)", flush=True)
+            self.timings[step.name] = json.loads(step.marker.read_text())["seconds"]
+        self._chain.update(step.marker.read_bytes())
+        return ran
 
 
 def pick_history_key(shards_dir: Path) -> str:
@@ -300,25 +333,26 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
     return path
 
 
+def check_fresh(out: Path) -> None:
+    """--fresh deletes --out: only a folder the demo made (or an empty one), never e.g. `--out .` by mistake."""
+    out = out.resolve()
+    if out.is_dir() and any(out.iterdir()) and not (out / "demo_config.yaml").is_file():
+        raise ConfigError(f"--fresh would delete {out}, which is not a demo output folder (no demo_config.yaml); "
+                          "give an --out the demo made, or a new folder")
+
+
 def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False) -> Path:
     out = out.resolve()
     if fresh and out.exists():
+        check_fresh(out)
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
     save(cfg, out / "demo_config.yaml")
-    timings: dict[str, float] = {}
     steps = build_steps(cfg, out)
     t_all = time.perf_counter()
 
-    def go(step: Step, i: int, n: int):
-        if step.is_done():
-            print(f"[demo {i}/{n}] {step.name}: reusing {step.dir} (--fresh to redo)", flush=True)
-            timings[step.name] = json.loads(step.marker.read_text())["seconds"]
-            return
-        print(f"[demo {i}/{n}] {step.name}: resim {' '.join(step.argv)}", flush=True)
-        timings[step.name] = step.run()
-        print(f"[demo {i}/{n}] {step.name}: done in {timings[step.name]:.1f} s", flush=True)
-
+    runner = StepRunner()
+    go = runner.go
     evals = eval_steps(cfg, out)
     n = len(steps) + 4 + len(evals)
     for i, step in enumerate(steps, 1):
@@ -328,7 +362,7 @@ def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False) -> Path:
         go(step, i, n)
     for i, step in enumerate(evals, len(steps) + 5):
         go(step, i, n)
-    report = write_report(out, cfg, timings, key)
+    report = write_report(out, cfg, runner.timings, key)
     print(f"[demo] finished in {time.perf_counter() - t_all:.1f} s (steps reused count their first run)")
     print(f"[demo] report: {report}")
     return report
@@ -349,8 +383,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     data = dict(PRESETS[args.preset])
     from resim.config import apply_overrides
 
-    apply_overrides(data, args.overrides)
-    cfg = from_dict(DemoConfig, data)
+    try:
+        apply_overrides(data, args.overrides)
+        cfg = from_dict(DemoConfig, data)
+        if args.fresh:
+            check_fresh(Path(args.out))
+    except ConfigError as e:
+        print(f"resim demo: error: {e}", file=sys.stderr)
+        return 2
     run_demo(cfg, Path(args.out), fresh=args.fresh)
     return 0
 

@@ -47,3 +47,20 @@ def test_overrides_parse_yaml_values():
     d = apply_overrides({}, ["inner.fps_hz=2.5", "steps=7", "tags=[a, b]"])
     cfg = from_dict(Outer, d)
     assert cfg.inner.fps_hz == 2.5 and cfg.steps == 7 and cfg.tags == ("a", "b")
+
+
+def test_yaml_errors_name_the_file_or_the_override(tmp_path):
+    from resim.config import ConfigError, load
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("a: [1, 2\nb: 3\n")
+    with pytest.raises(ConfigError, match=f"config file {bad}: invalid YAML") as e:
+        load(Outer, bad)
+    assert "<unicode string>" not in str(e.value)
+    with pytest.raises(ConfigError, match="--set value 'a: b: c' is not valid YAML"):
+        load(Outer, None, ["x=a: b: c"])
+    # YAML 1.1 reads `on:` as a bool key: an unknown-key error, not a TypeError while sorting the keys
+    mixed = tmp_path / "mixed.yaml"
+    mixed.write_text("on: 1\nzz_typo: 2\n")
+    with pytest.raises(ConfigError, match="unknown config key"):
+        load(Outer, mixed)
