@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 EPILOG = """\
@@ -47,13 +48,16 @@ def _run(args: argparse.Namespace) -> int:
         if args.hfov_deg is not None:
             raw["flow"]["hfov_deg"] = args.hfov_deg
         cfg = from_dict(LabelerConfig, apply_overrides(raw, args.set))
-        if args.window_s <= 0 or args.stride_s <= 0:
-            raise ConfigError("--window-s and --stride-s must be > 0")
+        if args.window_s is not None:
+            cfg.command.window_s = args.window_s   # --window-s wins over --set command.window_s
+        for name, v in (("--window-s", cfg.command.window_s), ("--stride-s", args.stride_s)):
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"{name} must be finite and > 0, got {v}")
     except ConfigError as e:
         print(f"resim label: bad configuration: {e}", file=sys.stderr)
         return 2
     try:
-        res = label_video(args.video, cfg, window_s=args.window_s, stride_s=args.stride_s,
+        res = label_video(args.video, cfg, window_s=cfg.command.window_s, stride_s=args.stride_s,
                           progress=not args.quiet and sys.stderr.isatty())
     except VideoError as e:
         print(f"resim label: cannot label {e.path}: {e.reason}", file=sys.stderr)
@@ -67,11 +71,13 @@ def _run(args: argparse.Namespace) -> int:
         for w in res.windows:
             print(f"{w.start_s:8.2f} {w.end_s:7.2f}  {w.command:<15} {w.yaw_deg:8.2f} {w.confidence:10.3f}")
     info = res.info
-    full = [w for w in res.windows if w.end_s - w.start_s + 1e-6 >= args.window_s]
+    full = [w for w in res.windows if w.end_s - w.start_s + 1e-6 >= cfg.command.window_s]
     n_dec = res.decode.get("frames_decoded", 0)
     skipped = (" (non-reference frames not decoded)"
                if res.decode.get("nonref_skipped") and n_dec < info.num_frames - 1 else "")
-    note = "" if full else f" (shorter than --window-s {args.window_s:g}: one short window)"
+    if res.decode.get("timestamps") == "frame count / fps":
+        skipped += f" (no usable frame times in the file: times are frame count / {info.fps_hz:g} fps)"
+    note = "" if full else f" (shorter than the {cfg.command.window_s:g}-s window: one short window)"
     fc = cfg.flow
     rig = (f"rig: camera {fc.camera_ahead_m:g} m ahead of the rear axle, {fc.camera_height_m:g} m high"
            if fc.camera_ahead_m is not None else "rig unknown")
@@ -84,7 +90,7 @@ def _run(args: argparse.Namespace) -> int:
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
           f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
           f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "
-          f"decoded {n_dec} of {info.num_frames} frames"
+          f"decoded {n_dec} of {info.num_frames or 'an unknown number of'} frames"
           f"{skipped}", file=sys.stderr)
     return 0
 
@@ -96,7 +102,8 @@ def register(subparsers) -> None:
                     "(start_s, end_s, command, yaw_deg [left +], confidence).",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("video", help="any video file OpenCV/FFmpeg can decode")
-    p.add_argument("--window-s", type=float, default=4.0, help="window length in seconds (default 4, ReSim's future)")
+    p.add_argument("--window-s", type=float, default=None,
+                   help="window length in seconds (default: command.window_s of the config, 4 = ReSim's future)")
     p.add_argument("--stride-s", type=float, default=2.0, help="step between window starts in seconds (default 2)")
     p.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     p.add_argument("--quiet", action="store_true",

@@ -71,7 +71,9 @@ def command_from_trajectory(traj: np.ndarray, cfg: CommandConfig | LabelerConfig
     if not np.isfinite(t).all():
         raise ValueError("trajectory has non-finite values")
     lateral = float(t[-1, 1])
-    yaw_deg = math.degrees(float(t[-1, 2]))
+    # heading change along the waypoints, unwrapped: the yaw column is wrapped to [-pi, pi], so a tight
+    # left U-turn past 180 deg read as a right turn from the last waypoint alone
+    yaw_deg = math.degrees(float(np.unwrap(np.r_[0.0, t[:, 2]])[-1]))
     by_offset = LEFT if lateral >= c.lateral_threshold_m else RIGHT if lateral <= -c.lateral_threshold_m else FORWARD
     by_heading = command_from_yaw(yaw_deg, c)[0]
     if c.trajectory_rule == "lateral_offset":

@@ -12,10 +12,19 @@ synthetic world's ground truth; docs/labeling.md has the numbers.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 from resim.config import ConfigError, from_dict
+
+
+def _check_finite(cfg) -> None:
+    """Every float field of ``cfg`` (None allowed where the field is optional) is finite."""
+    for f in fields(cfg):
+        v = getattr(cfg, f.name)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ConfigError(f"{f.name} must be finite, got {v}")
 
 
 @dataclass
@@ -82,8 +91,16 @@ class FlowConfig:
     chunk_pairs: int = 60            # pairs fitted together (batched); the running FOE prior is updated per chunk
 
     def __post_init__(self):
+        _check_finite(self)   # NaN passes every `x <= 0` check below (a NaN sample_hz ended in a traceback)
         if self.sample_hz <= 0:
             raise ConfigError(f"sample_hz must be > 0, got {self.sample_hz}")
+        if not 0 < self.max_flow_frac <= 1:
+            raise ConfigError(f"max_flow_frac must be in (0, 1] (0 drops every point), got {self.max_flow_frac}")
+        if not 0 <= self.max_photo_err <= 255:
+            raise ConfigError(f"max_photo_err must be in [0, 255] grey levels, got {self.max_photo_err}")
+        if self.min_texture < 0 or self.static_flow_px < 0 or self.robust_scale_px <= 0 or self.foe_prior < 0:
+            raise ConfigError("min_texture >= 0, static_flow_px >= 0, robust_scale_px > 0 and foe_prior >= 0 "
+                              "are required")
         if not 32 <= self.work_width_px <= 1920:
             raise ConfigError(f"work_width_px must be in [32, 1920], got {self.work_width_px}")
         if not 20.0 <= self.hfov_deg <= 150.0:
@@ -123,6 +140,7 @@ class CommandConfig:
     lateral_threshold_m: float = 2.0
 
     def __post_init__(self):
+        _check_finite(self)
         if self.window_s <= 0:
             raise ConfigError(f"window_s must be > 0, got {self.window_s}")
         if not 0 < self.turn_threshold_deg < 180:

@@ -45,7 +45,7 @@ class VideoError(Exception):
 class VideoInfo:
     path: str
     fps_hz: float
-    num_frames: int          # as the container reports it (may be approximate)
+    num_frames: int          # as the container reports it (may be approximate; 0 = unknown)
     width_px: int
     height_px: int
     pixel_aspect: float      # sample aspect ratio (1.0 = square pixels)
@@ -83,7 +83,9 @@ def probe(path: str | Path) -> VideoInfo:
             raise VideoError(p, "OpenCV/FFmpeg cannot open it (not a video, or an unsupported container/codec)")
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        n = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        # raw streams (.h264) report garbage (-1.9e17 seen): 0 = unknown
+        n = int(n) if math.isfinite(n) and n > 0 else 0
         num, den = cap.get(cv2.CAP_PROP_SAR_NUM), cap.get(cv2.CAP_PROP_SAR_DEN)
         if not math.isfinite(fps) or fps <= 0 or w <= 0 or h <= 0:
             raise VideoError(p, f"no usable video stream (fps={fps}, size={w}x{h})")
@@ -141,7 +143,7 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
             stats["decoder"] = "pyav"
             yield from _iter_pyav(info, sample_hz, work_width_px, stats=stats)
             return
-    stats.update(decoder="opencv", nonref_skipped=False)
+    stats.update(decoder="opencv", nonref_skipped=False, timestamps="stream")
     yield from _iter_opencv(info, sample_hz, work_width_px, use_luma, stats)
 
 
@@ -157,24 +159,41 @@ def _av_open(path: str, skip_nonref: bool):
     return c, s
 
 
-def _luma(frame) -> np.ndarray:
-    """8-bit luma plane of a PyAV frame (no copy of the chroma, no colour conversion)."""
+def _luma(frame, rot90: int = 0) -> np.ndarray:
+    """8-bit luma plane of a PyAV frame (no copy of the chroma, no colour conversion), turned upright by
+    ``rot90`` quarter turns (the stream's display matrix, as OpenCV applies it: a phone clip stored
+    sideways would otherwise read its turns as vertical flow)."""
     if frame.format.name in ("yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "nv12", "nv21"):
         pl = frame.planes[0]
-        return np.frombuffer(pl, np.uint8).reshape(frame.height, pl.line_size)[:, : frame.width]
-    return frame.to_ndarray(format="gray")
+        y = np.frombuffer(pl, np.uint8).reshape(frame.height, pl.line_size)[:, : frame.width]
+    else:
+        y = frame.to_ndarray(format="gray")
+    return np.ascontiguousarray(np.rot90(y, rot90)) if rot90 % 4 else y
+
+
+def _rot90_of(frame) -> int:
+    """Quarter turns that make ``frame`` upright: PyAV's ``rotation`` (degrees, display matrix), e.g. -90 -> -1."""
+    deg = getattr(frame, "rotation", 0) or 0
+    return int(round(deg / 90.0)) % 4
 
 
 class _RefsTooSparse(Exception):
     """Reference frames alone leave a gap longer than one sampling period (raised while probing)."""
 
 
+class _BadTimestamps(Exception):
+    """Frames without a time, or times that do not increase (raised while probing)."""
+
+
 def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_nonref: bool,
-                  probe_s: float, stats: dict) -> Iterator[tuple[float, np.ndarray]]:
+                  probe_s: float, stats: dict, count_frames: bool = False) -> Iterator[tuple[float, np.ndarray]]:
     """One decode: yield (t_s, grey) at the first decoded frame at or after each tick.
 
-    With ``skip_nonref``, raises ``_RefsTooSparse`` if, within the first ``probe_s`` seconds, two
-    decoded frames are further apart than 1 / sample_hz (+ a quarter frame of slack).
+    Within the first ``probe_s`` seconds (nothing is yielded from there before it passes, ``_iter_pyav``):
+    with ``skip_nonref``, raises ``_RefsTooSparse`` if two decoded frames are further apart than
+    1 / sample_hz (+ a quarter frame of slack); without ``count_frames``, raises ``_BadTimestamps`` at a
+    frame without a time (raw .h264) or whose time does not increase (H.264 in AVI carries decode-order
+    stamps). ``count_frames``: times are frame count / fps (every frame decoded, constant rate assumed).
     """
     import av
 
@@ -184,10 +203,18 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
         raise VideoError(info.path, f"PyAV/FFmpeg cannot open it ({e})") from None
     period, half = 1.0 / sample_hz, 0.5 / info.fps_hz
     max_gap = period + 0.25 / info.fps_hz
-    nxt, n, t0, prev = 0.0, 0, None, None
+    nxt, n, t0, prev, rot = 0.0, 0, None, None, None
     try:
         for fr in c.decode(s):
-            t = fr.time if fr.time is not None else n / info.fps_hz
+            if count_frames:
+                t = n / info.fps_hz
+            elif fr.time is None or (prev is not None and fr.time - t0 <= prev):
+                if prev is None or prev < probe_s:
+                    raise _BadTimestamps
+                raise VideoError(info.path, f"frame times stop increasing after {prev:.2f} s (frame {n}: "
+                                            f"{fr.time}); remux the file (e.g. ffmpeg -i IN -c copy OUT.mp4)")
+            else:
+                t = fr.time
             t0 = t if t0 is None else t0
             t -= t0                                  # times from the first decoded frame
             n += 1
@@ -197,7 +224,8 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
             prev = t
             if t + half < nxt:
                 continue
-            yield t, prepare_frame(_luma(fr), work_width_px, info.pixel_aspect)
+            rot = _rot90_of(fr) if rot is None else rot
+            yield t, prepare_frame(_luma(fr, rot), work_width_px, info.pixel_aspect)
             while nxt <= t + half:
                 nxt += period
     except av.error.FFmpegError as e:
@@ -211,31 +239,36 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
 def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: float = 2.0,
                stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
     """PyAV path: non-reference frames are skipped where reference frames alone still come at least
-    every 1 / sample_hz s. That is checked on the first ``probe_s`` of the same decode, not by a second
-    pass (which cost ~6 % of labeling a 30-s clip): the samples of that stretch are held back until it
-    passes, and where it fails the decode restarts with every frame (nothing has been yielded yet)."""
+    every 1 / sample_hz s, and the stream's frame times are used where they increase. Both are checked on
+    the first ``probe_s`` of the same decode, not by a second pass (which cost ~6 % of labeling a 30-s
+    clip): the samples of that stretch are held back until it passes, and where it fails the decode
+    restarts (nothing has been yielded yet) with every frame, or with frame count / fps as the time."""
     stats = {} if stats is None else stats
-    stats.update(nonref_skipped=False, frames_decoded=0)
-    if info.fps_hz >= 1.5 * sample_hz:
+    stats["frames_decoded"] = 0
+    skip, count = info.fps_hz >= 1.5 * sample_hz, False
+    while True:   # at most three decodes: skip -> every frame -> counted; each failure only narrows the next try
+        stats.update(nonref_skipped=skip, timestamps="frame count / fps" if count else "stream")
         held: list[tuple[float, np.ndarray]] = []
-        gen = _pyav_samples(info, sample_hz, work_width_px, True, probe_s, stats)
+        gen = _pyav_samples(info, sample_hz, work_width_px, skip, probe_s, stats, count_frames=count)
         try:
             for t, g in gen:
                 if t < probe_s:
                     held.append((t, g))
                     continue
-                stats["nonref_skipped"] = True
                 yield from held
                 yield t, g
                 yield from gen
                 return
         except _RefsTooSparse:
             gen.close()
-        else:                                        # a video shorter than probe_s that passed
-            stats["nonref_skipped"] = True
-            yield from held
-            return
-    yield from _pyav_samples(info, sample_hz, work_width_px, False, probe_s, stats)
+            skip = False
+            continue
+        except _BadTimestamps:
+            gen.close()
+            skip, count = False, True   # counting frames needs every frame decoded
+            continue
+        yield from held                 # a video shorter than probe_s that passed
+        return
 
 
 def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
@@ -250,9 +283,23 @@ def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
             raise VideoError(info.path, "OpenCV/FFmpeg cannot open it")
         period = 1.0 / sample_hz
         half = 0.5 / info.fps_hz
-        nxt, i = 0.0, 0
+        nxt, i, ms0, prev, stamped = 0.0, 0, 0.0, 0.0, True
         while cap.grab():
-            t = i / info.fps_hz
+            # the frame's own time where the container has one (variable frame rate: phone video), else
+            # frame count / fps; raw streams (.h264) report 0 for every frame, so the second frame decides
+            ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+            if i == 0:
+                ms0, t = ms, 0.0
+            else:
+                t_pos = (ms - ms0) / 1000.0
+                if i == 1:
+                    stamped = math.isfinite(t_pos) and t_pos > 0
+                    stats["timestamps"] = "stream" if stamped else "frame count / fps"
+                if not stamped:
+                    t = i / info.fps_hz
+                else:   # a time that does not increase (AVI's end, a glitch): one nominal frame on
+                    t = t_pos if math.isfinite(t_pos) and t_pos > prev else prev + 1.0 / info.fps_hz
+            prev = t
             i += 1
             stats["frames_decoded"] = i
             if t + half < nxt:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,18 +69,18 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     core, an hour of 720p video is ~3-4 min of CPU).
     """
     cfg = cfg or LabelerConfig()
-    if stride_s <= 0:
-        raise ValueError(f"stride_s must be > 0, got {stride_s}")
     window_s = cfg.command.window_s if window_s is None else window_s
-    if window_s <= 0:
-        raise ValueError(f"window_s must be > 0, got {window_s}")
+    for name, v in (("window_s", window_s), ("stride_s", stride_s)):
+        if not (math.isfinite(v) and v > 0):   # NaN passes a `<= 0` check and gave zero windows
+            raise ValueError(f"{name} must be finite and > 0, got {v}")
     info = probe(path)
     fc = cfg.flow
     times: list[float] = []
     stats: dict = {}
 
-    # the container's frame count may be approximate: the bar's total is a guess, its position the decoded time
-    bar = tqdm(total=round(info.duration_s, 1), unit="s", desc=Path(path).name[:30], disable=not progress,
+    # the container's frame count may be approximate: the bar's total is a guess, its position the decoded time;
+    # no total where the count is unknown (raw .h264)
+    bar = tqdm(total=round(info.duration_s, 1) if info.num_frames > 0 else None, unit="s", desc=Path(path).name[:30], disable=not progress,
                file=sys.stderr, bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s of video "
                                            "[{elapsed}<{remaining}, {rate_fmt}]")
 
@@ -95,7 +96,8 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     eff_hz = min(fc.sample_hz, info.fps_hz)
     try:
         rates = labeler.yaw_rates_from_grey(greys(), eff_hz)
-        bar.update(max(bar.total - bar.n, 0.0))   # the last pair is done (the frame count's duration runs 1 frame on)
+        if bar.total is not None:
+            bar.update(max(bar.total - bar.n, 0.0))   # the last pair is done (the frame count's duration runs 1 frame on)
     finally:
         bar.close()
     t = np.asarray(times)
@@ -105,8 +107,11 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     quality = labeler.last_quality
     windows = []
     tol = 0.5 / eff_hz
+    mid = 0.5 * (t[:-1] + t[1:])
     for s, e in window_starts(float(t[-1]), window_s, stride_s, tol):
-        sel = (t[:-1] >= s - tol) & (t[1:] <= e + tol)
+        # each pair counts in the window that holds its midpoint: a window starting between two samples sums
+        # window_s of pairs, not one more (both ends inclusive summed 4.1 s for [0.25, 4.25] at 10 Hz)
+        sel = (mid >= s) & (mid < e)
         yaw = float(inc[sel].sum())
         cmd, conf = command_from_yaw(yaw, cfg.command)
         q = window_quality(quality[sel])

@@ -82,3 +82,39 @@ def test_progress_bar_reports_video_seconds_and_changes_nothing(left_turn_video,
 def test_cli_draws_no_progress_bar_when_stderr_is_not_a_terminal(left_turn_video, capsys):
     assert main(["label", str(left_turn_video), "--json"]) == 0
     assert "s of video" not in capsys.readouterr().err     # logs and pipes get the summary line only
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--window-s", "nan"], "--window-s must be finite and > 0"),
+    (["--stride-s", "inf"], "--stride-s must be finite and > 0"),
+    (["--set", "flow.sample_hz=.nan"], "sample_hz must be finite"),
+    (["--set", "command.confidence_scale_deg=.nan"], "confidence_scale_deg must be finite"),
+    (["--set", "flow.max_flow_frac=0"], "max_flow_frac must be in (0, 1]"),
+    (["--set", "flow.robust_scale_px=-1"], "robust_scale_px > 0"),
+])
+def test_nan_and_out_of_range_values_are_config_errors(left_turn_video, capsys, args, msg):
+    """NaN passed every `x <= 0` check: zero windows and exit 0, a NaN confidence in --json, or a traceback."""
+    assert main(["label", str(left_turn_video), *args]) == 2
+    assert msg in capsys.readouterr().err
+
+
+def test_window_length_comes_from_the_config_unless_given(left_turn_video, capsys):
+    assert main(["label", str(left_turn_video), "--json", "--set", "command.window_s=6"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [(r["start_s"], r["end_s"]) for r in rows] == [(0.0, 6.0)]
+    assert main(["label", str(left_turn_video), "--json", "--set", "command.window_s=6", "--window-s", "4"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [(r["start_s"], r["end_s"]) for r in rows] == [(0.0, 4.0), (2.0, 6.0)]
+
+
+def test_a_window_between_samples_sums_its_own_length_of_pairs(left_turn_video):
+    """Pairs count in the window holding their midpoint: [0.25, 4.25] at 10 Hz sums 40 pairs (4 s), as [0, 4]
+    does; both ends inclusive summed 41 (4.1 s, +2.5 % on every such window)."""
+    from labeling.windows import label_video
+
+    aligned = label_video(left_turn_video, window_s=4.0, stride_s=1.0)
+    offset = label_video(left_turn_video, window_s=4.0, stride_s=0.25)
+    inc = aligned.yaw_inc_deg
+    w = {(x.start_s, x.end_s): x.yaw_deg for x in offset.windows}
+    assert w[(0.25, 4.25)] == pytest.approx(inc[2:42].sum())    # pairs (0.2, 0.3) ... (4.1, 4.2)
+    assert w[(0.0, 4.0)] == pytest.approx(inc[0:40].sum())

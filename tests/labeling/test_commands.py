@@ -102,3 +102,15 @@ def test_config_validation_and_presets():
         from_dict(LabelerConfig, {"flow": {"foe_model": "global"}})
     with pytest.raises(ConfigError, match="foe_min_straight_s"):
         from_dict(LabelerConfig, {"flow": {"foe_min_straight_s": -1.0}})
+
+
+def test_heading_rule_unwraps_a_u_turn_past_180_deg():
+    """A tight left U-turn (50 deg/s for 4 s = 200 deg): the wrapped last yaw alone (-160) read as a right turn."""
+    fps, rate, v = 10.0, math.radians(50.0), 5.0
+    t = np.arange(0, 4.01, 1 / fps)
+    r = v / rate
+    poses = np.stack([r * np.sin(rate * t), r * (1 - np.cos(rate * t)), rate * t], axis=1)
+    traj = trajectory_from_poses(poses, 0, fps)
+    for rule in ("heading", "either"):
+        cmd, yaw = command_from_trajectory(traj, CommandConfig(trajectory_rule=rule))
+        assert cmd == "Turning left" and yaw == pytest.approx(200.0, abs=0.5), (rule, cmd, yaw)

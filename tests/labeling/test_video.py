@@ -65,3 +65,74 @@ def test_both_decoders_give_the_same_heading(h264_30fps):
            for d in ("pyav", "opencv")}
     for d, v in est.items():
         assert abs(v - true) <= 0.12 * abs(true), (d, v, true)
+
+
+def _x264(path, frames, fps: str, *extra):
+    h, w = frames.shape[1:3]
+    p = subprocess.run(["ffmpeg", "-v", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}",
+                        "-r", fps, "-i", "-", "-c:v", "libx264", "-preset", "veryfast", "-bf", "3", "-crf", "18",
+                        "-pix_fmt", "yuv420p", *extra, str(path)], input=frames.tobytes(), capture_output=True)
+    if p.returncode != 0:
+        pytest.skip(f"ffmpeg/libx264 unavailable: {p.stderr.decode()[-200:]}")
+    return path
+
+
+@pytest.fixture(scope="module")
+def left_turn_25fps(render):
+    frames, poses = render(126, 25.0, 8.0, speed_mps=6.0, hfov_deg=80.0, seed=5)    # 5 s, +40 deg
+    return frames, float(np.degrees(poses[-1, 2] - poses[0, 2]))
+
+
+@pytest.mark.parametrize("kind", ["rotated", "raw_h264", "avi"])
+def test_both_decoders_read_odd_containers_alike(tmp_path, left_turn_25fps, kind):
+    """A phone clip stored sideways with a rotation tag (PyAV used to label it from the sideways frames:
+    'Moving forward'), a raw Annex-B stream with no frame times (times came from the decoded-frame count
+    while B-frames were skipped: windows squeezed), and H.264 in AVI (decode-order times that go back)."""
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test videos")
+    frames, true = left_turn_25fps
+    if kind == "rotated":   # stored turned a quarter left; the tag turns it back for display
+        stored = _x264(tmp_path / "stored.mp4", np.ascontiguousarray(np.rot90(frames, 1, axes=(1, 2))), "25")
+        path = tmp_path / "rot.mp4"   # ffmpeg 5 writes the tag (a display matrix) only when remuxing
+        subprocess.run(["ffmpeg", "-v", "error", "-y", "-i", str(stored), "-c", "copy", "-metadata:s:v:0",
+                        "rotate=270", str(path)], check=True)
+    elif kind == "raw_h264":
+        path = _x264(tmp_path / "raw.h264", frames, "25", "-f", "h264")
+    else:
+        path = _x264(tmp_path / "v.avi", frames, "25")
+    res = {d: label_video(path, LabelerConfig(flow=FlowConfig(decoder=d))) for d in ("pyav", "opencv")}
+    for d, r in res.items():
+        assert [(w.start_s, w.end_s) for w in r.windows] == [(0.0, 4.0)], (d, r.windows)
+        assert np.all(np.diff(r.times_s) > 0) and abs(r.times_s[-1] - 5.0) <= 0.05, (d, r.times_s[-3:])
+        assert abs(r.yaw_inc_deg.sum() - true) <= 0.12 * true, (d, r.yaw_inc_deg.sum(), true)
+        assert r.windows[0].command == "Turning left", (d, r.windows)
+    if kind == "raw_h264":
+        assert res["pyav"].decode["timestamps"] == "frame count / fps"
+
+
+def test_variable_frame_rate_uses_the_frame_times(tmp_path, render):
+    """30 fps for 4 s, then 10 fps (a phone slowing its rate in the dark): OpenCV's path took frame count /
+    average fps as the time and put the 4-s window's end 1.2 s late."""
+    import fractions
+
+    import av
+
+    frames, poses = render(160, 30.0, 8.0, speed_mps=6.0, hfov_deg=80.0, seed=5)
+    path = tmp_path / "vfr.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("mpeg4", rate=30)
+        s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
+        s.codec_context.time_base = fractions.Fraction(1, 30)
+        s.bit_rate = 8_000_000   # the default (~1 Mbit/s) leaves blocks that shrink the flow
+        for i in [i for i in range(160) if i < 120 or i % 3 == 0]:
+            f = av.VideoFrame.from_ndarray(frames[i], format="rgb24")
+            f.pts, f.time_base = i, fractions.Fraction(1, 30)
+            for p in s.encode(f):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    true4 = float(np.degrees(poses[120, 2] - poses[0, 2]))
+    for d in ("pyav", "opencv"):
+        r = label_video(path, LabelerConfig(flow=FlowConfig(decoder=d)))
+        assert abs(r.times_s[-1] - 159 / 30) <= 0.05, (d, r.times_s[-3:])
+        assert abs(r.windows[0].yaw_deg - true4) <= 0.12 * true4, (d, r.windows[0], true4)
