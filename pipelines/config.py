@@ -11,11 +11,14 @@ Sections (one dataclass each; units in field names):
 * ``quarantine`` retry policy for items that fail;
 * ``ray``      where to run and the resources of every stage, declared once here.
 
-Every error names the dotted key (``clip.stride_frames: ...``), and paths that must exist are checked
-in :func:`check_paths` before Ray starts. ``--set key.sub=value`` overrides any value (YAML-parsed).
+Every error names the dotted key (``clip.stride_frames: ...``); paths that must exist, every reader's own
+options and a reused synthetic world are checked in :func:`check_paths` before Ray starts.
+``--set key.sub=value`` overrides any value (YAML-parsed).
 """
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -40,8 +43,17 @@ PLACEHOLDER_T5 = placeholder_dir("placeholder-t5-tiny")
 
 
 def _positive(name: str, value: float, allow_zero: bool = False) -> None:
-    if value < 0 or (value == 0 and not allow_zero):
-        raise ConfigError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+    # Written as `not (value > 0)` and with isfinite: NaN compares False both ways, so `value <= 0` let
+    # `.nan` through (and `.inf` then failed somewhere else with an unrelated message).
+    ok = (value >= 0) if allow_zero else (value > 0)
+    if not (ok and math.isfinite(value)):
+        raise ConfigError(f"{name} must be a finite number {'>= 0' if allow_zero else '> 0'}, got {value}")
+
+
+def _max_items(value: Optional[int]) -> None:
+    # A negative cap would slice items[:-1], i.e. silently drop the last item instead of capping.
+    if value is not None and value < 0:
+        raise ConfigError(f"max_items must be >= 0 or null (no cap), got {value}")
 
 
 # ---------------------------------------------------------------------------------------------- clip
@@ -103,6 +115,7 @@ class OpenDVSource:
         _positive("start_discard_s", self.start_discard_s, allow_zero=True)
         _positive("end_discard_s", self.end_discard_s, allow_zero=True)
         _positive("min_height_px", self.min_height_px)
+        _max_items(self.max_items)
 
 
 @dataclass
@@ -115,6 +128,9 @@ class NavsimSource:
     max_items: Optional[int] = None
     clip: Optional[ClipConfig] = None         # NAVSIM logs are 2 Hz: a 10 Hz clip cannot be cut from them
 
+    def __post_init__(self):
+        _max_items(self.max_items)
+
 
 @dataclass
 class CarlaSource:
@@ -124,6 +140,9 @@ class CarlaSource:
     camera: str = "rgb_front"
     max_items: Optional[int] = None
     clip: Optional[ClipConfig] = None
+
+    def __post_init__(self):
+        _max_items(self.max_items)
 
 
 @dataclass
@@ -145,6 +164,13 @@ class SyntheticSource:
         bad = [x for x in list(self.layouts) + list(self.clip) if x not in ("opendv", "navsim", "carla")]
         if bad:
             raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
+        # a layout listed twice would enumerate every item twice (two units with one id)
+        dup = sorted({x for x in self.layouts if list(self.layouts).count(x) > 1})
+        if dup:
+            raise ConfigError(f"layouts: {dup[0]!r} is listed more than once")
+        if not self.layouts:
+            raise ConfigError("layouts: empty (list at least one of opendv, navsim, carla, "
+                              "or set sources.synthetic.root: null to disable the synthetic world)")
 
 
 @dataclass
@@ -226,6 +252,12 @@ class ShardsConfig:
     max_samples_per_shard: int = 1000
     max_bytes_per_shard: int = 1 << 30
 
+    def __post_init__(self):
+        # checked here, not only by the shard writer: a bad limit must fail at load, before any work
+        for k in ("max_samples_per_shard", "max_bytes_per_shard"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+
 
 @dataclass
 class QuarantineConfig:
@@ -278,6 +310,10 @@ class RayConfig:
     progress_bars: bool = True
     fuse_cpu_stages: bool = True              # cut+label+balance in one actor pool (label's resources)
     stages: StagesResources = field(default_factory=StagesResources)
+
+    def __post_init__(self):
+        if self.num_cpus is not None and self.num_cpus < 1:
+            raise ConfigError(f"num_cpus must be >= 1 or null (all cores), got {self.num_cpus}")
 
 
 # ------------------------------------------------------------------------------------------ pipeline
@@ -353,6 +389,54 @@ def check_paths(cfg: PipelineConfig) -> None:
             raise ConfigError(f"{key}: model folder {p} does not exist")
         if not any((Path(p) / sub / "config.json").is_file() for sub in ("", "vae", "text_encoder")):
             raise ConfigError(f"{key}: {p} has no config.json (expected a diffusers/transformers folder)")
+    check_synthetic_world(cfg)
+    # Build every reader's own config now (cheap: no listing, no decoding), so a value only a reader
+    # checks (e.g. `sources.navsim.split: synth/x`) fails here and in `resim pipeline check`, not at
+    # enumerate time after OUT was prepared.
+    from pipelines.units import make_reader, source_specs
+
+    for spec in source_specs(cfg):
+        make_reader(spec)
+
+
+def check_synthetic_world(cfg: PipelineConfig) -> None:
+    """A synthetic world already in ``sources.synthetic.root`` must be the one the config describes.
+
+    The world is reused when present (generating it again would overwrite it), and ``episodes``, ``seed``
+    and ``preset`` are part of the dataset's config hash, so reusing a different world would label the
+    data with a config that did not make it. Compared with the ``synth_config.json`` the generator writes.
+    """
+    s = cfg.sources.synthetic
+    if s.root is None:
+        return
+    from pipelines.sources.synth.generate import preset
+
+    try:
+        made_with = preset(s.preset)
+    except ConfigError as e:
+        raise ConfigError(f"sources.synthetic.preset: {e}") from None
+    root = Path(s.root)
+    if not (root / "ground_truth.json").exists():
+        return                                  # generated on the first run (runner.ensure_synthetic)
+    p = root / "synth_config.json"
+    try:
+        have = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"sources.synthetic.root: {root} holds a synthetic world without {p.name}, so it cannot "
+                          "be checked against episodes/seed/preset; regenerate it (resim synth) or use "
+                          "another root") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"sources.synthetic.root: {p} is unreadable ({type(e).__name__}: {e})") from None
+    if not isinstance(have, dict):
+        raise ConfigError(f"sources.synthetic.root: {p} is not a JSON object")
+    want = json.loads(json.dumps({"episodes": s.episodes, "seed": s.seed, **to_dict(made_with)}))
+    diff = [k for k in sorted(want) if have.get(k) != want[k]]
+    if diff:
+        raise ConfigError(
+            f"sources.synthetic: the world in {root} was not made with this config's episodes/seed/preset ("
+            + ", ".join(f"{k}: {have.get(k)!r} on disk, {want[k]!r} by the config" for k in diff)
+            + "); set sources.synthetic.episodes/seed/preset to the world's values, or point "
+              "sources.synthetic.root at a new folder (the world is generated there)")
 
 
 def config_from_dict(data: dict) -> PipelineConfig:
@@ -360,4 +444,5 @@ def config_from_dict(data: dict) -> PipelineConfig:
     return from_dict(PipelineConfig, data)
 
 
-__all__ = ["PipelineConfig", "load_config", "check_paths", "config_from_dict", "to_dict", "ConfigError"]
+__all__ = ["PipelineConfig", "load_config", "check_paths", "check_synthetic_world", "config_from_dict", "to_dict",
+           "ConfigError"]

@@ -13,8 +13,10 @@ marker, so a rerun never loses or duplicates them. Columns (``QUARANTINE_COLUMNS
 * ``source``    origin (``opendv``, ``synthetic/carla``, ...)
 * ``stage``     cut | label | balance | encode | write
 * ``status``    ``quarantined`` (the whole unit is skipped) or ``dropped`` (this window only; the
-                unit's other clips were written)
-* ``reason``    why, in words (the reader's ``SourceError.reason`` or our check's message)
+                unit's other clips were written — or, for an enumerate row, this file only, e.g. an
+                unreadable CARLA results file; the source's units still ran)
+* ``reason``    why, in words (the reader's ``SourceError.reason`` or our check's message), prefixed
+                with the file/frame the reader named when that is not the item itself
 * ``attempts``  how many times the item was tried (I/O errors are retried; reruns with
                 ``quarantine.retry_quarantined`` count up)
 """

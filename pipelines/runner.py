@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipelines import quarantine, resume
-from pipelines.config import PipelineConfig, to_dict
+from pipelines.config import PipelineConfig, check_synthetic_world, to_dict
 from pipelines.units import dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save
 
@@ -54,13 +55,17 @@ class EnumerateStage:
 
         states, bad = [], []
         for spec in source_specs(self.cfg):
+            reader = make_reader(spec)   # a ConfigError here is a config mistake: it propagates
             try:
-                items = make_reader(spec).list_items()
-            except SourceError as e:   # e.g. an unreadable results file: the whole source is unusable
-                bad.append({"item": spec.root, "unit_id": f"_source-{spec.origin.replace('/', '-')}",
-                            "source": spec.origin, "stage": self.name, "status": "quarantined",
-                            "reason": f"{e.item}: {e.reason}", "attempts": 1})
+                items = reader.list_items()
+            except SourceError as e:   # e.g. a missing NAVSIM split, an undecodable videos.csv: source unusable
+                bad.append(self._row(spec, spec.root, f"{e.item}: {e.reason}"))
                 continue
+            # Problems a reader found while listing that leave the source usable (CARLA: an unreadable
+            # results file, whose routes then get no outcome) are quarantine rows too, never ignored;
+            # `dropped`: that file alone is skipped, the source's units still run.
+            for e in getattr(reader, "problems", ()):
+                bad.append(self._row(spec, e.item, e.reason, status="dropped"))
             if spec.max_items is not None:
                 items = items[:spec.max_items]
             states.extend(new_state(spec, item) for item in items)
@@ -68,6 +73,10 @@ class EnumerateStage:
         if len(set(ids)) != len(ids):
             raise RuntimeError("two work units share an id")   # our bug (unit ids hash kind + item id)
         return states, bad
+
+    def _row(self, spec, item: str, reason: str, status: str = "quarantined") -> dict:
+        return {"item": str(item), "unit_id": f"_source-{spec.origin.replace('/', '-')}", "source": spec.origin,
+                "stage": self.name, "status": status, "reason": reason, "attempts": 1}
 
 
 def ensure_synthetic(cfg: PipelineConfig) -> None:
@@ -77,6 +86,7 @@ def ensure_synthetic(cfg: PipelineConfig) -> None:
         return
     root = Path(s.root)
     if (root / "ground_truth.json").exists():
+        check_synthetic_world(cfg)   # reused only if it is the world the config describes (ConfigError)
         return
     from pipelines.sources.synth.generate import generate, preset
 
@@ -246,19 +256,46 @@ def run_units_local(cfg: PipelineConfig, states: list[dict], on_done, progress: 
 
 
 # ------------------------------------------------------------------------------------------- run
+# What a run writes under OUT besides config.yaml / config_hash.txt / stats.json / report.png.
+OUTPUT_DIRS = ("commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging")
+
+
 def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
-    """Create OUT, refuse to mix two configs in one dataset, save the resolved config."""
+    """Create OUT, refuse to mix two configs in one dataset, save the resolved config.
+
+    OUT is bound to a config by its *committed* units, not by an earlier attempt. ``config_hash.txt`` is
+    written here, before any work (so it exists whenever a marker does), but a different hash is refused
+    only when OUT holds commit markers. A run that committed nothing (it failed on a config mistake found
+    at run time, or crashed early) left only uncommitted leftovers, which a rerun would redo anyway: they
+    are removed and OUT is re-stamped, so the corrected config is not refused as "a different config".
+    Removing them matters: the prompt table and an uncommitted unit's shards would otherwise survive
+    into the new config's dataset. (Stamping only at the first commit would need the Ray actors to
+    coordinate; deriving the lock from the markers needs nothing.)
+    """
     from pipelines.stages.encode import data_config_hash
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     stamp = out / "config_hash.txt"
     h = data_config_hash(cfg)
-    if stamp.exists() and stamp.read_text().strip() != h and not force:
-        raise ConfigError(f"out: {out} already holds a dataset made with a different config "
-                          f"(data hash {stamp.read_text().strip()} != {h}); use another --out (or --force)")
+    old = stamp.read_text().strip() if stamp.exists() else None
+    if old is not None and old != h:
+        commits = out / "commits"
+        committed = sum(1 for _ in commits.glob("*.json")) if commits.is_dir() else 0
+        if committed and not force:
+            raise ConfigError(f"out: {out} already holds a dataset made with a different config "
+                              f"(data hash {old} != {h}, {committed} committed units); use another --out "
+                              "(or --force)")
+        if not committed:
+            log.info("out: %s holds no committed unit of its earlier config (data hash %s); removing that "
+                     "run's uncommitted leftovers and re-stamping it for %s", out, old, h)
+            for sub in OUTPUT_DIRS:
+                if (out / sub).is_dir():
+                    shutil.rmtree(out / sub)
     save(cfg, out / "config.yaml")
-    stamp.write_text(h + "\n")
+    tmp = stamp.with_name(stamp.name + ".tmp")
+    tmp.write_text(h + "\n")
+    tmp.replace(stamp)
     return out
 
 

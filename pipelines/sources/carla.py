@@ -70,7 +70,8 @@ def ours_to_carla(x: float, y: float, yaw: float) -> tuple[float, float, float]:
 class CarlaReader:
     def __init__(self, cfg: CarlaConfig):
         self.cfg = cfg
-        self.problems: list[SourceError] = []   # unreadable results files (reported, not fatal)
+        self.problems: list[SourceError] = []   # unreadable results files (not fatal; the pipeline
+        #                                         turns them into quarantine rows at enumerate)
         self._records: list[RouteRecord] | None = None
 
     # results ---------------------------------------------------------------------------------
@@ -81,7 +82,8 @@ class CarlaReader:
                 try:
                     self._records.extend(load_results(p).records)
                 except SourceError as e:
-                    self.problems.append(e)
+                    self.problems.append(SourceError(e.item, f"{e.reason}; results file skipped, so routes "
+                                                             "recorded only there get no outcome (hazard unknown)"))
         return self._records
 
     def record_for(self, item_id: str) -> RouteRecord | None:
@@ -100,6 +102,7 @@ class CarlaReader:
     def list_items(self) -> list[str]:
         if not self.cfg.root.is_dir():
             raise SourceError(str(self.cfg.root), "CARLA root folder does not exist")
+        self.records()   # read the results files now, so `problems` is complete once the items are listed
         return sorted(p.name for p in self.cfg.root.iterdir() if (p / "anno").is_dir())
 
     def open(self, item_id: str) -> Episode:
@@ -147,6 +150,9 @@ class CarlaReader:
         first = decode_image_file(images[0], str(images[0]))
         hw = tuple(first.shape[:2])
         rec = self.record_for(item_id)
+        if rec is None and self.problems:
+            warnings.append("no results record for this route; unreadable results file(s): "
+                            + ", ".join(e.item for e in self.problems))
 
         def loader(a: int, b: int, size_hw):
             for p in images[a:b]:
@@ -168,10 +174,13 @@ def _finite(v) -> float:
 
 
 def _read_anno(p: Path) -> dict:
+    # Only decoding errors are bad data. A plain OSError (EIO, a stale NFS handle) may be transient and
+    # propagates so the pipeline retries it (quarantine.max_attempts); BadGzipFile is an OSError subclass,
+    # hence listed explicitly.
     try:
         with gzip.open(p, "rt", encoding="utf-8") as f:
             a = json.load(f)
-    except (OSError, EOFError, zlib.error, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (gzip.BadGzipFile, EOFError, zlib.error, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise SourceError(str(p), f"malformed annotation ({type(e).__name__}: {e})") from None
     if not isinstance(a, dict):
         raise SourceError(str(p), f"malformed annotation: top level is {type(a).__name__}, expected an object")

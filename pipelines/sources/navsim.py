@@ -26,7 +26,7 @@ from resim.config import ConfigError
 from .episode import Episode, SourceError, decode_image_file, unwrap_yaw
 from .safe_pickle import load_restricted
 
-NAVSIM_FPS_HZ = 2.0  # NAVSIM_INTERVAL_LENGTH = 0.5 s (navsim/common/dataclasses.py)
+NAVSIM_FPS_HZ = 2.0  # NAVSIM_INTERVAL_LENGTH = 0.5 s (navsim/common/dataclasses.py); used for 1-frame logs
 REQUIRED_KEYS = ("token", "timestamp", "ego2global_translation", "ego2global_rotation", "cams")
 
 
@@ -40,10 +40,10 @@ class NavsimConfig:
 
     def __post_init__(self):
         self.root = Path(self.root)
-        if not self.split or "/" in self.split:
+        if not self.split or "/" in self.split or self.split in (".", ".."):
             raise ConfigError(f"split must be a plain folder name, got {self.split!r}")
-        if self.max_timestamp_gap_s <= 0:
-            raise ConfigError("max_timestamp_gap_s must be > 0")
+        if not (self.max_timestamp_gap_s > 0):   # `not >` so NaN is refused too
+            raise ConfigError(f"max_timestamp_gap_s must be > 0, got {self.max_timestamp_gap_s}")
 
 
 def quaternion_yaw(q: np.ndarray) -> np.ndarray:
@@ -109,21 +109,33 @@ class NavsimReader:
                 raise SourceError(where, "non-finite or zero ego pose")
             xy[i] = t[:2]
             yaw[i] = quaternion_yaw(q / np.linalg.norm(q))
-            dyn = fr.get("ego_dynamic_state")
-            if dyn is not None and len(dyn) >= 2:
-                speed[i] = float(np.hypot(float(dyn[0]), float(dyn[1])))
-            dc = fr.get("driving_command")
-            if dc is not None and np.asarray(dc).reshape(-1).size == 4:
-                cmd[i] = np.asarray(dc).reshape(-1).astype(np.int64)
+            # Optional fields: absent (or None) is fine, but present and malformed is bad input like any
+            # other field — a SourceError naming the frame and the field, never a TypeError of ours.
+            dyn = _optional_vector(fr, "ego_dynamic_state", where, min_size=2)
+            if dyn is not None:
+                speed[i] = float(np.hypot(dyn[0], dyn[1]))   # NaN stays NaN: speed from the poses below
+            dc = _optional_vector(fr, "driving_command", where, size=4)
+            if dc is not None:
+                if not np.isin(dc, (0.0, 1.0)).all():
+                    raise SourceError(where, f"malformed driving_command {dc.tolist()} (expected a one-hot of 4)")
+                cmd[i] = dc.astype(np.int64)
             else:
                 have_cmd = False
             images.append(self.blobs_dir / rel)
-        if np.any(np.diff(ts) <= 0):
+        dt = np.diff(ts)
+        if np.any(dt <= 0):
             raise SourceError(str(path), "timestamps are not strictly increasing")
-        gaps = np.flatnonzero(np.diff(ts) > self.cfg.max_timestamp_gap_s)
+        # The frame rate comes from the timestamps, not from the format's nominal 2 Hz: a log of all
+        # 10 Hz sweeps would otherwise be cut as if 2 Hz (clips 5x too long, commands over the wrong
+        # horizon). The median interval ignores a few gaps; the rate is snapped to a whole Hz when
+        # within 1% of it, since timestamps jitter (µs to ms) around nominal 2 / 10 / 20 Hz.
+        fps_hz = _nominal_rate(1.0 / float(np.median(dt))) if n > 1 else NAVSIM_FPS_HZ
+        # a gap is more than 1.5 intervals (a missing frame), and never more than max_timestamp_gap_s
+        max_gap_s = min(self.cfg.max_timestamp_gap_s, 1.5 / fps_hz)
+        gaps = np.flatnonzero(dt > max_gap_s)
         if gaps.size:
-            raise SourceError(str(path), f"missing frame(s): {gaps.size} gap(s) > {self.cfg.max_timestamp_gap_s} s, "
-                              f"first after frame {int(gaps[0])}")
+            raise SourceError(str(path), f"missing frame(s): {gaps.size} gap(s) > {max_gap_s:g} s in a "
+                              f"{fps_hz:g} Hz log, first after frame {int(gaps[0])}")
         if self.cfg.check_images_on_open:
             for i, p in enumerate(images):
                 if not p.is_file():
@@ -139,6 +151,26 @@ class NavsimReader:
             for p in images[a:b]:
                 yield decode_image_file(p, str(p), size_hw, stored_hw=hw)
 
-        return Episode(source="navsim", item_id=item_id, fps_hz=NAVSIM_FPS_HZ, num_frames=n,
+        return Episode(source="navsim", item_id=item_id, fps_hz=fps_hz, num_frames=n,
                        frame_size_hw=hw, poses=np.c_[xy, unwrap_yaw(yaw)], speed_mps=speed,
                        driving_command=cmd if have_cmd else None, timestamps_s=ts - ts[0], _loader=loader)
+
+
+def _nominal_rate(hz: float) -> float:
+    whole = round(hz)
+    return float(whole) if whole >= 1 and abs(hz - whole) <= 0.01 * hz else round(hz, 3)
+
+
+def _optional_vector(fr: dict, key: str, where: str, size: int | None = None, min_size: int | None = None):
+    """``fr[key]`` as a flat float64 array, None when absent; ``SourceError`` naming frame and field if malformed."""
+    v = fr.get(key)
+    if v is None:
+        return None
+    try:
+        a = np.asarray(v, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise SourceError(where, f"malformed {key} {v!r:.80} ({type(e).__name__}: {e})") from None
+    if (size is not None and a.size != size) or (min_size is not None and a.size < min_size):
+        want = f"{size}" if size is not None else f">= {min_size}"
+        raise SourceError(where, f"malformed {key}: {a.size} value(s), expected {want}")
+    return a

@@ -17,6 +17,7 @@ the source frame nearest to ``t_k``.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,10 +46,11 @@ class OpenDVConfig:
 
     def __post_init__(self):
         self.root = Path(self.root)
-        if self.fps_hz <= 0:
-            raise ConfigError(f"fps_hz must be > 0, got {self.fps_hz}")
-        if self.start_discard_s < 0 or self.end_discard_s < 0:
-            raise ConfigError("start_discard_s and end_discard_s must be >= 0")
+        # written as `not (x > 0)` / isfinite so NaN and inf are refused too
+        if not (self.fps_hz > 0 and math.isfinite(self.fps_hz)):
+            raise ConfigError(f"fps_hz must be a finite number > 0, got {self.fps_hz}")
+        if not all(x >= 0 and math.isfinite(x) for x in (self.start_discard_s, self.end_discard_s)):
+            raise ConfigError("start_discard_s and end_discard_s must be finite numbers >= 0")
         if self.min_height_px < 1:
             raise ConfigError(f"min_height_px must be >= 1, got {self.min_height_px}")
 
@@ -77,19 +79,37 @@ class _VideoMeta:
 @dataclass
 class OpenDVReader:
     cfg: OpenDVConfig
-    _meta: dict[str, _VideoMeta] = field(default_factory=dict, init=False, repr=False)
-
-    def __post_init__(self):
-        self._meta = self._read_metadata()
+    # videos.csv is read on first use (list_items / open), not here: building a reader only checks its
+    # config (the pipeline builds every reader at load time), and a bad CSV is then a SourceError the
+    # enumerate stage can quarantine instead of an exception out of the constructor.
+    _meta: dict[str, _VideoMeta] | None = field(default=None, init=False, repr=False)
+    _bad_meta: dict[str, tuple[str, str]] = field(default_factory=dict, init=False, repr=False)  # id -> (where, why)
 
     # -- metadata --------------------------------------------------------------------------
+    def _metadata(self) -> dict[str, _VideoMeta]:
+        if self._meta is None:
+            self._meta = self._read_metadata()
+        return self._meta
+
     def _read_metadata(self) -> dict[str, _VideoMeta]:
+        """Parse videos.csv. A file that cannot be read as a CSV at all (not UTF-8, not CSV) or a row
+        without a video id is a ``SourceError`` for the whole source (no video's discards can be trusted);
+        a bad value in a row that names its video only quarantines that video (kept in ``_bad_meta``)."""
         path = self.cfg.root / self.cfg.metadata_csv
         if not path.is_file():
             return {}
         out: dict[str, _VideoMeta] = {}
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.DictReader(f))
+        data = path.read_bytes()
+        try:
+            # utf-8-sig: a spreadsheet's byte-order mark would otherwise become part of the first header
+            text = data.decode("utf-8-sig")
+        except UnicodeDecodeError as e:
+            raise SourceError(str(path), f"not UTF-8 text (byte {data[e.start:e.start + 1]!r} at offset "
+                                         f"{e.start}); save the metadata CSV as UTF-8") from None
+        try:
+            rows = list(csv.DictReader(io.StringIO(text, newline="")))
+        except csv.Error as e:
+            raise SourceError(str(path), f"malformed CSV ({e})") from None
         for i, row in enumerate(rows, start=2):  # line numbers as a spreadsheet shows them
             vid = (row.get("video_id") or row.get("videoid") or "").strip()
             if not vid:
@@ -101,12 +121,19 @@ class OpenDVReader:
                     (row.get("notes") or "").strip(),
                 )
             except ValueError as e:
-                raise SourceError(f"{path}:{i}", f"bad discard value ({e})") from None
+                self._bad_meta[vid] = (f"{path}:{i}", f"bad discard value for video {vid!r} ({e})")
         return out
 
     def _video_meta(self, item_id: str) -> _VideoMeta:
         p = Path(item_id)
-        return self._meta.get(item_id) or self._meta.get(str(p.with_suffix(""))) or self._meta.get(p.stem) or _VideoMeta()
+        keys = (item_id, str(p.with_suffix("")), p.stem)
+        meta = self._metadata()
+        for k in keys:
+            if k in meta:
+                return meta[k]
+            if k in self._bad_meta:
+                raise SourceError(*self._bad_meta[k])
+        return _VideoMeta()
 
     # -- listing / opening -------------------------------------------------------------------
     def list_items(self) -> list[str]:
@@ -114,6 +141,7 @@ class OpenDVReader:
         root = self.cfg.root
         if not root.is_dir():
             raise SourceError(str(root), "OpenDV root folder does not exist")
+        self._metadata()   # an unreadable videos.csv makes the whole source unusable: fail at listing
         exts = {"." + e.lower().lstrip(".") for e in self.cfg.extensions}
         return sorted(p.relative_to(root).as_posix() for p in root.rglob("*")
                       if p.is_file() and p.suffix.lower() in exts)
@@ -136,6 +164,12 @@ class OpenDVReader:
                 raise SourceError(item_id, f"video header unusable (fps={src_fps}, frames={count}, size={w}x{h})")
             if h < self.cfg.min_height_px:
                 raise SourceError(item_id, f"height {h} px < min_height_px {self.cfg.min_height_px} (skipped)")
+            # Resampling keeps the nearest source frame: below the output rate that repeats frames (a
+            # 5 fps video at 10 Hz is every frame twice), i.e. invents motion timing. 1% slack for
+            # 9.99-style rates (one repeat per 100+ frames).
+            if src_fps < self.cfg.fps_hz * 0.99:
+                raise SourceError(item_id, f"frame rate {src_fps:g} fps is below the output rate "
+                                           f"{self.cfg.fps_hz:g} Hz (frames would be repeated)")
             if self.cfg.verify_last_frame:
                 cap.set(cv2.CAP_PROP_POS_FRAMES, count - 1)
                 if not cap.grab():

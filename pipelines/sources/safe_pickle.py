@@ -88,10 +88,15 @@ def loads_restricted(data: bytes, item: str = "<bytes>"):
 
 
 def load_restricted(path: str | Path):
-    """Read a pickle file with the restricted unpickler; errors name the file."""
+    """Read a pickle file with the restricted unpickler; errors name the file.
+
+    A file that is not there (or is a folder, or is not readable by us) is bad input: ``SourceError``.
+    Any other ``OSError`` (EIO, a stale NFS handle, a timeout) may be transient and propagates, so the
+    pipeline retries it ``quarantine.max_attempts`` times before quarantining the log.
+    """
     p = Path(path)
     try:
         data = p.read_bytes()
-    except OSError as e:
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as e:
         raise SourceError(str(p), f"cannot read ({e.strerror})") from None
     return loads_restricted(data, str(p))

@@ -31,6 +31,12 @@ def _source_error():
     return SourceError
 
 
+def source_error_reason(e, item_id: str) -> str:
+    """The quarantine reason of a reader's ``SourceError``: its reason, prefixed by the file/frame it
+    named (``e.item``) unless that is just the unit's item id — the file/frame is what a user must fix."""
+    return e.reason if e.item == item_id else f"{e.item}: {e.reason}"
+
+
 class BadInput(Exception):
     """Raised by our own checks on input data (too short, too low-res, NaN poses...)."""
 
@@ -66,16 +72,20 @@ class Stage:
                 self.process(state)
                 break
             except self._source_error as e:
-                quarantine.quarantine_unit(state, self.name, e.reason, attempts=state["attempts"])
+                quarantine.quarantine_unit(state, self.name, source_error_reason(e, state["item_id"]),
+                                           attempts=state["attempts"])
                 break
             except BadInput as e:
                 quarantine.quarantine_unit(state, self.name, e.reason, attempts=state["attempts"])
                 break
             except OSError as e:  # transient I/O: retry, then quarantine with the count
+                # state["attempts"] is the unit's total number of tries (this run's and, with
+                # quarantine.retry_quarantined, earlier runs'): the marker and the row both report it
                 if attempts < self.cfg.quarantine.max_attempts:
+                    state["attempts"] += 1
                     continue
                 quarantine.quarantine_unit(state, self.name, f"I/O error after {attempts} attempts: {e}",
-                                           attempts=state["attempts"] - 1 + attempts)
+                                           attempts=state["attempts"])
                 break
         state["timings_s"][self.name] = state["timings_s"].get(self.name, 0.0) + time.perf_counter() - t0
         return state

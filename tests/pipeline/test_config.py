@@ -1,7 +1,7 @@
 """Config validation: every error names its key, before any work starts."""
 import pytest
 
-from pipelines.config import PipelineConfig, load_config
+from pipelines.config import PipelineConfig, config_from_dict, load_config, to_dict
 from resim.config import ConfigError, from_dict
 
 from .conftest import REPO
@@ -37,6 +37,18 @@ def test_shipped_configs_load(tmp_path):
     ("sources.synthetic.clip.nuscenes={fps_hz: 2}", "layouts"),
     ("encode.vae=/no/such/vae", "encode.vae"),                        # missing path
     ("sources.carla.root=/no/such/dir", "sources.carla.root"),
+    ("shards.max_samples_per_shard=0", "max_samples_per_shard must be >= 1"),   # was: fails in the writer
+    ("shards.max_bytes_per_shard=-5", "max_bytes_per_shard must be >= 1"),
+    ("clip.fps_hz=.nan", "fps_hz must be a finite number > 0"),                 # NaN passed `< 0` checks
+    ("clip.fps_hz=.inf", "fps_hz must be a finite number > 0"),
+    ("clip.waypoint_dt_s=.nan", "waypoint_dt_s"),
+    ("sources.opendv.start_discard_s=.nan", "start_discard_s"),
+    ("ray.stages.encode.num_gpus=.nan", "num_gpus"),
+    ("sources.carla.max_items=-1", "max_items must be >= 0"),                   # was: items[:-1]
+    ("sources.synthetic.layouts=[opendv,opendv]", "listed more than once"),     # was: a crash at enumerate
+    ("sources.synthetic.layouts=[]", "layouts: empty"),
+    ("sources.synthetic.preset=huge", "sources.synthetic.preset"),
+    ("ray.num_cpus=0", "num_cpus must be >= 1"),
 ])
 def test_errors_name_the_key(override, key):
     with pytest.raises(ConfigError) as e:
@@ -67,3 +79,36 @@ def test_vae_and_text_encoder_flags_override(tmp_path, capsys):
     rc = main(["pipeline", "check", str(REPO / "configs/pipeline/synthetic.yaml"), "--out", str(tmp_path),
                "--vae", str(vae)])
     assert rc == 0 and f"vae: {vae}" in capsys.readouterr().out
+
+
+def test_reader_options_are_checked_at_load(tmp_path, capsys):
+    # a value only the reader validates used to pass load (and `pipeline check`) and fail at enumerate
+    with pytest.raises(ConfigError, match="sources.navsim: split must be a plain folder name"):
+        _load(f"sources.navsim.root={tmp_path}", "sources.navsim.split=synth/x")
+    from resim.cli import main
+
+    rc = main(["pipeline", "check", str(REPO / "configs/pipeline/synthetic.yaml"), "--out", str(tmp_path),
+               "--set", "shards.max_samples_per_shard=0"])
+    assert rc == 2 and "max_samples_per_shard" in capsys.readouterr().err
+
+
+def test_reused_synthetic_world_must_match_the_config(synth_world, tmp_path):
+    from pipelines import runner
+
+    root = f"sources.synthetic.root={synth_world}"                    # made with episodes 6, seed 0, tiny
+    assert _load(root).sources.synthetic.episodes == 6
+    for override, words in (("sources.synthetic.episodes=5", "episodes: 6 on disk, 5 by the config"),
+                            ("sources.synthetic.seed=3", "seed: 0 on disk, 3 by the config"),
+                            ("sources.synthetic.preset=demo", "height_px: 64 on disk, 128 by the config")):
+        with pytest.raises(ConfigError, match=words):                 # was: the world reused as is
+            _load(root, override)
+    # a config that skipped load_config (built from a dict) is checked where the world is reused
+    d = to_dict(_load(root))
+    d["sources"]["synthetic"]["episodes"] = 5
+    with pytest.raises(ConfigError, match="episodes: 6 on disk, 5 by the config"):
+        runner.ensure_synthetic(config_from_dict(d))
+    bare = tmp_path / "world"
+    bare.mkdir()
+    (bare / "ground_truth.json").write_text("{}")
+    with pytest.raises(ConfigError, match="without synth_config.json"):
+        _load(f"sources.synthetic.root={bare}")
