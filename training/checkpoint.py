@@ -131,6 +131,39 @@ def set_rng_state(state: dict) -> None:
         torch.cuda.set_rng_state_all([_unb64(s) for s in state["cuda"]])
 
 
+# A CPU RNG stream of its own (python random, numpy, torch), swapped in and out of the global generators without
+# JSON round trips on the hot path (the trainer's data stream for plain iterables); JSON only when checkpointed.
+CpuRng = tuple  # (random.getstate(), np.random.get_state(), torch.get_rng_state())
+
+
+def seeded_cpu_rng(seed: int) -> CpuRng:
+    return (random.Random(seed).getstate(), np.random.RandomState(seed % 2**32).get_state(),
+            torch.Generator().manual_seed(seed).get_state())
+
+
+def get_cpu_rng() -> CpuRng:
+    return random.getstate(), np.random.get_state(), torch.get_rng_state()
+
+
+def set_cpu_rng(state: CpuRng) -> None:
+    random.setstate(state[0])
+    np.random.set_state(state[1])
+    torch.set_rng_state(state[2])
+
+
+def cpu_rng_to_json(state: CpuRng) -> dict:
+    (ver, internal, gauss), (name, keys, pos, has_gauss, cached), t = state
+    return {"python": [ver, list(internal), gauss], "numpy": [name, keys.tolist(), int(pos), int(has_gauss),
+                                                              float(cached)], "torch": _b64(t)}
+
+
+def cpu_rng_from_json(d: dict) -> CpuRng:
+    ver, internal, gauss = d["python"]
+    name, keys, pos, has_gauss, cached = d["numpy"]
+    return ((ver, tuple(internal), gauss), (name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached),
+            _unb64(d["torch"]))
+
+
 # ---------------------------------------------------------------- finding checkpoints
 def checkpoint_path(run_dir: str | Path, step: int) -> Path:
     return Path(run_dir) / CHECKPOINTS / f"{_PREFIX}{step:08d}"

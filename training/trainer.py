@@ -55,31 +55,70 @@ class NonFiniteLossError(RuntimeError):
 
 
 class _CountingData:
-    """Position tracking for plain iterables: (epoch, batches consumed in the epoch)."""
+    """Position tracking for plain iterables: (epoch, batches consumed in the epoch); resume re-iterates and skips.
 
-    def __init__(self, data: Iterable):
+    Iterating the data may draw from the *global* RNGs: a torch DataLoader draws its workers' base seed and its
+    RandomSampler's seed from torch's global generator when its iterator is made / first advanced, and an
+    in-process dataset or collate_fn may call random/numpy. Those draws run on an RNG stream of the data's own,
+    swapped in around every ``iter``/``next`` of the underlying iterator (not around the trainer's code between
+    batches), so (1) the model's noise (the global stream, checkpointed per rank) is the same whether or not the
+    data was re-iterated and batches replayed on resume, and (2) the data stream's state at the start of the
+    epoch is checkpointed, so the replay draws the same seeds (same shuffle order) as the uninterrupted run.
+    Before this, a resumed shuffled DataLoader saw another order and shifted the model's noise (review 2026-12).
+    """
+
+    def __init__(self, data: Iterable, seed: int):
         self.data = data
         self.epoch = 0
         self.index = 0
         self._skip = 0
+        self._rng = ckpt.seeded_cpu_rng(seed)   # the data stream's current state
+        self._epoch_rng = self._rng              # its state when this epoch's iterator was made
+
+    @contextlib.contextmanager
+    def _data_rng(self):
+        outer = ckpt.get_cpu_rng()
+        ckpt.set_cpu_rng(self._rng)
+        try:
+            yield
+        finally:
+            self._rng = ckpt.get_cpu_rng()
+            ckpt.set_cpu_rng(outer)
 
     def __iter__(self) -> Iterator:
-        it = iter(self.data)
-        for _ in range(self._skip):  # resume: replay the consumed part of the epoch
-            next(it)
-        self.index = self._skip
-        self._skip = 0
-        for b in it:
+        skip, self._skip = self._skip, 0
+        self._epoch_rng = self._rng   # on resume: the checkpointed epoch-start state (load_state_dict)
+        with self._data_rng():
+            it = iter(self.data)
+            for _ in range(skip):  # resume: replay the consumed part of the epoch
+                next(it)
+        self.index = skip
+        while True:
+            with self._data_rng():
+                try:
+                    b = next(it)
+                except StopIteration:
+                    break
             self.index += 1
             yield b
         self.epoch += 1
         self.index = 0
 
     def state_dict(self) -> dict:
-        return {"epoch": self.epoch, "index": self.index}
+        return {"epoch": self.epoch, "index": self.index, "epoch_rng": ckpt.cpu_rng_to_json(self._epoch_rng)}
 
     def load_state_dict(self, d: dict) -> None:
         self.epoch, self._skip = int(d["epoch"]), int(d["index"])
+        if "epoch_rng" in d:
+            self._rng = self._epoch_rng = ckpt.cpu_rng_from_json(d["epoch_rng"])
+        else:
+            warnings.warn("checkpoint from before the data RNG stream was saved: a shuffled loader may replay "
+                          "its epoch in another order on this resume")
+
+
+# the data stream of a plain iterable starts from (trainer seed per rank) + this, distinct from the model's
+# stream (seed_all(seed)) so the shuffle seeds and the model's noise are not the same numbers
+_DATA_RNG_SEED_OFFSET = 0x5EED_DA7A
 
 
 def seed_all(seed: int) -> None:
@@ -221,7 +260,7 @@ class Trainer:
     def fit(self, data: Iterable) -> dict:
         tc, env = self.tc, self.env
         if not (hasattr(data, "state_dict") and hasattr(data, "load_state_dict")):
-            data = _CountingData(data)
+            data = _CountingData(data, seed=tc.seed + 1_000_003 * env.rank + _DATA_RNG_SEED_OFFSET)
         seed_all(tc.seed + 1_000_003 * env.rank)  # different noise per rank, reproducible per rank
         self.lm, layout = wrap_model(
             self.model, env, parallel=self.parallel, activation_checkpointing=tc.activation_checkpointing,
@@ -278,7 +317,8 @@ class Trainer:
                 g["lr"] = lr
             loss_sum = torch.zeros((), dtype=torch.float64, device=env.device)
             logs_sum: dict[str, float] = {}
-            n_samples = 0
+            logs_n: dict[str, int] = {}   # micro-batches that reported each key (some logs, e.g. loss_t_high, are
+            n_samples = 0                 # only present when such a sample was drawn: average over those only)
             flops = 0.0
             tokens = 0
             for micro in range(self.accum):
@@ -305,6 +345,7 @@ class Trainer:
                     f = _scalar(v)
                     if f is not None:
                         logs_sum[k] = logs_sum.get(k, 0.0) + f
+                        logs_n[k] = logs_n.get(k, 0) + 1
             max_norm = oc.grad_clip_norm if oc.grad_clip_norm > 0 else float("inf")
             grad_norm = torch.nn.utils.clip_grad_norm_(params, max_norm)
             if hasattr(grad_norm, "full_tensor"):
@@ -334,7 +375,7 @@ class Trainer:
                 rec["max_mem_gib"] = torch.cuda.max_memory_allocated(env.device) / 2**30
             if hasattr(data, "skipped"):
                 rec["data_skipped"] = int(data.skipped)
-            rec.update({k: v / self.accum for k, v in logs_sum.items() if k not in rec})
+            rec.update({k: v / logs_n[k] for k, v in logs_sum.items() if k not in rec})
             self.log.log(rec)
             if tc.checkpoint_every_steps and done % tc.checkpoint_every_steps == 0 and done < tc.steps:
                 self._save(done, data)
@@ -369,13 +410,18 @@ class Trainer:
         raise NonFiniteLossError(msg)
 
     def _export_final(self) -> None:
-        """RUN_DIR/final/model.safetensors (+ ema.safetensors): full weights for sampling, rank 0 writes."""
+        """RUN_DIR/final/model.safetensors (+ ema.safetensors): full weights for sampling, rank 0 writes.
+
+        ``ema.safetensors`` is a complete state dict like ``model.safetensors``: the EMA only tracks the trainable
+        parameters, so with a partly frozen model (``model.trainable=lora+new|dit|new``, ReSim stage 2) the frozen
+        tensors and buffers come from the model and the EMA values are laid over the rest. Sampling
+        (``training.sampling.load``) and ``model.init_weights`` load either file strictly."""
         from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
         opts = StateDictOptions(full_state_dict=True, cpu_offload=True)
         sd = get_model_state_dict(self.lm, options=opts)
         ema_full = {}
         if self.ema:
-            for n, t in self.ema.shadow.items():
+            for n, t in self.ema.shadow.items():  # full_tensor() is a collective: every rank gathers
                 ema_full[n] = t.full_tensor() if hasattr(t, "full_tensor") else t
         if not self.env.is_main:
             return
@@ -383,7 +429,15 @@ class Trainer:
         out = self.run_dir / "final"
         out.mkdir(parents=True, exist_ok=True)
         strip = lambda n: n[len("model."):] if n.startswith("model.") else n  # noqa: E731  (LossModule prefix)
-        save_file({strip(k): v.detach().cpu().contiguous() for k, v in sd.items()}, str(out / "model.safetensors"))
+        full = {strip(_clean_name(k)): v.detach().cpu().contiguous() for k, v in sd.items()}
+        save_file(full, str(out / "model.safetensors"))
         if ema_full:
-            save_file({strip(k): v.detach().cpu().contiguous() for k, v in ema_full.items()}, str(out / "ema.safetensors"))
+            ema_sd = dict(full)
+            for n, t in ema_full.items():
+                k = strip(n)
+                if k not in full:  # our bug: EMA names and state-dict names must agree
+                    raise RuntimeError(f"EMA tensor {n!r} has no counterpart in the model state dict "
+                                       f"(e.g. {sorted(full)[:3]})")
+                ema_sd[k] = t.detach().cpu().contiguous()   # float32, as the EMA keeps it
+            save_file(ema_sd, str(out / "ema.safetensors"))
         save_config(self.cfg, out / "config.yaml")

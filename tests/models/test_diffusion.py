@@ -197,3 +197,28 @@ def test_world_model_trains_on_alternating_clip_lengths(tiny_model):
         assert torch.isfinite(loss)
         assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
         opt.step()
+
+
+@pytest.mark.parametrize("make,match", [
+    (lambda: ObjectiveConfig(latent_frame_dt_s=-0.4), "latent_frame_dt_s"),
+    (lambda: ObjectiveConfig(latent_frame_dt_s=0.0), "latent_frame_dt_s"),
+    (lambda: ObjectiveConfig(waypoint_dt_s=0.0), "waypoint_dt_s"),
+    (lambda: ObjectiveConfig(waypoint_dt_s=float("nan")), "waypoint_dt_s"),
+])
+def test_objective_durations_must_be_positive(make, match):
+    """A zero/negative duration used to be accepted and silently gave all-null or time-reversed actions."""
+    from resim.config import ConfigError
+    with pytest.raises(ConfigError, match=match):
+        make()
+
+
+@pytest.mark.parametrize("scale", [(0.0, 0.5, 0.1), (2.0, -0.5, 0.1)])
+def test_action_input_scale_must_be_positive(scale):
+    """Actions are divided by input_scale: a zero made the loss NaN, a negative flipped the action's sign."""
+    from resim.config import ConfigError
+    from training.models.config import preset
+    from training.world import build_world
+    with pytest.raises(ConfigError, match="actions.input_scale"):
+        preset("tiny", actions=dict(input_scale=scale))
+    with pytest.raises(ConfigError, match="actions.input_scale"):   # the training entry point (--set overrides)
+        build_world({"preset": "tiny", "overrides": {"actions": {"input_scale": list(scale)}}})

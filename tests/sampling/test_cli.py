@@ -117,3 +117,105 @@ def test_sample_cli_video_history_vid2world(setup):
     run = json.loads((out / "run.json").read_text())
     assert run["history"] == "video:clip.mp4" and all(v.startswith("t5:") for v in run["prompts"].values())
     assert run["rollout"]["chunk_frames"] == 1 and run["rollout"]["guidance"]["drop_recent_actions"]
+
+
+def _coded_video(path, fps, n, bits=8):
+    """n frames whose index is written in binary as 8-px-wide black/white columns (survives mp4 compression)."""
+    from shards.video import encode_mp4
+    frames = np.zeros((n, 32, 8 * bits, 3), np.uint8)
+    for i in range(n):
+        for b in range(bits):
+            if i >> b & 1:
+                frames[i, :, 8 * b:8 * (b + 1)] = 255
+    path.write_bytes(encode_mp4(frames, fps))
+    return path
+
+
+def _decode_ids(frames, bits=8):
+    return [sum(1 << b for b in range(bits) if f[:, 8 * b:8 * (b + 1)].mean() > 127) for f in frames]
+
+
+@pytest.mark.parametrize("fps,expected_back", [(30.0, [24, 21, 18, 15, 12, 9, 6, 3, 0]),
+                                               (25.0, [20, 18, 15, 12, 10, 8, 5, 2, 0]),
+                                               (10.0, [8, 7, 6, 5, 4, 3, 2, 1, 0])])
+def test_video_history_is_resampled_to_the_clip_rate(tmp_path, fps, expected_back):
+    """The 9 history frames are 0.1 s apart whatever the file's rate (they were the last 9 source frames: 0.27 s
+    of a 30 fps clip), and the history reports the clip rate (--seconds is converted with it)."""
+    import types
+
+    from training.sampling.load import history_from_video
+    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32))
+    n = 60
+    h = history_from_video(_coded_video(tmp_path / "v.mp4", fps, n), vae, 3, (32, 64))
+    assert _decode_ids(h.frames) == [n - 1 - d for d in expected_back]
+    assert h.fps_hz == 10.0 and h.meta["source_fps_hz"] == pytest.approx(fps)
+
+
+def test_video_history_slower_than_the_clip_rate_is_refused(tmp_path):
+    import types
+
+    from training.sampling.load import SamplingInputError, history_from_video
+    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32))
+    with pytest.raises(SamplingInputError, match="5 fps is below the 10 Hz"):
+        history_from_video(_coded_video(tmp_path / "slow.mp4", 5.0, 30), vae, 3, (32, 64))
+    with pytest.raises(SamplingInputError, match="readable frames at 30 fps"):   # 0.8 s needed, 0.5 s given
+        history_from_video(_coded_video(tmp_path / "short.mp4", 30.0, 15), vae, 3, (32, 64))
+
+
+def test_sample_cli_30fps_video_seconds_at_the_clip_rate(setup, tmp_path):
+    """--seconds 0.8 from a 30 fps clip: 2 latent frames (8 frames at 10 Hz), not ceil(0.8 * 30 / 4) = 6."""
+    video = _coded_video(tmp_path / "clip30.mp4", 30.0, 40)
+    out = tmp_path / "out"
+    assert main(["sample", "--checkpoint", str(setup["run"]), "--history", str(video), "--size", "32x48",
+                 "--command", "Moving forward", "--max-text-tokens", "8", "--seconds", "0.8", "--steps", "1",
+                 "--no-guidance", "--device", "cpu", "--out", str(out)]) == 0
+    assert np.load(out / "sample_latents.npy").shape == (3 + 2, 16, 4, 6)
+    run = json.loads((out / "run.json").read_text())
+    assert run["history_fps_hz"] == 10.0 and run["latent_frame_dt_s"] == pytest.approx(0.4)
+
+
+def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, monkeypatch):
+    """--actions-from-trajectory on a 5 Hz shard history (latent frame = 0.8 s): the actions are those training
+    derives for the same clip geometry (Batch.latent_frame_dt_s), frames past the 4-s trajectory get the null
+    action, and the rollout is told they are derived (guidance drops them with the trajectory)."""
+    from shards.schema import ClipSpec
+    from shards.testing import add_dummy_prompts, make_dummy_sample
+    from shards.writer import ShardWriter
+    from training.data import Batch
+    from training.models.conditioning import actions_from_trajectory
+    from training.sampling import rollout as rollout_mod
+    from training.sampling.plan import make_candidate
+
+    data = tmp_path / "shards5"
+    add_dummy_prompts(data, seq_len=16, dim=64)
+    spec = ClipSpec(fps_hz=5.0, num_history_frames=9, num_future_frames=8)      # 17 frames = 5 latent frames
+    s = make_dummy_sample(item_id="ep5", seed=0, spec=spec, latent_channels=16, latent_hw=(4, 6),
+                          frames_hw=(32, 48))
+    with ShardWriter(data, "d", max_samples_per_shard=4, config_hash="dummy") as w:
+        w.write(s)
+    seen = {}
+    real = rollout_mod.rollout
+
+    def spy(*a, **kw):
+        seen["kw"] = kw
+        seen["res"] = real(*a, **kw)
+        return seen["res"]
+
+    monkeypatch.setattr(rollout_mod, "rollout", spy)
+    assert main(["sample", "--checkpoint", str(setup["run"]), "--shards", str(data), "--history", s["__key__"],
+                 "--trajectory", "keep_lane", "--actions-from-trajectory", "--seconds", "8", "--steps", "1",
+                 "--device", "cpu", "--out", str(tmp_path / "out")]) == 0
+    res = seen["res"]
+    assert seen["kw"]["actions_from_trajectory"] is True
+    assert res.future.shape[1] == 10                                  # 8 s at 5 Hz = 40 frames = 10 latent frames
+    traj = torch.from_numpy(make_candidate("keep_lane").trajectory)[None]
+    b = Batch(latents=torch.zeros(1, 3 + 10, 16, 4, 6), prompt_table=torch.zeros(1, 1, 1),
+              prompt_index=torch.zeros(1, dtype=torch.long), null_index=torch.zeros(1, dtype=torch.long),
+              trajectory=traj, has_trajectory=torch.ones(1, dtype=torch.bool), command=torch.zeros(1, dtype=torch.long),
+              source=["x"], keys=["k"], meta=[{"num_history_frames": 9, "num_frames": 9 + 40, "fps_hz": 5.0}])
+    assert b.latent_frame_dt_s == pytest.approx(0.8)
+    want, want_valid = actions_from_trajectory(traj, 13, b.num_history_latent_frames, b.latent_frame_dt_s)
+    assert want_valid[0, 3:].tolist() == [True] * 5 + [False] * 5      # 5 x 0.8 s = the trajectory's 4 s
+    assert torch.equal(res.action_valid[:, 3:], want_valid[:, 3:])
+    torch.testing.assert_close(res.actions[:, 3:], want[:, 3:])
+    assert json.loads((tmp_path / "out" / "run.json").read_text())["latent_frame_dt_s"] == pytest.approx(0.8)

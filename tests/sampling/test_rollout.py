@@ -161,3 +161,68 @@ def test_real_world_model_cached_equals_uncached(chunk, preset_name):
                     actions=acts).latents for kv in ("on", "off")]
     torch.testing.assert_close(outs[0], outs[1], rtol=1e-4, atol=1e-4)
     assert torch.isfinite(outs[0]).all()
+
+
+class KeepSpy(torch.nn.Module):
+    """Records (trajectory_keep, action_keep) of every call."""
+
+    def __init__(self, m):
+        super().__init__()
+        self.m, self.calls = m, []
+        self.causal = m.causal
+
+    def forward(self, x, *a, **kw):
+        self.calls.append((kw.get("trajectory_keep"), kw.get("action_keep")))
+        return self.m(x, *a, **kw)
+
+
+@pytest.mark.parametrize("chunk", [10, 4])
+def test_resim_guidance_drops_trajectory_derived_actions_with_the_trajectory(tiny_model, chunk):
+    """Training drops actions derived from a trajectory whenever it drops the trajectory, so the unconditional
+    branch (trajectory dropped) must not see them; given (not derived) actions stay in both branches."""
+    acts = torch.randn(B, 12, 3, generator=torch.Generator().manual_seed(3))
+    for derived in (True, False):
+        m = KeepSpy(tiny_model())
+        cfg = RolloutConfig(num_steps=2, history_frames=3, frames_per_round=10, chunk_frames=chunk,
+                            guidance=guidance_preset("resim"))
+        res = rollout(m, _history(), [_cond(0), _cond(1)], 12, cfg, actions=acts, actions_from_trajectory=derived)
+        assert res.action_valid[:, 3:].all() and not res.action_valid[:, :3].any()
+        for traj_keep, act_keep in m.calls:
+            assert traj_keep[:B].all() and not traj_keep[B:].any()
+            cond_keep, uncond_keep = act_keep[:B], act_keep[B:]
+            if derived:
+                assert not uncond_keep.any()
+            else:
+                assert torch.equal(uncond_keep, cond_keep)
+        assert any(k[:B].any() for _, k in m.calls)      # the conditional branch does get the actions
+
+
+@pytest.mark.parametrize("chunk", [10, 4, 1])
+def test_cached_equals_uncached_with_derived_actions(tiny_model, chunk):
+    acts = torch.randn(B, 12, 3, generator=torch.Generator().manual_seed(3))
+    outs = [rollout(tiny_model(), _history(), [_cond(0), _cond(1)], 12,
+                    RolloutConfig(num_steps=3, frames_per_round=10, chunk_frames=chunk, kv_cache=kv,
+                                  guidance=guidance_preset("resim")), seed=2, actions=acts,
+                    actions_from_trajectory=True).latents for kv in ("on", "off")]
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-4, atol=1e-5)
+
+
+def test_policy_valid_mask_gives_the_null_action(tiny_model):
+    """A policy may return (actions, valid): invalid frames (e.g. past the trajectory's horizon) get the null
+    action, exactly as if the policy had returned no actions there."""
+    cfg = RolloutConfig(num_steps=2, frames_per_round=4, chunk_frames=2, guidance=guidance_preset("none"))
+    a = torch.randn(B, 4, 3, generator=torch.Generator().manual_seed(1))
+    valid = torch.tensor([[True, True, False, False]] * B)
+
+    def policy(inp):
+        k = inp.frame_index - 3
+        return a[:, k:k + inp.num_frames], valid[:, k:k + inp.num_frames]
+
+    res = rollout(tiny_model(), _history(), _cond(traj=False), 4, cfg, policy=policy)
+    assert torch.equal(res.action_valid[:, 3:], valid) and not res.actions[:, 5:].any()
+    garbage = a.clone()
+    garbage[:, 2:] = 1e3          # what the policy puts under an invalid mask must not matter
+    res2 = rollout(tiny_model(), _history(), _cond(traj=False), 4, cfg,
+                   policy=lambda inp: (garbage[:, inp.frame_index - 3:inp.frame_index - 3 + inp.num_frames],
+                                       valid[:, :inp.num_frames] if inp.frame_index == 3 else valid[:, 2:]))
+    torch.testing.assert_close(res.latents, res2.latents, rtol=0, atol=0)

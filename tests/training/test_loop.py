@@ -114,3 +114,90 @@ def test_resume_with_no_checkpoint_starts_fresh(tmp_path, capsys):
     torch.manual_seed(0)
     s = Trainer(build("toy", {}), _cfg(steps=2), tmp_path, resume=True).fit(_data())
     assert s["start_step"] == 0 and s["final_step"] == 2
+
+
+def test_ema_export_is_complete_with_frozen_weights(tmp_path):
+    """EMA tracks only trainable parameters; final/ema.safetensors must still be a full state dict (frozen tensors
+    from the model, EMA values over the trained ones), else sampling / init_weights cannot load it strictly."""
+    from safetensors.torch import load_file
+    torch.manual_seed(0)
+    m = build("toy", {})
+    m.inp.requires_grad_(False)        # a frozen part, like the DiT in ReSim stage 2
+    init = {n: p.detach().clone() for n, p in m.named_parameters()}
+    Trainer(m, _cfg(steps=4, ema_decay=0.5), tmp_path).fit(_data())
+    w = load_file(str(tmp_path / "final" / "model.safetensors"))
+    e = load_file(str(tmp_path / "final" / "ema.safetensors"))
+    assert set(e) == set(w) == set(m.state_dict())
+    for n in ("inp.weight", "inp.bias"):          # frozen: the model's (= initial) values
+        torch.testing.assert_close(e[n], init[n], rtol=0, atol=0)
+    trained = [n for n, p in m.named_parameters() if p.requires_grad]
+    assert all(not torch.equal(e[n], w[n]) for n in trained)   # EMA values, not the raw weights
+    fresh = build("toy", {})
+    fresh.load_state_dict(e, strict=True)
+
+
+class _SometimesLogs(torch.nn.Module):
+    """Reports ``sometimes`` in one micro-batch of four (like ``loss_t_high``: only when such a level was drawn)."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Linear(16, 1)
+        self.calls = 0
+
+    def loss(self, batch):
+        self.calls += 1
+        logs = {"always": 2.0}
+        if self.calls % 4 == 1:
+            logs["sometimes"] = 3.0
+        return self.w(batch["x"]).pow(2).mean(), logs
+
+
+def test_logs_are_averaged_over_the_micro_batches_that_report_them(tmp_path):
+    Trainer(_SometimesLogs(), _cfg(steps=2, grad_accum_steps=4, save_final_weights=False), tmp_path).fit(_data(8))
+    recs = [json.loads(line) for line in open(tmp_path / "metrics.jsonl")]
+    assert [(r["always"], r["sometimes"]) for r in recs] == [(2.0, 3.0), (2.0, 3.0)]   # not 3.0 / 4
+
+
+def test_partial_training_ema_export_samples_and_inits(world_dataset, tmp_path):
+    """ReSim stage 2 shape (only the new modules train) with EMA: the export loads for sampling (EMA preferred)
+    and as the next stage's init_weights."""
+    from resim.cli import main
+    from safetensors.torch import load_file
+    from training.sampling.load import load_world_model
+    from training.world import build_world
+    run = tmp_path / "run"
+    assert main(["train", "world", "--preset", "tiny", "--shards", str(world_dataset), "--out", str(run),
+                 "--steps", "1", "--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false",
+                 "--set", "trainer.loss_curve_png=false", "--set", "trainer.ema_decay=0.9",
+                 "--set", "model.trainable=new"]) == 0
+    model, info = load_world_model(run)
+    assert info["weights"] == "ema.safetensors"
+    e = load_file(str(run / "final" / "ema.safetensors"))
+    for n, t in model.state_dict().items():
+        torch.testing.assert_close(t, e[n].to(t.dtype), rtol=0, atol=0)
+    nxt = build_world({"preset": "tiny", "init_weights": str(run / "final" / "ema.safetensors")})
+    torch.testing.assert_close(nxt.state_dict()["patch_embed.proj.weight"], e["patch_embed.proj.weight"])
+
+
+def _loader(workers):
+    g = torch.Generator().manual_seed(3)
+    ds = torch.utils.data.TensorDataset(torch.randn(12, 16, generator=g))
+    return torch.utils.data.DataLoader(ds, batch_size=2, shuffle=True, num_workers=workers,
+                                       collate_fn=lambda b: {"x": torch.stack([t[0] for t in b])})
+
+
+@pytest.mark.parametrize("workers,first,ckpt_every", [(0, 4, 0), (0, 8, 0), (2, 3, 3)])
+def test_resume_is_exact_for_a_shuffled_dataloader(tmp_path, workers, first, ckpt_every):
+    """A plain DataLoader (6 batches an epoch) resumed mid-epoch 1 or mid-epoch 2 logs the uninterrupted losses.
+    Before, iter(DataLoader) after the RNG restore drew its shuffle seed from the restored global RNG: another
+    batch order, and the model's noise (the toy draws it from the global RNG) shifted."""
+    def run(out, steps, resume=False):
+        torch.manual_seed(0)
+        m = build("toy", {})
+        Trainer(m, _cfg(steps=steps, save_final_weights=False, checkpoint_every_steps=ckpt_every), out,
+                resume=resume).fit(_loader(workers))
+        return [(r["step"], r["loss"]) for r in map(json.loads, open(out / "metrics.jsonl"))]
+
+    ref = run(tmp_path / "ref", 10)
+    run(tmp_path / "res", first)
+    assert run(tmp_path / "res", 10, resume=True) == ref       # bitwise

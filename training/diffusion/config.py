@@ -60,3 +60,9 @@ class ObjectiveConfig:
             raise ConfigError("objective.num_history_frames must be >= 0")
         if not 0 <= self.cond_aug_max_t < self.schedule.num_train_timesteps:
             raise ConfigError("objective.cond_aug_max_t must be in [0, num_train_timesteps)")
+        # durations: actions_from_trajectory divides spans of latent_frame_dt_s by waypoint_dt_s; a zero or
+        # negative one gives invalid (all-null) or time-reversed actions without an error
+        for name in ("latent_frame_dt_s", "waypoint_dt_s"):
+            v = getattr(self, name)
+            if not v > 0:
+                raise ConfigError(f"objective.{name}={v} must be > 0 (seconds)")

@@ -69,6 +69,10 @@ class ActionConfig:
             raise ConfigError("actions.num_actions must be >= 1 for discrete actions")
         if self.kind == "continuous" and len(self.input_scale) != self.action_dim:
             raise ConfigError(f"actions.input_scale must have action_dim={self.action_dim} entries")
+        # actions are divided by it (conditioning.ActionEncoder): a zero gives inf/NaN inputs, a negative flips
+        # the action's sign; checked for every kind so a config that switches kind later cannot carry it silently
+        if any(not s > 0 for s in self.input_scale):
+            raise ConfigError(f"actions.input_scale must be positive numbers, got {tuple(self.input_scale)}")
 
 
 @dataclass

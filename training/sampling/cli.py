@@ -20,8 +20,9 @@ examples:
   resim sample ... --command "Moving forward" --command "Turning left" --seconds 8    # one command per 4-s round
   resim sample ... --preset vid2world --actions-from-trajectory                      # frame by frame + actions
 
-History: a video file (its last 9 frames are encoded with --vae) or, with --shards, a sample key (its stored
-history latents). --command / --trajectory may be repeated: round r uses the r-th (the last one repeats).
+History: a video file (resampled to the model's training clip rate, 10 Hz for video sources; its last 9 frames
+are encoded with --vae; files below that rate are refused) or, with --shards, a sample key (its stored history
+latents, at the shard's rate: --seconds and the actions follow it, e.g. NAVSIM's 2 Hz). --command / --trajectory may be repeated: round r uses the r-th (the last one repeats).
 A trajectory is a candidate name (keep_lane, turn_left, turn_right, brake, swerve), an (8, 3) .npy file or
 JSON [[x_m, y_m, yaw_rad], ...] at 0.5 s steps in the ego frame (x forward, y left).
 Writes DIR/sample.mp4, .gif, _sheet.png, _latents.npy (exact float32 latents: compare runs bit for bit),
@@ -99,7 +100,8 @@ class _Setup:
 
         from pipelines.encoders import VideoVAE, pick_device
         from training.sampling.guidance import guidance_preset
-        from training.sampling.load import PromptSource, history_from_shard, history_from_video, load_world_model
+        from training.sampling.load import (PromptSource, history_from_shard, history_from_video, load_world_model,
+                                            video_clip_fps_hz)
         from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, rollout_num_future_frames
         from resim.config import from_dict
 
@@ -129,7 +131,8 @@ class _Setup:
             size = (tuple(int(s) for s in args.size.lower().split("x")) if args.size
                     else (mcfg.sample_height * self.vae.info.spatial_compression,
                           mcfg.sample_width * self.vae.info.spatial_compression))
-            self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size)
+            self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size,
+                                              video_clip_fps_hz(self.model, self.vae.info.temporal_compression))
         elif args.shards:
             self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)
         else:
@@ -138,6 +141,10 @@ class _Setup:
         self.prompts = PromptSource(self.history.prompt_root, args.text_encoder, device=self.device,
                                     max_tokens=args.max_text_tokens)
         self.num_future = rollout_num_future_frames(args.seconds, self.history.fps_hz, self.vae.info.temporal_compression)
+        # seconds one latent frame spans: the same formula as training's Batch.latent_frame_dt_s (temporal
+        # compression / the clip's fps): 0.4 s for a 10 Hz history, 2 s for a NAVSIM (2 Hz) shard history
+        self.latent_frame_dt_s = self.vae.info.temporal_compression / self.history.fps_hz
+        self.waypoint_dt_s = getattr(getattr(self.model, "objective", None), "waypoint_dt_s", 0.5)
         self.actions_from_trajectory = args.actions_from_trajectory
         self.args = args
 
@@ -149,7 +156,9 @@ class _Setup:
         return t.to(self.device)
 
     def policy_for(self, trajs_per_round):
-        """A policy feeding actions derived from each round's trajectory (Vid2World-style conditioning)."""
+        """A policy feeding actions derived from each round's trajectory (Vid2World-style conditioning), as
+        training derives them (``training.diffusion.losses``: the clip's latent frame duration, the objective's
+        waypoint spacing); frames past the trajectory's horizon get the null action (invalid), as in training."""
         if not self.actions_from_trajectory:
             return None
         from training.models.conditioning import actions_from_trajectory
@@ -161,8 +170,10 @@ class _Setup:
                 raise SystemExit("resim: --actions-from-trajectory needs a --trajectory")
             # offset of this chunk inside its round (rounds start right after the given history)
             off = (inp.frame_index - self.history.latents.shape[1]) % cfg.frames_per_round
-            acts, _ = actions_from_trajectory(traj.float(), cfg.frames_per_round, 0)
-            return acts[:, off:off + inp.num_frames].to(self.device)
+            acts, valid = actions_from_trajectory(traj.float(), cfg.frames_per_round, 0, self.latent_frame_dt_s,
+                                                  self.waypoint_dt_s)
+            sl = slice(off, off + inp.num_frames)
+            return acts[:, sl].to(self.device), valid[:, sl].to(self.device)
         return policy
 
     def progress(self, total: int, desc: str):
@@ -175,6 +186,8 @@ def _save_config(setup: _Setup, out: Path, extra: dict) -> None:
     save(setup.cfg, out / "rollout.yaml")
     (out / "run.json").write_text(json.dumps({**setup.model_info, "history": setup.history.source,
                                               "seconds": setup.args.seconds, "seed": setup.args.seed,
+                                              "history_fps_hz": setup.history.fps_hz,
+                                              "latent_frame_dt_s": setup.latent_frame_dt_s,
                                               "device": setup.device, "dtype": setup.args.dtype,
                                               "vae_id": setup.vae.info.vae_id,
                                               "vae_placeholder": setup.vae.info.placeholder,
@@ -219,7 +232,7 @@ def _cmd_sample(args) -> int:
     t0 = time.perf_counter()
     with s.progress(total, "sampling") as bar:
         res = rollout(s.model, s.history.latents.to(s.device), cond_at, s.num_future, s.cfg, seed=args.seed,
-                      policy=s.policy_for(traj_at), progress=bar)
+                      policy=s.policy_for(traj_at), progress=bar, actions_from_trajectory=s.actions_from_trajectory)
     frames = decode_rollout(s.vae, res.latents, res.num_history_frames, s.cfg.frames_per_round,
                             s.cfg.history_frames)[0]
     num_hist_px = 1 + 4 * (res.num_history_frames - 1)
@@ -269,7 +282,8 @@ def _cmd_plan(args) -> int:
     with s.progress(total, f"imagining {len(cands)} futures") as bar:
         policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if args.actions_from_trajectory else None
         res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), s.text_for, cands, s.cfg, s.num_future,
-                   seed=args.seed, policy_for=policy_for, progress=bar)
+                   seed=args.seed, policy_for=policy_for, progress=bar,
+                   actions_from_trajectory=args.actions_from_trajectory)
     table = res.table()
     (out / "ranking.md").write_text(table + "\n")
     (out / "ranking.json").write_text(json.dumps(

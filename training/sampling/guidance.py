@@ -15,7 +15,8 @@ What the unconditional branch drops is a :class:`GuidanceConfig` choice: the tex
 the fixed prefix alone, ReSim), the trajectory (ReSim trains with both dropped at p = 0.5), and/or the actions of
 the frames being generated — Vid2World's *causal action guidance*: "conditional" vs. "the most recent action
 masked". A dropped trajectory/action is fed as the model's ``trajectory_keep``/``action_keep`` = False (its
-null embedding), as in training's condition dropout.
+null embedding), as in training's condition dropout. Dropping the trajectory also drops actions derived from it
+(``rollout(..., actions_from_trajectory=True)``): training drops them together.
 """
 from __future__ import annotations
 
@@ -83,7 +84,7 @@ class GuidanceConfig:
     scale_end: float = 1.0
     rescale_phi: float = 0.0
     drop_text: bool = True              # unconditional branch: prompt = prefix alone (command dropped)
-    drop_trajectory: bool = True        # unconditional branch: trajectory dropped
+    drop_trajectory: bool = True        # unconditional branch: trajectory dropped (and actions derived from it)
     drop_recent_actions: bool = False   # unconditional branch: actions of the frames being generated dropped
     enabled: bool = True                # False: conditional branch only (one forward of B samples)
 

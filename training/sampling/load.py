@@ -6,12 +6,15 @@ World-model checkpoint (the trainer's export, issue 7): ``RUN_DIR/final/`` (or `
 ``training.registry`` by ``model_name`` ("world": ``training.world.build_world``, the same builder training used,
 so LoRA layers and overrides match the saved tensors), then the saved weights are loaded strictly.
 
-History: a video file (its last ``1 + 4 (H - 1)`` frames, resized, encoded with the VAE) or a shard sample key
-(its stored latents' first ``H`` latent frames, i.e. the clip's history, and its pixel frames for outputs).
+History: a video file (resampled to the clip rate the model was trained at, 10 Hz for video sources, then its
+last ``1 + 4 (H - 1)`` frames, resized, encoded with the VAE) or a shard sample key (its stored latents' first
+``H`` latent frames, i.e. the clip's history, and its pixel frames for outputs; the shard's own rate).
 Prompts: the dataset's prompt table when it holds the prompt, else the T5 encoder.
 """
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +26,21 @@ import yaml
 
 class SamplingInputError(ValueError):
     """A checkpoint, history or prompt given to the sampler is missing or unusable (names it and why)."""
+
+
+# Video sources are cut into clips at 10 Hz (ReSim; OpenDV-YouTube toolkit; configs/pipeline/opendv.yaml
+# clip.fps_hz), so one latent frame = 4 pixel frames = 0.4 s (ObjectiveConfig.latent_frame_dt_s). The fallback
+# when the model states no time scale; see video_clip_fps_hz.
+VIDEO_CLIP_FPS_HZ = 10.0
+# a source rate this close below the clip rate is taken as equal (9.99 fps files), as pipelines.frames.rate_step
+_RATE_TOLERANCE = 0.02
+
+
+def video_clip_fps_hz(model: Any, temporal_compression: int = 4) -> float:
+    """The pixel frame rate the world model was trained at for video histories: ``temporal_compression /
+    objective.latent_frame_dt_s`` from the checkpoint's config (4 / 0.4 s = 10 Hz), else 10 Hz."""
+    dt = getattr(getattr(model, "objective", None), "latent_frame_dt_s", None)
+    return temporal_compression / float(dt) if dt else VIDEO_CLIP_FPS_HZ
 
 
 def _checkpoint_dir(ckpt: str | Path) -> Path:
@@ -94,28 +112,53 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
     return History(torch.from_numpy(lat)[None], frames, float(meta["fps_hz"]), f"shard:{key}", Path(root), meta)
 
 
-def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_hw: tuple[int, int]) -> History:
-    """The last ``1 + 4 (H - 1)`` frames of a video file, resized to ``size_hw``, encoded by ``vae`` (VideoVAE)."""
+def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_hw: tuple[int, int],
+                       clip_fps_hz: float = VIDEO_CLIP_FPS_HZ) -> History:
+    """The last ``1 + 4 (H - 1)`` frames of a video file at ``clip_fps_hz``, resized to ``size_hw``, encoded by
+    ``vae`` (VideoVAE). The model learnt motion at the training clip rate (a 9-frame history spans 0.8 s at 10 Hz),
+    so the file is resampled first, as the pipeline's OpenDV reader does: clip frame k takes the source frame
+    nearest to its time, counted back from the last frame (the "now" the rollout continues from). A file slower
+    than the clip rate is refused: its missing frames would have to be invented."""
     import cv2
 
     p = Path(path)
     if not p.is_file():
         raise SamplingInputError(f"history {p}: no such file (give a video file or --shards ROOT with a sample key)")
+    if not clip_fps_hz > 0:
+        raise ValueError(f"clip_fps_hz must be > 0, got {clip_fps_hz}")  # our bug: the caller derives it
     cap = cv2.VideoCapture(str(p))
-    fps = cap.get(cv2.CAP_PROP_FPS) or 10.0
-    frames = []
+    if not cap.isOpened():
+        raise SamplingInputError(f"history {p}: cannot be opened as a video")
+    src_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    if not (math.isfinite(src_fps) and src_fps > 0):
+        cap.release()
+        raise SamplingInputError(f"history {p}: the file states no frame rate; cannot resample it to the "
+                                 f"{clip_fps_hz:g} Hz the model was trained at (re-mux it with a frame rate)")
+    if src_fps < clip_fps_hz * (1 - _RATE_TOLERANCE):
+        cap.release()
+        raise SamplingInputError(f"history {p}: {src_fps:g} fps is below the {clip_fps_hz:g} Hz clip rate the "
+                                 f"model was trained at; give a video of at least {clip_fps_hz:g} fps")
+    step = max(src_fps / clip_fps_hz, 1.0)   # source frames per clip frame (>= 1 within the tolerance)
+    need = 1 + 4 * (num_latent_frames - 1)
+    back = [round((need - 1 - k) * step) for k in range(need)]    # source frames before the last one
+    buf: deque = deque(maxlen=back[0] + 1)   # only the tail is kept: long files need no memory for the rest
+    n = 0
     ok, fr = cap.read()
     while ok:
-        frames.append(cv2.cvtColor(cv2.resize(fr, (size_hw[1], size_hw[0]), interpolation=cv2.INTER_AREA),
-                                   cv2.COLOR_BGR2RGB))
+        buf.append(fr)
+        n += 1
         ok, fr = cap.read()
     cap.release()
-    need = 1 + 4 * (num_latent_frames - 1)
-    if len(frames) < need:
-        raise SamplingInputError(f"history {p}: {len(frames)} readable frames, need at least {need}")
-    clip = np.stack(frames[-need:])
+    if n < back[0] + 1:
+        raise SamplingInputError(f"history {p}: {n} readable frames at {src_fps:g} fps ({n / src_fps:.2f} s); "
+                                 f"{need} frames at {clip_fps_hz:g} Hz need {back[0] + 1} "
+                                 f"({(need - 1) / clip_fps_hz:.2f} s)")
+    last = len(buf) - 1
+    clip = np.stack([cv2.cvtColor(cv2.resize(buf[last - d], (size_hw[1], size_hw[0]), interpolation=cv2.INTER_AREA),
+                                  cv2.COLOR_BGR2RGB) for d in back])
     lat = vae.encode(clip[None], seeds=[0])
-    return History(torch.from_numpy(lat), clip, float(fps), f"video:{p.name}")
+    return History(torch.from_numpy(lat), clip, float(clip_fps_hz), f"video:{p.name}",
+                   meta={"source_fps_hz": src_fps, "clip_fps_hz": float(clip_fps_hz)})
 
 
 class PromptSource:

@@ -26,7 +26,10 @@ A new round rebuilds the cache: the window has slid (positions are absolute with
 prompt/trajectory may have changed (the trajectory embedding is added to every frame's tokens).
 
 **Guidance** (see ``guidance.py``): when enabled, every forward carries 2B samples, ``[conditional;
-unconditional]``, and the cache holds both halves.
+unconditional]``, and the cache holds both halves. Actions derived from the trajectory (``actions_from_trajectory``:
+the CLI's ``--actions-from-trajectory`` policy) are trajectory information: where the unconditional branch drops
+the trajectory it drops them too (null action on every frame whose action was derived), as training's condition
+dropout always drops derived actions together with the trajectory (``training.diffusion.losses``).
 
 Model interface (``training.models.dit.WorldModel``): ``model(x, t, text, trajectory=None, actions=None, *,
 trajectory_keep=None, action_keep=None, kv_cache=None, return_kv_cache=False) -> v``.
@@ -95,7 +98,9 @@ class PolicyInput:
     condition: Condition
 
 
-Policy = Callable[[PolicyInput], torch.Tensor]
+# returns the chunk's actions (B, c, A), or (actions, valid (B, c) bool): valid False → the model's null action
+# (e.g. frames past the end of the trajectory the actions are derived from)
+Policy = Callable[[PolicyInput], "torch.Tensor | tuple[torch.Tensor, torch.Tensor]"]
 
 
 @dataclass
@@ -103,6 +108,7 @@ class RolloutResult:
     latents: torch.Tensor                  # (B, H0 + F, C, h, w) float32: the given history then F generated frames
     num_history_frames: int                # H0
     actions: torch.Tensor | None           # (B, H0 + F, A) actions used (history: given or zeros), or None
+    action_valid: torch.Tensor | None      # (B, H0 + F) bool: False where the null action was fed
     round_labels: list[str]
     kv_cache_used: bool
     model_forwards: int                    # number of model calls (each one batched over both CFG branches)
@@ -145,7 +151,7 @@ class _Roller:
     """State of one rollout; see :func:`rollout` (split out to keep each method about one thing)."""
 
     def __init__(self, model, history, cfg: RolloutConfig, generator, history_actions, use_cache, progress,
-                 same_noise: bool = False):
+                 same_noise: bool = False, actions_from_trajectory: bool = False):
         self.model, self.cfg, self.gen = model, cfg, generator
         self.same_noise = same_noise
         self.device, self.mdtype = history.device, _model_dtype(model)
@@ -157,35 +163,49 @@ class _Roller:
         self.fed = self._noise_history(self.latents)
         self.actions: torch.Tensor | None = None      # (B, T, A) float32, grows with latents
         self.action_valid: torch.Tensor | None = None  # (B, T) bool; False → the model's null action
+        # (B, T) bool: the frame's action was derived from the trajectory (the generated frames' actions when
+        # actions_from_trajectory; given history actions never are)
+        self.action_derived: torch.Tensor | None = None
+        self.actions_from_trajectory = actions_from_trajectory
         if history_actions is not None:
             if tuple(history_actions.shape[:2]) != tuple(history.shape[:2]):
                 raise ValueError(f"history_actions must be (B, H0, A) with (B, H0) = {tuple(history.shape[:2])}, "
                                  f"got {tuple(history_actions.shape)}")
             self.actions = history_actions.float().to(self.device)
             self.action_valid = torch.ones(history.shape[:2], dtype=torch.bool, device=self.device)
+            self.action_derived = torch.zeros(history.shape[:2], dtype=torch.bool, device=self.device)
         self.use_cache = use_cache
         self.guided = cfg.guidance.enabled
         self.scales = cfg.guidance.scales(cfg.num_steps)
         self.forwards = 0
         self.progress = progress
 
-    def add_actions(self, chunk_actions: torch.Tensor | None, new: int) -> None:
-        """Append the next chunk's actions (None → null action for those frames)."""
+    def add_actions(self, chunk_actions: torch.Tensor | None, new: int, valid: torch.Tensor | None = None) -> None:
+        """Append the next chunk's actions (None → null action for those frames; ``valid`` (B, new) bool: False
+        → null action for that frame)."""
         b, t = self.latents.shape[:2]
         if chunk_actions is None and self.actions is None:
             return
         if self.actions is None:   # first actions seen: the history frames get the null action
             self.actions = torch.zeros(b, t, chunk_actions.shape[-1], device=self.device)
             self.action_valid = torch.zeros(b, t, dtype=torch.bool, device=self.device)
+            self.action_derived = torch.zeros(b, t, dtype=torch.bool, device=self.device)
         if chunk_actions is None:
             chunk_actions = torch.zeros(b, new, self.actions.shape[-1], device=self.device)
             valid = torch.zeros(b, new, dtype=torch.bool, device=self.device)
-        else:
+        elif valid is None:
             valid = torch.ones(b, new, dtype=torch.bool, device=self.device)
+        elif tuple(valid.shape) != (b, new) or valid.dtype != torch.bool:
+            raise ValueError(f"action valid mask must be bool (B, {new}) = ({b}, {new}), got "
+                             f"{valid.dtype} {tuple(valid.shape)}")
         if chunk_actions.shape[-1] != self.actions.shape[-1]:
             raise ValueError(f"action dim changed: {self.actions.shape[-1]} then {chunk_actions.shape[-1]}")
-        self.actions = torch.cat([self.actions, chunk_actions.float().to(self.device)], dim=1)
+        valid = valid.to(self.device)
+        chunk_actions = torch.where(valid[..., None], chunk_actions.float().to(self.device), 0.0)
+        self.actions = torch.cat([self.actions, chunk_actions], dim=1)
         self.action_valid = torch.cat([self.action_valid, valid], dim=1)
+        derived = valid & self.actions_from_trajectory
+        self.action_derived = torch.cat([self.action_derived, derived], dim=1)
 
     # -- helpers -------------------------------------------------------------------------------------------
     def _randn(self, shape) -> torch.Tensor:
@@ -220,16 +240,26 @@ class _Roller:
             traj = torch.cat([traj, traj])
             keep_u = torch.zeros(b, dtype=torch.bool) if g.drop_trajectory else torch.ones(b, dtype=torch.bool)
             traj_keep = torch.cat([torch.ones(b, dtype=torch.bool), keep_u]).to(self.device)
-        acts, act_keep = None, None
-        if self.actions is not None:
-            acts = self.actions[:, window]
-            act_keep = self.action_valid[:, window]
-            if self.guided:
-                keep_u = act_keep.clone()
-                if g.drop_recent_actions:   # Vid2World causal action guidance: the newest action(s) masked
-                    keep_u[:, -new:] = False
-                acts, act_keep = torch.cat([acts, acts]), torch.cat([act_keep, keep_u])
+        acts, act_keep = self._window_actions(window, new)
         return text, traj, traj_keep, acts, act_keep
+
+    def _window_actions(self, window: slice, new: int):
+        """Actions + keep masks of the window's frames (both branches when guided), the last ``new`` generated."""
+        if self.actions is None:
+            return None, None
+        g = self.cfg.guidance
+        acts, act_keep = self.actions[:, window], self.action_valid[:, window]
+        if not self.guided:
+            return acts, act_keep
+        keep_u = act_keep.clone()
+        if g.drop_recent_actions and new:   # Vid2World causal action guidance: the newest action(s) masked
+            keep_u[:, -new:] = False
+        if g.drop_trajectory:
+            # actions derived from a trajectory carry it: a branch without the trajectory must not see them
+            # (training drops derived actions with the trajectory, so "trajectory dropped, derived actions kept"
+            # is an input the model never saw)
+            keep_u &= ~self.action_derived[:, window]
+        return torch.cat([acts, acts]), torch.cat([act_keep, keep_u])
 
     def _call(self, x, t, text, traj, traj_keep, acts, act_keep, cache=None, return_cache=False):
         self.forwards += 1
@@ -293,11 +323,10 @@ class _Roller:
         nb = fed.shape[0] * (2 if self.guided else 1)
         t_hist = torch.full((nb, n), self.cfg.history_noise_level, dtype=torch.long, device=self.device)
         text, traj, traj_keep, _, _ = self._branch_inputs(cond, slice(0, 0), 0)
-        acts = act_keep = None
-        if self.actions is not None:   # the appended frames are history now: actions kept in both branches
-            acts, act_keep = self._two(self.actions[:, -n:]), self._two(self.action_valid[:, -n:])
-            if not self.guided:
-                acts, act_keep = self.actions[:, -n:], self.action_valid[:, -n:]
+        # the appended frames are history now: as the uncached path feeds them (no "recent" masking; derived
+        # actions still dropped in a branch without the trajectory)
+        t_all = self.latents.shape[1]
+        acts, act_keep = self._window_actions(slice(t_all - n, t_all), 0)
         _, cache = self._call(self._two(fed) if self.guided else fed, t_hist, text, traj, traj_keep,
                               acts, act_keep, cache=cache, return_cache=True)
         return cache
@@ -306,7 +335,8 @@ class _Roller:
 def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[Condition] | Callable[[int], Condition],
             num_future_frames: int, cfg: RolloutConfig | None = None, *, seed: int = 0,
             actions: torch.Tensor | None = None, history_actions: torch.Tensor | None = None,
-            policy: Policy | None = None, progress: Any = None, same_noise: bool = False) -> RolloutResult:
+            policy: Policy | None = None, progress: Any = None, same_noise: bool = False,
+            actions_from_trajectory: bool = False) -> RolloutResult:
     """Roll the world model out for ``num_future_frames`` latent frames after ``history``.
 
     Args:
@@ -317,7 +347,10 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
             callable ``round_index -> Condition``.
         actions: ``(B, num_future_frames, A)`` per-frame actions for the generated frames, or None;
         history_actions: ``(B, H0, A)`` actions of the history frames (None: null action there);
-        policy: callback returning the actions of each chunk ``(B, c, A)`` (closed loop); excludes ``actions``.
+        policy: callback returning the actions of each chunk ``(B, c, A)``, or ``(actions, valid (B, c) bool)``
+            (closed loop); excludes ``actions``.
+        actions_from_trajectory: the actions (given or from the policy) are derived from each round's trajectory;
+            a guidance branch that drops the trajectory then drops them too (null action), as in training.
         progress: an object with ``update(n)`` (e.g. tqdm), advanced once per DDIM step.
         same_noise: every batch element gets the same noise draws (compare conditions, not noise).
     Returns:
@@ -342,7 +375,7 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
         raise ValueError(f"actions must be (B, num_future_frames, A) = ({b}, {num_future_frames}, A), "
                          f"got {tuple(actions.shape)}")
     gen = torch.Generator().manual_seed(seed)
-    r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress, same_noise)
+    r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress, same_noise, actions_from_trajectory)
     acting = actions is not None or policy is not None
     h0 = history.shape[1]
     labels: list[str] = []
@@ -358,13 +391,15 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
             while done_in_round < in_round:
                 new = min(cfg.chunk_frames, in_round - done_in_round)
                 if acting or r.actions is not None:
-                    r.add_actions(_chunk_actions(actions, policy, r, made, new, round_idx, cond), new)
+                    chunk_acts, chunk_valid = _chunk_actions(actions, policy, r, made, new, round_idx, cond)
+                    r.add_actions(chunk_acts, new, chunk_valid)
                 frames, cache = r.chunk(cond, win_start, new, cache)
                 done_in_round += new
                 made += new
                 cache = r.append(frames, cond, cache, extend_cache=done_in_round < in_round)
             round_idx += 1
-    return RolloutResult(r.latents, h0, r.actions, labels, use_cache, r.forwards, time.perf_counter() - t0)
+    return RolloutResult(r.latents, h0, r.actions, r.action_valid, labels, use_cache, r.forwards,
+                         time.perf_counter() - t0)
 
 
 def _condition_for(conditions, round_idx: int) -> Condition:
@@ -378,11 +413,15 @@ def _condition_for(conditions, round_idx: int) -> Condition:
 
 
 def _chunk_actions(actions, policy, r: _Roller, made: int, new: int, round_idx: int, cond: Condition):
+    """(the chunk's actions or None, their valid mask or None = all valid)."""
     if actions is not None:
-        return actions[:, made:made + new]
+        return actions[:, made:made + new], None
     if policy is not None:
         a = policy(PolicyInput(r.latents, r.latents.shape[1], new, round_idx, cond))
+        valid = None
+        if isinstance(a, tuple):
+            a, valid = a
         if a.dim() != 3 or tuple(a.shape[:2]) != (r.latents.shape[0], new):
             raise ValueError(f"policy returned actions of shape {tuple(a.shape)}; expected (B, {new}, A)")
-        return a
-    return None
+        return a, valid
+    return None, None
