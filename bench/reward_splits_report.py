@@ -23,6 +23,9 @@ def load_run(d: Path) -> dict:
     import yaml
 
     meta = json.loads((d / "meta.json").read_text())
+    for split in ("heldout_metrics", "train_metrics"):   # meta.json writes an undefined metric as null
+        m = meta.get(split) or {}
+        meta[split] = {k: float("nan") if v is None else v for k, v in m.items()}
     preds = json.loads((d / "heldout_predictions.json").read_text())
     cfg = yaml.safe_load((d / "config.yaml").read_text())
     return {"dir": d, "meta": meta, "preds": preds, "split": cfg["data"]["split_seed"]}

@@ -216,11 +216,12 @@ def _reward_metrics(path: Path) -> str:
     if not path.is_file():
         return ""
     meta = json.loads(path.read_text())
-    rows = [[split.split("_")[0]] + [_f(m.get(k)) if isinstance(m.get(k), float) else html.escape(str(m.get(k)))
+    rows = [[split.split("_")[0]] + ["n/a" if m.get(k) is None else _f(m.get(k)) if isinstance(m.get(k), float)
+                                      else html.escape(str(m.get(k)))
                                       for k in ("n", "n_hazard", "mae", "spearman", "hazard_auc")]
             for split in ("train_metrics", "heldout_metrics") for m in [meta.get(split) or {}]]
     return (_table(["split", "clips", "hazardous", "MAE", "Spearman", "AUC"], rows)
-            + "<p>(nan: the split has one class only or too few clips)</p>")
+            + "<p>(n/a: undefined, the split has one class only or too few clips)</p>")
 
 
 def _f(v, fmt: str = ".3f") -> str:

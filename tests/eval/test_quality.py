@@ -160,3 +160,38 @@ def test_networks_need_weights_unless_placeholders_allowed():
     assert nets.lpips.weights_sha256 == "random-init" and nets.fid is None and nets.fvd is None
     assert "not requested" in nets.dreamsim_reason or "not installed" in nets.dreamsim_reason or nets.dreamsim_reason
     assert math.isfinite(float(nets.lpips(torch.rand(1, 3, 64, 64), torch.rand(1, 3, 64, 64))))
+
+
+def test_rejected_batches_leave_the_evaluator_untouched():
+    """A rejected first batch used to fix the clip geometry (frames, size) anyway: every valid batch after it
+    was refused as "another geometry", and compute() then returned an empty report."""
+    ev = VideoQualityEvaluator(_cfg(metrics=("psnr", "ssim")), _nets())
+    bad = torch.rand(1, 10, 3, 16, 16)                       # float frames, value_range uint8
+    with pytest.raises(ValueError, match="floating point"):
+        ev.update(bad, bad)
+    tiny = _clips(n=1, hw=(8, 8))                            # passes the range check, fails in SSIM
+    with pytest.raises(ValueError, match="smaller than the 11x11 SSIM window"):
+        ev.update(tiny, tiny)
+    with pytest.raises(ValueError, match="no future frames"):
+        ev.update(_clips(n=1, t=2), _clips(n=1, t=2))        # only conditioning frames
+    with pytest.raises(ValueError, match="no clips were added"):
+        ev.compute()
+    gt = _clips(n=2)
+    ev.update(gt.clone(), gt)                                # the first valid batch sets the geometry
+    rep = ev.compute()
+    assert rep["protocol"]["clips"] == 2 and rep["protocol"]["input_resolution_hw"] == [24, 32]
+    assert rep["overall"]["psnr"]["mean"] == PSNR_CAP_DB and rep["overall"]["psnr"]["frames"] == 2 * 12
+
+
+def test_non_finite_config_and_missing_weight_files_are_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="fps_hz must be a finite number"):
+        QualityConfig(fps_hz=float("nan"))
+    with pytest.raises(ConfigError, match="horizons_s"):
+        QualityConfig(horizons_s=(1.0, float("nan")))
+    # a missing weights file used to surface as FileNotFoundError from deep inside the loader
+    with pytest.raises(ConfigError, match=r"fid: fid_weights .*nonexist.pth is not a file"):
+        build_networks(QualityConfig(metrics=("fid",), fid_weights=tmp_path / "nonexist.pth"), "cpu")
+    junk = tmp_path / "junk.pth"
+    junk.write_bytes(b"not a checkpoint" * 10)
+    with pytest.raises(ConfigError, match="fvd: cannot load its weights"):
+        build_networks(QualityConfig(metrics=("fvd",), fvd_weights=junk), "cpu")

@@ -119,3 +119,70 @@ def test_limit_spreads_clips_over_episodes():
     assert [c.key for c in spread_over_episodes(clips, 2)] == ["a_0", "b_0"]
     assert [c.key for c in spread_over_episodes(clips, 5)] == ["a_0", "a_1", "b_0", "b_1", "c_0"]
     assert len(spread_over_episodes(clips, 100)) == 7
+
+
+def _eval_clip(i, ep, frames=21):
+    from training.eval.worldeval import EvalClip
+
+    return EvalClip(f"k{i}", ep, np.zeros((4, 1, 1, 1), np.float32),
+                    np.random.default_rng(i).integers(0, 255, (frames, 32, 48, 3), dtype=np.uint8),
+                    np.zeros((8, 3), np.float32), None, 9, 10.0, True)
+
+
+def test_quality_eval_batches_get_the_seeds_of_one_generate_call():
+    """quality_eval rolls out one batch at a time; each batch used to restart at seed + 0 (the same starting
+    noise for every batch: correlated samples behind FID/FVD)."""
+    from training.eval.quality import QualityConfig
+    from training.eval.worldeval import WorldRollouts, quality_eval
+
+    seen = []
+
+    class Recorded(WorldRollouts):
+        def _batch(self, clips, trajs, commands, seed):
+            seen.append(seed)
+            return np.stack([c.frames for c in clips])
+
+    clips = [_eval_clip(i, f"e{i % 3}") for i in range(7)]
+    r = Recorded(None, None, None, None, seed=5, batch_size=2)
+    quality_eval(r, clips, QualityConfig(metrics=("psnr",), num_conditioning_frames=9))
+    per_batch = list(seen)
+    seen.clear()
+    r.generate(clips, [c.trajectory for c in clips], [None] * 7)
+    assert per_batch == seen == [5, 7, 9, 11]
+
+
+def test_idm_window_and_non_expert_pairs_are_checked_before_any_rollout():
+    """An IDM whose window does not fit the clips used to fail after every rollout had run; a single-episode
+    clip set (e.g. --limit 1) failed with a bare ValueError traceback."""
+    from types import SimpleNamespace
+
+    from training.eval.idm import idm_preset
+    from training.eval.worldeval import WorldRollouts, control_eval, non_expert_pairs, planning_eval
+
+    class NoRollouts(WorldRollouts):
+        def _batch(self, *a, **k):
+            pytest.fail("rolled out before the inputs were checked")
+
+    runner = NoRollouts(None, None, None, None)
+    clips = [_eval_clip(0, "a"), _eval_clip(1, "b")]
+    idm = SimpleNamespace(cfg=idm_preset("tiny"))          # 21 frames every 2 after the history: 49 frames
+    with pytest.raises(ValueError, match=r"IDM \(future window.*does not fit clip k0: .*of a 21-frame clip"):
+        control_eval(runner, idm, clips)
+    with pytest.raises(ValueError, match="does not fit clip k0"):
+        planning_eval(runner, idm, None, clips)
+    fits = SimpleNamespace(cfg=idm_preset("tiny", future_frames=12, num_frames=7))
+    with pytest.raises(ValueError, match="VO planner .*does not fit"):
+        planning_eval(runner, fits, SimpleNamespace(cfg=idm_preset("tiny-history", num_frames=12)), clips)
+    with pytest.raises(ValueError, match=r"all of episode 'a'.*--limit"):
+        control_eval(runner, fits, clips[:1])
+    assert non_expert_pairs(clips) == [1, 0]
+
+
+def test_limit_zero_is_an_error_not_all_clips(tmp_path):
+    """`if limit:` made limit=0 mean "every clip"; None is "every clip", < 1 is an error."""
+    from training.eval.worldeval import eval_clips_from_dataset
+
+    with pytest.raises(ValueError, match="limit must be >= 1"):
+        eval_clips_from_dataset(tmp_path, limit=0)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        eval_clips_from_dataset(tmp_path / "nope")

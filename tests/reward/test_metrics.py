@@ -32,3 +32,15 @@ def test_reward_metrics_hazard_direction():
     assert m["mae"] == pytest.approx(0.05) and m["spearman"] == pytest.approx(1.0)
     assert m["hazard_auc"] == 1.0  # low predicted score = hazardous
     assert mae([1.0], [0.0]) == 1.0
+
+
+def test_undefined_metrics_are_nan_not_errors():
+    """A held-out split of one clip is a legitimate (useless) outcome of a small dataset: Spearman is nan
+    (undefined) instead of raising after training, so the run still writes its checkpoint."""
+    assert np.isnan(spearman([0.4], [0.2]))
+    assert np.isnan(spearman([], []))
+    with pytest.raises(ValueError, match="one shape"):
+        spearman([0.1, 0.2], [0.1, 0.2, 0.3])   # a caller bug still raises
+    m = reward_metrics(np.array([0.4]), np.array([0.2]), np.array([True]))
+    assert m["n"] == 1 and m["mae"] == pytest.approx(0.2)
+    assert np.isnan(m["spearman"]) and np.isnan(m["hazard_auc"])

@@ -30,6 +30,29 @@ only with --allow-placeholder-networks (random-init networks, marked as such eve
 """
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1. 0 used to mean "default" or "all" by accident (`if args.x:`)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def _hw(text: str) -> tuple[int, int]:
+    """argparse type: ``HxW`` with two integers >= 1, e.g. ``64x112``."""
+    parts = text.lower().split("x")
+    try:
+        h, w = (int(v) for v in parts)
+    except ValueError:   # wrong count or not integers
+        raise argparse.ArgumentTypeError(f"expected HxW, two integers >= 1 such as 64x112, got {text!r}") from None
+    if h < 1 or w < 1:
+        raise argparse.ArgumentTypeError(f"expected HxW with both >= 1, got {text!r}")
+    return h, w
+
+
 def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help="world-model run folder (or its final/)")
     p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
@@ -39,11 +62,11 @@ def _world_args(p: argparse.ArgumentParser) -> None:
                         "(default for control/planning: the --idm run's)")
     p.add_argument("--all-clips", action="store_true",
                    help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
-    p.add_argument("--limit", type=int, default=None, help="at most N clips, taken round-robin over the episodes (key order within each)")
+    p.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, taken round-robin over the episodes (key order within each)")
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
-    p.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the preset's 50)")
+    p.add_argument("--steps", type=_positive_int, default=None, help="DDIM steps (default: the preset's 50)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
-    p.add_argument("--batch-size", type=int, default=4, help="clips rolled out together")
+    p.add_argument("--batch-size", type=_positive_int, default=4, help="clips rolled out together")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--vae", default=str(DEFAULT_VAE), help="CogVideoX VAE folder (default: tiny placeholder)")
     p.add_argument("--text-encoder", default=str(DEFAULT_T5), help="T5 folder for prompts not in the table")
@@ -60,7 +83,7 @@ def register(subparsers) -> None:
     q = sub.add_parser("quality", help="PSNR/SSIM/LPIPS/FID/FVD/DreamSim of rollouts vs ground truth, per horizon")
     _world_args(q)
     q.add_argument("--metrics", nargs="+", default=["psnr", "ssim", "lpips", "fid", "fvd", "dreamsim"])
-    q.add_argument("--resolution", default=None, help="HxW to score at (default: the recorded frames' size)")
+    q.add_argument("--resolution", type=_hw, default=None, help="HxW to score at (default: the recorded frames' size)")
     q.add_argument("--horizons", type=float, nargs="+", default=None, help="horizons in s (default 1 2 4 ...)")
     q.add_argument("--fid-weights", default=None, help="pytorch-fid pt_inception-2015-12-05-6726825d.pth")
     q.add_argument("--fvd-weights", default=None, help="pytorch-i3d rgb_imagenet.pt")
@@ -92,11 +115,11 @@ def register(subparsers) -> None:
     i.add_argument("--preset", default="small", help="IDM preset: tiny, small (default)")
     i.add_argument("--window", default="future", choices=["future", "history"],
                    help="future: the IDM; history: the VO-style planner baseline (same architecture)")
-    i.add_argument("--epochs", type=int, default=None)
-    i.add_argument("--batch-size", type=int, default=None)
+    i.add_argument("--epochs", type=_positive_int, default=None)
+    i.add_argument("--batch-size", type=_positive_int, default=None)
     i.add_argument("--lr", type=float, default=None)
     i.add_argument("--heldout-fraction", type=float, default=None, help="share of episodes held out (default 0.25)")
-    i.add_argument("--min-heldout-episodes", type=int, default=None,
+    i.add_argument("--min-heldout-episodes", type=_positive_int, default=None,
                    help="hold out at least this many episodes (default 1; the demo uses 2 so the held-out set "
                         "has more than one clip and non-expert trajectories from another held-out episode)")
     i.add_argument("--val-fraction", type=float, default=None,
@@ -110,11 +133,11 @@ def register(subparsers) -> None:
 
     s = sub.add_parser("synth", help="render a small world with exact trajectories into shards (IDM data)")
     s.add_argument("--out", required=True)
-    s.add_argument("--episodes", type=int, default=24)
+    s.add_argument("--episodes", type=_positive_int, default=24)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--size", default="32x48", help="HxW of the frames (default 32x48)")
-    s.add_argument("--clip-stride", type=int, default=10, help="frames between clip starts (default 10)")
-    s.add_argument("--frames-per-episode", type=int, default=109, help="episode length in frames (default 109)")
+    s.add_argument("--size", type=_hw, default=(32, 48), help="HxW of the frames (default 32x48)")
+    s.add_argument("--clip-stride", type=_positive_int, default=10, help="frames between clip starts (default 10)")
+    s.add_argument("--frames-per-episode", type=_positive_int, default=109, help="episode length in frames (default 109)")
     s.set_defaults(func=_cmd_synth)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
@@ -130,7 +153,16 @@ def _heldout_items(path: str | None, all_clips: bool = False):
         p = p / "idm_report.json"
     if not p.is_file():
         raise SystemExit(f"resim eval: {p} not found (expected an IDM run folder with idm_report.json)")
-    return json.loads(p.read_text())["protocol"]["heldout_items"]
+    try:
+        rep = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise SystemExit(f"resim eval: --heldout-from {p}: not valid JSON ({e})") from None
+    proto = rep.get("protocol") if isinstance(rep, dict) else None
+    items = proto.get("heldout_items") if isinstance(proto, dict) else None
+    if not isinstance(items, list):  # e.g. a quality.json: it names no held-out episodes
+        raise SystemExit(f"resim eval: --heldout-from {p}: no protocol.heldout_items (expected the "
+                         "idm_report.json of a `resim eval idm` run, or its folder)")
+    return items
 
 
 def _runner(args):
@@ -143,11 +175,16 @@ def _runner(args):
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
     from training.eval.worldeval import WorldRollouts
 
+    from training.sampling.load import SamplingInputError
+
     device = args.device or pick_device()
-    model, info = load_world_model(args.checkpoint, device, torch.float32)
+    try:
+        model, info = load_world_model(args.checkpoint, device, torch.float32)
+    except SamplingInputError as e:
+        raise SystemExit(f"resim eval: --checkpoint: {e}") from None
     vae = VideoVAE(args.vae, device=device)
     rc = dict(ROLLOUT_PRESETS[args.preset])
-    if args.steps:
+    if args.steps is not None:   # not `if args.steps`: 0 must not quietly mean the preset's 50
         rc["num_steps"] = args.steps
     rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset)
     cfg = from_dict(RolloutConfig, rc)
@@ -164,7 +201,12 @@ def _runner(args):
 def _clips(args, items):
     from training.eval.worldeval import eval_clips_from_dataset
 
-    clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit)
+    from shards.reader import ShardReadError
+
+    try:
+        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit)
+    except (FileNotFoundError, ShardReadError) as e:
+        raise SystemExit(f"resim eval: --shards: {e}") from None
     if not clips:
         raise SystemExit(f"resim eval: no clips with a trajectory in {args.shards}"
                          + (f" among the {len(items)} held-out episodes" if items else ""))
@@ -183,29 +225,33 @@ def _finish(out: Path, name: str, report: dict, text: str, png_fn) -> None:
 
 # ------------------------------------------------------------------------------------------ commands
 def _cmd_quality(args) -> int:
+    from pipelines.encoders import pick_device
     from resim.config import ConfigError
-    from training.eval.quality import QualityConfig
+    from training.eval.quality import QualityConfig, build_networks
     from training.eval.report import format_quality, plot_quality
     from training.eval.worldeval import quality_eval
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    runner, meta = _runner(args)
+    # inputs first (clips, config, weight files), so a mistake costs no model load and no rollout
     clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips))
-    res = (tuple(int(v) for v in args.resolution.lower().split("x")) if args.resolution else (0, 0))
     try:
         qcfg = QualityConfig(value_range="uint8", fps_hz=clips[0].fps_hz,
                              num_conditioning_frames=clips[0].num_history_frames,
-                             horizons_s=tuple(args.horizons or ()), resolution_hw=res, metrics=tuple(args.metrics),
+                             horizons_s=tuple(args.horizons or ()), resolution_hw=args.resolution or (0, 0),
+                             metrics=tuple(args.metrics),
                              lpips_net=args.lpips_net, lpips_trunk_weights=args.lpips_trunk,
                              lpips_head_weights=args.lpips_head, fid_weights=args.fid_weights,
                              fvd_weights=args.fvd_weights, dreamsim_dir=args.dreamsim_dir,
-                             allow_placeholder_networks=args.allow_placeholder_networks, device=meta["device"])
-        t0 = time.perf_counter()
-        rep = quality_eval(runner, clips, qcfg)
+                             allow_placeholder_networks=args.allow_placeholder_networks,
+                             device=args.device or pick_device())
+        nets = build_networks(qcfg, qcfg.device)
     except ConfigError as e:
         print(f"resim eval quality: {e}", file=sys.stderr)
         return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
+    t0 = time.perf_counter()
+    rep = quality_eval(runner, clips, qcfg, nets)
     rep["protocol"]["world_model"] = meta
     rep["protocol"]["heldout_from"] = "all clips" if args.all_clips or not args.heldout_from else args.heldout_from
     rep["protocol"]["seconds"] = round(time.perf_counter() - t0, 2)
@@ -219,7 +265,7 @@ def _load_idm(path, device):
 
     try:
         return load_idm(path, device)
-    except (FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, ValueError) as e:   # load_idm turns corrupt files into ValueError naming them
         raise SystemExit(f"resim eval: {e}")
 
 
@@ -239,14 +285,23 @@ def _traj_table(rows: dict) -> str:
 
 def _cmd_control(args) -> int:
     from training.eval.report import format_protocol, plot_bars
-    from training.eval.worldeval import control_eval
+    from training.eval.worldeval import check_idm_window, control_eval, non_expert_pairs
 
+    from pipelines.encoders import pick_device
+
+    # inputs first: clips, their non-expert pairs and the IDM's window are checked before any rollout
+    items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
+    clips = _clips(args, items)
+    idm, idm_info = _load_idm(args.idm, args.device or pick_device())
+    try:
+        non_expert_pairs(clips, args.seed)
+        check_idm_window(idm, clips)
+    except ValueError as e:   # only input checks run here
+        print(f"resim eval control: {e}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     runner, meta = _runner(args)
-    idm, idm_info = _load_idm(args.idm, meta["device"])
-    items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
-    clips = _clips(args, items)
     t0 = time.perf_counter()
     rep = control_eval(runner, idm, clips, seed=args.seed)
     rep["protocol"] = {"clips": len({c.key for c in clips}), "episodes": len({c.item_id for c in clips}),
@@ -272,19 +327,30 @@ def _cmd_control(args) -> int:
 
 def _cmd_planning(args) -> int:
     from training.eval.report import format_protocol, plot_bars
-    from training.eval.worldeval import planning_eval
+    from training.eval.worldeval import check_idm_window, planning_eval
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    runner, meta = _runner(args)
-    idm, idm_info = _load_idm(args.idm, meta["device"])
-    planner, planner_info = _load_idm(args.planner, meta["device"]) if args.planner else (None, None)
+    from pipelines.encoders import pick_device
+
+    # inputs first: clips and the IDM's / planner's windows are checked before any rollout
+    device = args.device or pick_device()
+    idm, idm_info = _load_idm(args.idm, device)
+    planner, planner_info = _load_idm(args.planner, device) if args.planner else (None, None)
     if planner is not None and planner.cfg.window != "history":
         print(f"resim eval planning: --planner {args.planner} sees window={planner.cfg.window!r}; the VO-style "
               "planner must see history frames only (train it with `resim eval idm --window history`)",
               file=sys.stderr)
         return 2
     clips = _clips(args, _heldout_items(args.heldout_from or args.idm, args.all_clips))
+    try:
+        check_idm_window(idm, clips)
+        if planner is not None:
+            check_idm_window(planner, clips, "VO planner")
+    except ValueError as e:   # only the window checks run here
+        print(f"resim eval planning: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
     t0 = time.perf_counter()
     rep = planning_eval(runner, idm, planner, clips, with_command=args.with_command)
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
@@ -321,7 +387,15 @@ def _cmd_idm(args) -> int:
     except ConfigError as e:
         print(f"resim eval idm: config error: {e}", file=sys.stderr)
         return 2
-    res = run_idm_training(args.shards, cfg, args.out, progress=True)
+    from shards.reader import ShardReadError
+    from training.eval.idm_train import IDMDataError, prepare_idm_data
+
+    try:   # the data and its split are checked before anything is trained
+        data = prepare_idm_data(args.shards, cfg)
+    except (FileNotFoundError, ShardReadError, IDMDataError) as e:
+        print(f"resim eval idm: --shards: {e}", file=sys.stderr)
+        return 1
+    res = run_idm_training(args.shards, cfg, args.out, progress=True, data=data)
     res.pop("_model")
     from training.eval.report import format_protocol
 
@@ -334,11 +408,18 @@ def _cmd_idm(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    from training.eval.synthetic import SynthConfig, write_synthetic_shards
+    from resim.config import ConfigError
+    from shards.schema import ClipSpec
+    from training.eval.synthetic import SynthConfig, check_fits, write_synthetic_shards
 
-    h, w = (int(v) for v in args.size.lower().split("x"))
-    n = write_synthetic_shards(args.out, SynthConfig(episodes=args.episodes, seed=args.seed, frames_hw=(h, w),
-                                                     clip_stride_frames=args.clip_stride,
-                                                     frames_per_episode=args.frames_per_episode))
+    try:
+        cfg = SynthConfig(episodes=args.episodes, seed=args.seed, frames_hw=args.size,
+                          clip_stride_frames=args.clip_stride, frames_per_episode=args.frames_per_episode)
+        per_episode = check_fits(cfg, ClipSpec(fps_hz=cfg.fps_hz))   # "wrote 0 clips" is not a success
+    except ConfigError as e:
+        print(f"resim eval synth: {e}", file=sys.stderr)
+        return 2
+    n = write_synthetic_shards(args.out, cfg)
+    assert n == per_episode * cfg.episodes, (n, per_episode)   # our bug if the two counts disagree
     print(f"wrote {n} clips of {args.episodes} episodes to {args.out}")
     return 0

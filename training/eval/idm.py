@@ -75,12 +75,20 @@ class IDMConfig:
             raise ConfigError(f"window 'future': (num_frames - 1) * frame_step = "
                               f"{(self.num_frames - 1) * self.frame_step} must equal future_frames "
                               f"{self.future_frames} (the frames the waypoints span)")
+        # checked before the divisibility test below, which would otherwise divide by zero
+        for name in ("head_dim", "head_heads", "num_waypoints", "token_grid", "future_frames"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.head_layers < 0:
+            raise ConfigError(f"head_layers must be >= 0, got {self.head_layers}")
         if self.head_dim % self.head_heads:
-            raise ConfigError("head_dim must be divisible by head_heads")
+            raise ConfigError(f"head_dim {self.head_dim} must be divisible by head_heads {self.head_heads}")
+        if not self.channels or any(c < 1 for c in self.channels):
+            raise ConfigError(f"channels must be one or more widths >= 1, got {self.channels}")
         if min(self.input_hw) < 2 ** len(self.channels):
             raise ConfigError(f"input_hw {self.input_hw} too small for {len(self.channels)} stages")
-        if any(s <= 0 for s in self.target_scale):
-            raise ConfigError("target_scale entries must be > 0")
+        if any(not (math.isfinite(s) and s > 0) for s in self.target_scale):  # nan passes `s <= 0`
+            raise ConfigError(f"target_scale entries must be finite and > 0, got {self.target_scale}")
         if self.head not in ("queries", "odometry"):
             raise ConfigError(f"head must be 'queries' or 'odometry', got {self.head!r}")
         if self.head == "odometry" and self.window != "future":

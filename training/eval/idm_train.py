@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,6 +60,15 @@ class IDMTrainConfig:
     def __post_init__(self):
         if self.epochs < 1 or self.batch_size_per_gpu < 1:
             raise ConfigError("epochs and batch_size_per_gpu must be >= 1")
+        # math.isfinite: nan passes `<= 0` tests and would train to nan weights without a word
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
+            raise ConfigError(f"weight_decay must be a finite number >= 0, got {self.weight_decay}")
+        if self.warmup_steps < 0:
+            raise ConfigError(f"warmup_steps must be >= 0, got {self.warmup_steps}")
+        if self.seed < 0:  # numpy's epoch RNG (seed * 1000 + epoch) refuses negative seeds
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")
         if not 0.0 < self.heldout_fraction < 1.0:
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if not 0.0 <= self.hflip_prob <= 1.0:
@@ -96,6 +106,8 @@ def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list
     """Clips with a trajectory from every committed shard of ``root``; returns (clips, counts)."""
     from shards.reader import iter_samples
 
+    if not Path(root).is_dir():
+        raise FileNotFoundError(f"dataset folder {root} does not exist")
     clips, counts = [], {"samples": 0, "without_trajectory": 0}
     for s in iter_samples(root, decode_video=True, attach_prompts=False):
         counts["samples"] += 1
@@ -275,25 +287,52 @@ def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsM
     if d is None:
         raise FileNotFoundError(f"IDM checkpoint {p}: expected config.yaml + model.safetensors in it or in {p / 'final'}"
                                 " (written by `resim eval idm`)")
-    run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
-    if run_cfg.get("model_name") != "idm":
-        raise ValueError(f"{d}: model_name is {run_cfg.get('model_name')!r}, not an IDM run")
-    state = load_file(str(d / "model.safetensors"))
+    from safetensors import SafetensorError
+
+    # a user's files that cannot be read are ValueErrors naming the file (the CLI prints them in one line)
+    try:
+        run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ValueError(f"{d / 'config.yaml'}: invalid YAML ({e})") from None
+    if not isinstance(run_cfg, dict) or run_cfg.get("model_name") != "idm":
+        got = run_cfg.get("model_name") if isinstance(run_cfg, dict) else None
+        raise ValueError(f"{d}: model_name is {got!r}, not an IDM run")
+    try:
+        state = load_file(str(d / "model.safetensors"))
+    except SafetensorError as e:
+        raise ValueError(f"{d / 'model.safetensors'}: not a readable safetensors file ({e})") from None
     mdict = dict(run_cfg.get("model") or {})
     if "head" not in mdict:
         # runs written before the odometry head store only {"preset": ...}; the presets' head changed since
         mdict["head"] = "odometry" if any(k.startswith("odometry.") for k in state) else "queries"
-    model = registry.build("idm", mdict, device="cpu")
-    model.load_state_dict(state, strict=True)
+    model = registry.build("idm", mdict, device="cpu")   # ConfigError (a ValueError) for a bad model config
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as e:   # missing / unexpected keys, shape mismatches: weights vs config.yaml
+        raise ValueError(f"{d / 'model.safetensors'}: weights do not match config.yaml "
+                         f"({str(e).strip().splitlines()[0][:300]})") from None
     sha = hashlib.sha256((d / "model.safetensors").read_bytes()).hexdigest()
     return model.to(device).eval().requires_grad_(False), {"checkpoint": str(d), "weights_sha256": sha}
 
 
-def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path, progress: bool = False,
-                     clips: Sequence[TrajClip] | None = None) -> dict:
-    """Load, split by episode, train, evaluate held-out vs the CV baseline, write the report."""
-    from training.eval.report import plot_bars, write_json
+class IDMDataError(ValueError):
+    """The dataset gives no usable split for the IDM (says why: no samples, no trajectories, the window does
+    not fit the clips, a single episode)."""
 
+
+@dataclass
+class IDMData:
+    """The clips of a run, checked (:func:`prepare_idm_data`) before anything is trained."""
+
+    train: list[TrajClip]
+    held: list[TrajClip]
+    skipped: list[dict]   # [{"key", "reason"}]: clips the model's window does not fit
+    counts: dict          # {"samples", "without_trajectory"} when read from shards
+
+
+def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[TrajClip] | None = None) -> IDMData:
+    """Read (unless ``clips`` are given) and check the clips, split by episode. ``FileNotFoundError`` when
+    ``root`` does not exist, :class:`IDMDataError` naming the reason when no split can be made."""
     mcfg = tcfg.model_cfg()
     counts: dict = {}
     if clips is None:
@@ -305,7 +344,33 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
             usable.append(c)
         except ValueError as e:
             skipped.append({"key": c.key, "reason": str(e)})
-    train, held = split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed, tcfg.min_heldout_episodes)
+    if not usable:
+        if skipped:   # the reason is the window, not the data: say so with the first clip's numbers
+            raise IDMDataError(f"{root}: the model's window fits none of the {len(skipped)} clips with a trajectory "
+                               f"(e.g. clip {skipped[0]['key']}: {skipped[0]['reason']}); change the window "
+                               "(--set future_frames=... num_frames=..., --preset) or use longer clips")
+        if counts.get("samples"):
+            raise IDMDataError(f"{root}: none of its {counts['samples']} samples has a trajectory (traj.npy)")
+        raise IDMDataError(f"{root}: no samples (no committed shards: DIR/shards/*.tar with DIR/index/*.json)")
+    try:
+        train, held = split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed, tcfg.min_heldout_episodes)
+    except ValueError as e:   # split_by_episode's only error: fewer than 2 episodes
+        raise IDMDataError(f"{root}: {e}") from None
+    return IDMData(train, held, skipped, counts)
+
+
+def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path, progress: bool = False,
+                     clips: Sequence[TrajClip] | None = None, data: IDMData | None = None) -> dict:
+    """Load, split by episode, train, evaluate held-out vs the CV baseline, write the report.
+
+    ``data``: :func:`prepare_idm_data`'s result for the same root/config (callers that check the input
+    first, e.g. the CLI, pass it on)."""
+    from training.eval.report import plot_bars, write_json
+
+    mcfg = tcfg.model_cfg()
+    if data is None:
+        data = prepare_idm_data(root, tcfg, clips)
+    train, held, skipped, counts = data.train, data.held, data.skipped, data.counts
     n_train_eps = len({c.item_id for c in train})
     fit_clips, val = train, []
     if tcfg.val_fraction > 0 and n_train_eps >= tcfg.min_episodes_for_validation:

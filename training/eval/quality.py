@@ -65,12 +65,14 @@ class QualityConfig:
     def __post_init__(self):
         if self.value_range not in ("uint8", "unit"):
             raise ConfigError(f"value_range must be 'uint8' or 'unit', got {self.value_range!r}")
-        if self.fps_hz <= 0:
-            raise ConfigError(f"fps_hz must be > 0, got {self.fps_hz}")
+        # math.isfinite: nan slips through `<= 0` tests (and would silently empty every horizon bin)
+        if not (math.isfinite(self.fps_hz) and self.fps_hz > 0):
+            raise ConfigError(f"fps_hz must be a finite number > 0, got {self.fps_hz}")
         if self.num_conditioning_frames < 0:
             raise ConfigError("num_conditioning_frames must be >= 0")
-        if any(h <= 0 for h in self.horizons_s) or list(self.horizons_s) != sorted(set(self.horizons_s)):
-            raise ConfigError(f"horizons_s must be increasing and > 0, got {self.horizons_s}")
+        if (any(not (math.isfinite(h) and h > 0) for h in self.horizons_s)
+                or list(self.horizons_s) != sorted(set(self.horizons_s))):
+            raise ConfigError(f"horizons_s must be increasing, finite and > 0, got {self.horizons_s}")
         bad = [m for m in self.metrics if m not in ALL_METRICS]
         if bad:
             raise ConfigError(f"unknown metrics {bad}; known: {ALL_METRICS}")
@@ -182,25 +184,39 @@ def build_networks(cfg: QualityConfig, device: str) -> Networks:
     from training.eval.inception import FIDInception
     from training.eval.lpips import LPIPS
 
-    def need(name: str, *paths) -> bool:
+    def need(name: str, **paths) -> bool:
         if name not in cfg.metrics:
             return False
-        if any(p is None for p in paths) and not cfg.allow_placeholder_networks:
+        if any(p is None for p in paths.values()) and not cfg.allow_placeholder_networks:
             raise ConfigError(f"{name}: no weights file given and allow_placeholder_networks is off "
                               "(see docs/eval.md for where to get the standard weights)")
+        for key, p in paths.items():  # a given file must exist: checked before any network is built
+            if p is not None and not Path(p).is_file():
+                raise ConfigError(f"{name}: {key} {p} is not a file (see docs/eval.md for the standard weights)")
         return True
 
+    def load(name: str, fn):
+        """A user's weight file that torch cannot read (truncated, not a state dict, wrong layout) is a
+        ConfigError naming it; anything else is our bug and propagates."""
+        import pickle
+
+        try:
+            return fn()
+        except (RuntimeError, ValueError, pickle.UnpicklingError, EOFError) as e:
+            raise ConfigError(f"{name}: cannot load its weights: {str(e).splitlines()[0][:300]}") from None
+
     nets = Networks()
-    if need("fid", cfg.fid_weights):
-        nets.fid = FIDInception.from_file(cfg.fid_weights) if cfg.fid_weights else FIDInception()
+    if need("fid", fid_weights=cfg.fid_weights):
+        nets.fid = load("fid", lambda: FIDInception.from_file(cfg.fid_weights)) if cfg.fid_weights else FIDInception()
         nets.fid.to(device)
         nets.names["fid"] = "Inception-v3 pool3 2048-d (pytorch-fid FIDInceptionV3 layout)"
-    if need("fvd", cfg.fvd_weights):
-        nets.fvd = (I3D.from_file(cfg.fvd_weights, cfg.fvd_feature_layer) if cfg.fvd_weights
+    if need("fvd", fvd_weights=cfg.fvd_weights):
+        nets.fvd = (load("fvd", lambda: I3D.from_file(cfg.fvd_weights, cfg.fvd_feature_layer)) if cfg.fvd_weights
                     else I3D(cfg.fvd_feature_layer)).to(device)
         nets.names["fvd"] = f"I3D {cfg.fvd_feature_layer} (pytorch-i3d InceptionI3d layout)"
-    if need("lpips", cfg.lpips_trunk_weights, cfg.lpips_head_weights):
-        nets.lpips = (LPIPS.from_files(cfg.lpips_net, cfg.lpips_trunk_weights, cfg.lpips_head_weights)
+    if need("lpips", lpips_trunk_weights=cfg.lpips_trunk_weights, lpips_head_weights=cfg.lpips_head_weights):
+        nets.lpips = (load("lpips", lambda: LPIPS.from_files(cfg.lpips_net, cfg.lpips_trunk_weights,
+                                                             cfg.lpips_head_weights))
                       if cfg.lpips_trunk_weights and cfg.lpips_head_weights else LPIPS(cfg.lpips_net)).to(device)
         nets.names["lpips"] = f"LPIPS v0.1 {cfg.lpips_net}"
     ok, reason = dreamsim_status(cfg)
@@ -245,31 +261,38 @@ class VideoQualityEvaluator:
         self.nets = networks if networks is not None else build_networks(cfg, self.device)
         self._dreamsim_reason = self.nets.dreamsim_reason or ("" if self.nets.dreamsim is not None
                                                               else "no DreamSim network given")
-        self.t_future: int | None = None
+        self.t_future: int | None = None      # fixed by the first accepted batch (see _geometry)
         self.input_hw: tuple[int, int] | None = None
+        self.bins: list[dict] = []
+        self.sums: dict[str, _FrameSums] = {}
+        self.fid_stats: list | None = None
+        self.fid_all: tuple = (None, None)
+        self.fvd_windows: list[dict] = []
+        self.fvd_skipped: list[str] = []
         self.clips = 0
 
     # ---------------------------------------------------------------------------------------------- set-up
-    def _start(self, t: int, hw: tuple[int, int]) -> None:
+    def _geometry(self, t: int, hw: tuple[int, int]) -> dict:
+        """The per-geometry state (bins, sums, FVD windows) for clips of ``t`` frames at ``hw``, built without
+        touching ``self``: :meth:`update` commits it only once its first batch has been scored in full."""
         c = self.cfg
         tf = t - c.num_conditioning_frames
-        self.t_future, self.input_hw = tf, hw
-        self.bins = horizon_bins(tf, c.fps_hz, tuple(c.horizons_s))
-        self.sums = {m: _FrameSums(tf) for m in PER_FRAME_METRICS if self._on(m)}
-        self.fid_stats = None
+        bins = horizon_bins(tf, c.fps_hz, tuple(c.horizons_s))   # ValueError when no future frame is left
+        st: dict[str, Any] = {"t_future": tf, "input_hw": hw, "bins": bins,
+                              "sums": {m: _FrameSums(tf) for m in PER_FRAME_METRICS if self._on(m)},
+                              "fid_stats": None, "fid_all": (None, None), "fvd_windows": [], "fvd_skipped": []}
         if self._on("fid"):
-            self.fid_stats = [(None, None) for _ in self.bins]  # created lazily (feature dim from the network)
-            self.fid_all = (None, None)
-        self.fvd_windows: list[dict] = []
+            st["fid_stats"] = [(None, None) for _ in bins]  # created lazily (feature dim from the network)
         if self._on("fvd"):
-            for b in self.bins:
+            for b in bins:
                 n = int(round(b["horizon_s"] * c.fps_hz))
                 n = min(n, tf)
-                if n >= MIN_FVD_FRAMES and all(w["frames"] != n for w in self.fvd_windows):
-                    self.fvd_windows.append({"horizon_s": min(b["horizon_s"], tf / c.fps_hz), "frames": n,
-                                             "stats": (None, None)})
-            self.fvd_skipped = [] if self.fvd_windows else [
+                if n >= MIN_FVD_FRAMES and all(w["frames"] != n for w in st["fvd_windows"]):
+                    st["fvd_windows"].append({"horizon_s": min(b["horizon_s"], tf / c.fps_hz), "frames": n,
+                                              "stats": (None, None)})
+            st["fvd_skipped"] = [] if st["fvd_windows"] else [
                 f"the future has {tf} frames; FVD needs >= {MIN_FVD_FRAMES}"]
+        return st
 
     def _on(self, metric: str) -> bool:
         if metric not in self.cfg.metrics:
@@ -292,36 +315,53 @@ class VideoQualityEvaluator:
     # ---------------------------------------------------------------------------------------------- update
     @torch.no_grad()
     def update(self, generated: torch.Tensor, ground_truth: torch.Tensor) -> None:
-        """Add a batch of clip pairs, each ``(B, T, C, H, W)`` in ``cfg.value_range`` (C = 3)."""
+        """Add a batch of clip pairs, each ``(B, T, C, H, W)`` in ``cfg.value_range`` (C = 3).
+
+        A batch is scored in full before anything is kept: a rejected batch (wrong dtype/range, too few frames,
+        frames too small for SSIM, ...) leaves the evaluator as it was, and in particular does not fix the
+        clip geometry for the batches after it."""
         if generated.shape != ground_truth.shape:
             raise ValueError(f"generated {tuple(generated.shape)} and ground truth {tuple(ground_truth.shape)} "
                              "differ in shape (resize before, or set resolution_hw)")
         if generated.ndim != 5 or generated.shape[2] != 3:
             raise ValueError(f"expected RGB clips (B, T, 3, H, W), got {tuple(generated.shape)}")
         t, hw = generated.shape[1], tuple(generated.shape[-2:])
-        if self.t_future is None:
-            self._start(t, hw)
-        elif t - self.cfg.num_conditioning_frames != self.t_future or hw != self.input_hw:
+        if self.t_future is not None and (t - self.cfg.num_conditioning_frames != self.t_future
+                                          or hw != self.input_hw):
             raise ValueError(f"clips of {t} frames at {hw} after clips of "
                              f"{self.t_future + self.cfg.num_conditioning_frames} frames at {self.input_hw}: "
                              "one evaluator per clip geometry")
-        g, r = self._prepare(generated), self._prepare(ground_truth)
+        g, r = self._prepare(generated), self._prepare(ground_truth)   # value-range checks
+        st = self._geometry(t, hw) if self.t_future is None else None
+        bins = st["bins"] if st is not None else self.bins
+        sums = st["sums"] if st is not None else self.sums
+        fvd_windows = st["fvd_windows"] if st is not None else self.fvd_windows
         b, tf = g.shape[:2]
-        if "psnr" in self.sums:
-            self.sums["psnr"].add(psnr(g, r, "unit"))
-        if "ssim" in self.sums:
-            self.sums["ssim"].add(ssim(g, r, "unit"))
+        # score everything first (any of these may reject the batch) ...
+        per_frame: dict[str, torch.Tensor] = {}
+        if "psnr" in sums:
+            per_frame["psnr"] = psnr(g, r, "unit")
+        if "ssim" in sums:
+            per_frame["ssim"] = ssim(g, r, "unit")
         g, r = g.float(), r.float()
         for name in ("lpips", "dreamsim"):
-            if name in self.sums:
-                self.sums[name].add(self._pairwise(getattr(self.nets, name), g, r).view(b, tf))
-        if self.fid_stats is not None:
-            self._update_fid(g, r)
-        if self.fvd_windows:
-            for w in self.fvd_windows:
-                fg = self.nets.fvd(g[:, :w["frames"]])
-                fr = self.nets.fvd(r[:, :w["frames"]])
-                w["stats"] = self._acc(w["stats"], fg, fr)
+            if name in sums:
+                per_frame[name] = self._pairwise(getattr(self.nets, name), g, r).view(b, tf)
+        fid = None
+        if self._on("fid"):
+            fid = (self._features(g.flatten(0, 1)).view(b, tf, -1), self._features(r.flatten(0, 1)).view(b, tf, -1))
+        fvd = [(self.nets.fvd(g[:, :w["frames"]]), self.nets.fvd(r[:, :w["frames"]])) for w in fvd_windows]
+        # ... then keep it
+        if st is not None:
+            self.t_future, self.input_hw, self.bins, self.sums = st["t_future"], st["input_hw"], bins, sums
+            self.fid_stats, self.fid_all = st["fid_stats"], st["fid_all"]
+            self.fvd_windows, self.fvd_skipped = fvd_windows, st["fvd_skipped"]
+        for name, v in per_frame.items():
+            self.sums[name].add(v)
+        if fid is not None:
+            self._update_fid(*fid)
+        for w, (fg, fr) in zip(self.fvd_windows, fvd):
+            w["stats"] = self._acc(w["stats"], fg, fr)
         self.clips += b
 
     def _pairwise(self, net, g, r) -> torch.Tensor:
@@ -342,10 +382,8 @@ class VideoQualityEvaluator:
         sr.update(fr)
         return sg, sr
 
-    def _update_fid(self, g, r) -> None:
-        b, tf = g.shape[:2]
-        fg = self._features(g.flatten(0, 1)).view(b, tf, -1)
-        fr = self._features(r.flatten(0, 1)).view(b, tf, -1)
+    def _update_fid(self, fg, fr) -> None:
+        """Accumulate frame features ``(B, T_future, D)`` of generated / ground-truth clips."""
         for i, bin_ in enumerate(self.bins):
             ks = bin_["frames"]
             self.fid_stats[i] = self._acc(self.fid_stats[i], fg[:, ks].flatten(0, 1), fr[:, ks].flatten(0, 1))
@@ -372,7 +410,7 @@ class VideoQualityEvaluator:
             "input_resolution_hw": list(self.input_hw) if self.input_hw else None,
             "metric_resolution_hw": [rh, rw] if rh else (list(self.input_hw) if self.input_hw else None),
             "resize": (f"bilinear, antialias, align_corners=False to {rh}x{rw} (both sets)" if rh else "none"),
-            "horizon_bins_s": [[b["from_s"], b["horizon_s"]] for b in getattr(self, "bins", [])],
+            "horizon_bins_s": [[b["from_s"], b["horizon_s"]] for b in self.bins],
             "psnr": f"10 log10(1/MSE) on [0,1] RGB per frame, capped at {PSNR_CAP_DB} dB",
             "ssim": "Gaussian 11x11 sigma 1.5, K=(0.01,0.03), valid region, channel mean (= scikit-image)",
             "fid": "generated future frames vs ground-truth future frames; Inception input 299x299 bilinear "
@@ -389,8 +427,9 @@ class VideoQualityEvaluator:
 
     def compute(self) -> dict:
         """The report: ``{"protocol", "overall", "per_horizon", "per_frame", "warnings"}``."""
-        if self.t_future is None:
-            raise ValueError("no clips were added")
+        if self.clips == 0:   # an empty report would read as a result; say why there is none
+            raise ValueError("no clips were added (every update() was rejected, or none was called): "
+                             "nothing to report")
         warns: list[str] = []
         overall: dict[str, Any] = {}
         all_k = range(self.t_future)
@@ -418,7 +457,7 @@ class VideoQualityEvaluator:
             overall["fvd_frames"] = fvd_rows[-1]["frames"]
         elif "fvd" in self.cfg.metrics:
             overall["fvd"] = None
-            warns.extend(getattr(self, "fvd_skipped", ["FVD: no network"]))
+            warns.extend(self.fvd_skipped or ["FVD: no network"])
         per_frame = {"time_s": [(k + 1) / self.cfg.fps_hz for k in all_k]}
         for m, s in self.sums.items():
             per_frame[m] = (s.s / s.n.clamp_min(1)).tolist()

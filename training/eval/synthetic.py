@@ -19,11 +19,13 @@ Shards are written with ``shards.writer.ShardWriter`` (schema-validated); latent
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from resim.config import ConfigError
 from shards.schema import ClipSpec
 
 
@@ -39,6 +41,40 @@ class SynthConfig:
     max_yaw_rate_deg_s: float = 20.0
     clip_stride_frames: int = 10
     seed: int = 0
+
+    def __post_init__(self):
+        if self.episodes < 1:
+            raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        if self.frames_per_episode < 1:
+            raise ConfigError(f"frames_per_episode must be >= 1, got {self.frames_per_episode}")
+        if self.clip_stride_frames < 1:   # range() would refuse a 0 step; negative ones give no clip
+            raise ConfigError(f"clip_stride_frames must be >= 1, got {self.clip_stride_frames}")
+        if min(self.frames_hw) < 2:
+            raise ConfigError(f"frames_hw must be at least 2x2, got {self.frames_hw}")
+        # math.isfinite: nan passes `<= 0` tests
+        if not (math.isfinite(self.fps_hz) and self.fps_hz > 0):
+            raise ConfigError(f"fps_hz must be a finite number > 0, got {self.fps_hz}")
+        if not (math.isfinite(self.hfov_deg) and 0 < self.hfov_deg < 180):
+            raise ConfigError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
+        if not (math.isfinite(self.camera_height_m) and self.camera_height_m > 0):
+            raise ConfigError(f"camera_height_m must be a finite number > 0, got {self.camera_height_m}")
+        lo, hi = self.speed_range_mps
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
+            raise ConfigError(f"speed_range_mps must be finite with 0 <= low <= high, got {self.speed_range_mps}")
+        if not (math.isfinite(self.max_yaw_rate_deg_s) and self.max_yaw_rate_deg_s >= 0):
+            raise ConfigError(f"max_yaw_rate_deg_s must be a finite number >= 0, got {self.max_yaw_rate_deg_s}")
+
+
+def check_fits(cfg: SynthConfig, spec: ClipSpec) -> int:
+    """Clips per episode; ConfigError when an episode is shorter than one clip (it would write 0 clips and
+    look like success) or the spec's fps differs from the world's (the waypoints would be misplaced)."""
+    if spec.fps_hz != cfg.fps_hz:
+        raise ConfigError(f"the clip spec's fps_hz {spec.fps_hz} differs from the world's {cfg.fps_hz}")
+    if cfg.frames_per_episode < spec.num_frames:
+        raise ConfigError(f"frames_per_episode {cfg.frames_per_episode} is shorter than one clip of "
+                          f"{spec.num_frames} frames ({spec.num_history_frames} history + {spec.num_future_frames} "
+                          "future): no clip would be written")
+    return len(range(0, cfg.frames_per_episode - spec.num_frames + 1, cfg.clip_stride_frames))
 
 
 def episode_poses(cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
@@ -125,6 +161,7 @@ def make_clips(cfg: SynthConfig, spec: ClipSpec | None = None) -> list[dict]:
     horizon = int(round(spec.num_waypoints * spec.waypoint_dt_s * spec.fps_hz))
     if horizon > spec.num_future_frames:
         raise ValueError(f"waypoints span {horizon} frames, the clip's future only {spec.num_future_frames}")
+    check_fits(cfg, spec)
     clips = []
     for e in range(cfg.episodes):
         poses = episode_poses(cfg, rng)

@@ -49,9 +49,14 @@ class EvalClip:
 def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = None, limit: int | None = None,
                             need_trajectory: bool = True) -> list[EvalClip]:
     """Clips of ``root`` (only those of episodes ``items`` when given; at most ``limit``, spread over the
-    episodes by :func:`spread_over_episodes`)."""
+    episodes by :func:`spread_over_episodes`; ``None``: all)."""
     from shards.reader import iter_samples
 
+    # `limit is not None`, not `if limit`: a limit of 0 must not mean "all clips"
+    if limit is not None and limit < 1:
+        raise ValueError(f"limit must be >= 1 (or None for all clips), got {limit}")
+    if not Path(root).is_dir():
+        raise FileNotFoundError(f"dataset folder {root} does not exist")
     keep = set(items) if items is not None else None
     out = []
     for s in iter_samples(root, decode_video=True, attach_prompts=False):
@@ -65,7 +70,7 @@ def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = N
                             int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder"))))
     out.sort(key=lambda c: c.key)
     out = _one_geometry(out)
-    return spread_over_episodes(out, limit) if limit else out
+    return spread_over_episodes(out, limit) if limit is not None else out
 
 
 def spread_over_episodes(clips: list[EvalClip], limit: int) -> list[EvalClip]:
@@ -123,12 +128,17 @@ class WorldRollouts:
         return 1 + (clip.num_history_frames - 1) // 4
 
     def generate(self, clips: Sequence[EvalClip], trajectories: Sequence[np.ndarray | None],
-                 commands: Sequence[str | None]) -> np.ndarray:
-        """Decoded videos ``(N, T, H, W, 3)`` uint8 (history then generated frames, the clip's length)."""
+                 commands: Sequence[str | None], offset: int = 0) -> np.ndarray:
+        """Decoded videos ``(N, T, H, W, 3)`` uint8 (history then generated frames, the clip's length).
+
+        The batch starting at clip ``i`` of the whole evaluation set is sampled with seed ``seed + i``;
+        ``offset`` is the position of ``clips[0]`` in that set, for callers that pass it in parts (e.g.
+        :func:`quality_eval`): without it every part would restart at ``seed`` and draw the same starting
+        noise, correlating the samples that FID/FVD assume independent."""
         out = []
         for i in range(0, len(clips), self.batch_size):
             out.append(self._batch(clips[i:i + self.batch_size], trajectories[i:i + self.batch_size],
-                                   commands[i:i + self.batch_size], seed=self.seed + i))
+                                   commands[i:i + self.batch_size], seed=self.seed + offset + i))
         return np.concatenate(out)
 
     def _batch(self, clips, trajs, commands, seed: int) -> np.ndarray:
@@ -201,8 +211,39 @@ def _other_clip_index(clips: Sequence[EvalClip], i: int, seed: int) -> int:
     """A clip of another episode, chosen by a seeded hash (deterministic, independent of list order)."""
     cands = [j for j, c in enumerate(clips) if c.item_id != clips[i].item_id and c.trajectory is not None]
     if not cands:
-        raise ValueError("non-expert trajectories come from other episodes: the held-out set has only one")
+        eps = sorted({c.item_id for c in clips})
+        raise ValueError(f"non-expert trajectories come from another episode, but the {len(clips)} clip(s) "
+                         f"evaluated are all of episode {eps[0]!r}: evaluate more clips (a larger --limit, "
+                         "--all-clips, or an IDM run holding out more episodes: --min-heldout-episodes 2)")
     return min(cands, key=lambda j: hashlib.sha256(f"{seed}\0{clips[i].key}\0{clips[j].key}".encode()).hexdigest())
+
+
+def non_expert_pairs(clips: Sequence[EvalClip], seed: int = 0) -> list[int]:
+    """For each clip with a trajectory (in order), the index (among those clips) of the clip whose trajectory
+    and command condition its non-expert rollout. ValueError when they all come from one episode: called
+    before any rollout so that the mistake costs nothing."""
+    clips = [c for c in clips if c.trajectory is not None]
+    if not clips:
+        raise ValueError("no held-out clips with a trajectory")
+    return [_other_clip_index(clips, i, seed) for i in range(len(clips))]
+
+
+def check_idm_window(idm: Any, clips: Sequence[EvalClip], what: str = "IDM") -> None:
+    """ValueError if ``idm``'s frame window does not fit the clips' geometry (history frames, length).
+
+    The IDM runs on videos as long as the clips (history + generated future); checked before the rollouts,
+    which are the expensive part, instead of failing after all of them."""
+    seen = set()
+    for c in clips:
+        geo = (c.num_history_frames, len(c.frames))
+        if geo in seen:
+            continue
+        seen.add(geo)
+        try:
+            idm.cfg.frame_indices(*geo)
+        except ValueError as e:
+            raise ValueError(f"{what} ({idm.cfg.window} window, {idm.cfg.num_frames} frames every "
+                             f"{idm.cfg.frame_step}) does not fit clip {c.key}: {e}") from None
 
 
 def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], seed: int = 0) -> dict:
@@ -210,9 +251,10 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
     if not clips:
         raise ValueError("no held-out clips with a trajectory")
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
+    check_idm_window(idm, clips)
     expert_t = [c.trajectory for c in clips]
     expert_c = [c.command for c in clips]
-    others = [_other_clip_index(clips, i, seed) for i in range(len(clips))]
+    others = non_expert_pairs(clips, seed)
     non_t = [clips[j].trajectory for j in others]
     non_c = [clips[j].command for j in others]
     vid_e = runner.generate(clips, expert_t, expert_c)
@@ -244,6 +286,11 @@ def planning_eval(runner: WorldRollouts, idm: Any, planner: Any | None, clips: S
     if not clips:
         raise ValueError("no held-out clips with a trajectory")
     nh = clips[0].num_history_frames
+    check_idm_window(idm, clips)
+    if planner is not None:  # checked before the rollouts, like the IDM's window
+        if planner.cfg.window != "history":
+            raise ValueError("the VO-style planner must see history frames only (window='history')")
+        check_idm_window(planner, clips, "VO planner")
     gt = np.stack([c.trajectory for c in clips])
     vids = runner.generate(clips, [None] * len(clips), [c.command if with_command else None for c in clips])
     rep: dict[str, Any] = {"video_prediction_policy": trajectory_errors(_idm_on(idm, vids, nh), gt),
@@ -251,8 +298,6 @@ def planning_eval(runner: WorldRollouts, idm: Any, planner: Any | None, clips: S
                            "idm_on_recorded_future": trajectory_errors(
                                _idm_on(idm, np.stack([c.frames for c in clips]), nh), gt)}
     if planner is not None:
-        if planner.cfg.window != "history":
-            raise ValueError("the VO-style planner must see history frames only (window='history')")
         rep["vo_planner_history_only"] = trajectory_errors(
             _idm_on(planner, np.stack([c.frames for c in clips]), nh), gt)
     else:
@@ -267,7 +312,8 @@ def quality_eval(runner: WorldRollouts, clips: Sequence[EvalClip], qcfg: Any, ne
     ev = VideoQualityEvaluator(qcfg, networks)
     for i in range(0, len(clips), runner.batch_size):
         part = clips[i:i + runner.batch_size]
-        gen = runner.generate(part, [c.trajectory for c in part], [c.command for c in part])
+        # offset=i: the seeds one generate() call on all clips would use (each batch its own noise)
+        gen = runner.generate(part, [c.trajectory for c in part], [c.command for c in part], offset=i)
         gt = np.stack([c.frames for c in part])
         g = torch.from_numpy(gen).permute(0, 1, 4, 2, 3)
         r = torch.from_numpy(gt).permute(0, 1, 4, 2, 3)

@@ -49,14 +49,22 @@ def load_backbone(backbone_dir: str | Path, init_seed: int = 0) -> tuple[nn.Modu
     "image_mean", "image_std"}``. Without a weights file the model is randomly initialised
     from ``init_seed`` (same seed -> bit-identical weights) and marked a placeholder.
     """
+    from safetensors import SafetensorError
     from transformers import Dinov2Config, Dinov2Model
 
     p = _resolve_dir(backbone_dir)
-    raw = json.loads((p / "config.json").read_text())
-    if raw.get("model_type") not in (None, "dinov2"):
-        raise BackboneError(f"{p}/config.json: model_type is {raw.get('model_type')!r}, expected 'dinov2'")
+    try:
+        raw = json.loads((p / "config.json").read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BackboneError(f"{p}/config.json: not valid JSON ({e})") from None
+    if not isinstance(raw, dict) or raw.get("model_type") not in (None, "dinov2"):
+        got = raw.get("model_type") if isinstance(raw, dict) else type(raw).__name__
+        raise BackboneError(f"{p}/config.json: model_type is {got!r}, expected 'dinov2'")
     if has_weights(p):
-        model = Dinov2Model.from_pretrained(str(p))
+        try:
+            model = Dinov2Model.from_pretrained(str(p))
+        except (SafetensorError, OSError) as e:  # truncated / corrupt weight file: a user's folder, not our bug
+            raise BackboneError(f"DINOv2 backbone folder {p}: weights cannot be read ({e})") from None
         placeholder = bool(raw.get("resim_placeholder", False))
         ident = p.name
     else:

@@ -9,7 +9,11 @@ Layout of a checkpoint folder::
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from resim import config as rconfig
 from training.reward.config import RewardTrainConfig
@@ -17,7 +21,36 @@ from training.reward.model import Video2Reward
 
 
 class CheckpointError(ValueError):
-    pass
+    """A folder is not a usable reward checkpoint (names the file and the reason)."""
+
+
+def json_safe(o: Any) -> Any:
+    """``o`` with numpy scalars/arrays made plain and non-finite floats made ``None``.
+
+    Metrics are nan when undefined (Spearman of one clip, AUC of one class); ``json.dumps`` would write a
+    bare ``NaN``, which strict JSON parsers (and most non-Python readers) reject. ``None`` (null) says
+    "undefined" in valid JSON. (``training.eval.report._plain`` writes such values as strings, which
+    readers of meta.json would then have to special-case.)"""
+    if isinstance(o, dict):
+        return {str(k): json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_safe(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return json_safe(o.tolist())
+    if isinstance(o, (bool, np.bool_)):
+        return bool(o)
+    if isinstance(o, (np.integer, int)):
+        return int(o)
+    if isinstance(o, (np.floating, float)):
+        return float(o) if math.isfinite(float(o)) else None
+    return o
+
+
+def write_json(obj: Any, path: str | Path, indent: int = 2) -> Path:
+    """Strict JSON (nan/inf -> null, see :func:`json_safe`); ``allow_nan=False`` catches what slips through."""
+    p = Path(path)
+    p.write_text(json.dumps(json_safe(obj), indent=indent, allow_nan=False))
+    return p
 
 
 def save_checkpoint(model: Video2Reward, out_dir: str | Path, train_cfg: RewardTrainConfig,
@@ -34,30 +67,55 @@ def save_checkpoint(model: Video2Reward, out_dir: str | Path, train_cfg: RewardT
     tmp.replace(out / "reward.safetensors")
     rconfig.save(train_cfg, out / "config.yaml")
     meta = {**model.metadata(), **(extra_meta or {})}
-    (out / "meta.json").write_text(json.dumps(meta, indent=2, default=float))
+    write_json(meta, out / "meta.json")
     return out
 
 
 def load_checkpoint(ckpt_dir: str | Path, device: str = "cpu") -> Video2Reward:
+    """Load a checkpoint folder. Anything wrong with its files (missing, corrupt, not matching each other,
+    a backbone folder that is gone) raises :class:`CheckpointError` naming the file and the reason."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
+    from training.reward.backbone import BackboneError
+
     d = Path(ckpt_dir)
+    if not d.is_dir():
+        raise CheckpointError(f"{d}: no such checkpoint folder")
     for f in ("config.yaml", "reward.safetensors"):
         if not (d / f).is_file():
             raise CheckpointError(f"{d} is not a reward checkpoint: {f} is missing")
     # Checkpoints saved before the head got its sigmoid (output_activation) were trained with a raw
     # linear output: a config.yaml without the key loads as "none", not as today's default.
-    cfg = rconfig.load(RewardTrainConfig, d / "config.yaml", base={"model": {"output_activation": "none"}})
-    model = Video2Reward(cfg.model)
-    state = load_file(str(d / "reward.safetensors"), device="cpu")
+    try:
+        cfg = rconfig.load(RewardTrainConfig, d / "config.yaml", base={"model": {"output_activation": "none"}})
+    except (rconfig.ConfigError, UnicodeDecodeError) as e:  # invalid values / YAML, or not a text file
+        raise CheckpointError(f"{d / 'config.yaml'}: {e}") from None
+    try:
+        model = Video2Reward(cfg.model)
+    except BackboneError as e:
+        raise CheckpointError(f"{d / 'config.yaml'}: model.backbone_dir: {e}") from None
+    try:
+        state = load_file(str(d / "reward.safetensors"), device="cpu")
+    except SafetensorError as e:
+        raise CheckpointError(f"{d / 'reward.safetensors'}: not a readable safetensors file ({e})") from None
     head = {k[5:]: v for k, v in state.items() if k.startswith("head.")}
-    model.head.load_state_dict(head, strict=True)
     bb = {k[9:]: v for k, v in state.items() if k.startswith("backbone.")}
-    if bb:
-        model.backbone.load_state_dict(bb, strict=True)
+    try:
+        model.head.load_state_dict(head, strict=True)
+        if bb:
+            model.backbone.load_state_dict(bb, strict=True)
+    except RuntimeError as e:  # torch's missing/unexpected keys or shape mismatches: weights vs config.yaml
+        first = str(e).strip().splitlines()
+        raise CheckpointError(f"{d / 'reward.safetensors'}: weights do not match config.yaml "
+                              f"({' '.join(x.strip() for x in first[:2])[:300]})") from None
     meta_p = d / "meta.json"
     if meta_p.is_file():
-        saved_id = json.loads(meta_p.read_text()).get("feature_id")
+        try:
+            meta = json.loads(meta_p.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise CheckpointError(f"{meta_p}: not valid JSON ({e})") from None
+        saved_id = meta.get("feature_id") if isinstance(meta, dict) else None
         if saved_id and saved_id != model.feature_id:
             raise CheckpointError(f"{d}: trained with backbone features {saved_id!r}, the backbone loaded now "
                                   f"gives {model.feature_id!r} (backbone folder or seed changed)")

@@ -9,6 +9,27 @@ import json
 import sys
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (0 or negative is refused with a one-line usage error)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
 def _load_train_cfg(args):
     from resim import config as rconfig
     from training.reward.config import PRESETS, RewardTrainConfig
@@ -18,9 +39,22 @@ def _load_train_cfg(args):
     return rconfig.load(RewardTrainConfig, args.config, args.set or (), base=PRESETS[args.preset])
 
 
+def _train_cfg_or_none(args, prog: str):
+    """The resolved config, or None after printing the config error (bad --preset / --config / --set)."""
+    from resim.config import ConfigError
+
+    try:
+        return _load_train_cfg(args)
+    except ConfigError as e:
+        print(f"{prog}: config error: {e}", file=sys.stderr)
+        return None
+
+
 def _cmd_score(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from shards.reader import ShardReadError
+    from shards.video import VideoError
     from training.reward.checkpoint import CheckpointError, load_checkpoint
     from training.reward.score import ScoreError, read_video_file, score_videos
 
@@ -38,9 +72,12 @@ def _cmd_score(args: argparse.Namespace) -> int:
 
                 try:
                     s = find_sample(args.shards, target, attach_prompts=False)
+                    frames = decode_mp4(s["frames.mp4"])
                 except KeyError as e:
                     raise ScoreError(str(e.args[0])) from None
-                frames, kind = decode_mp4(s["frames.mp4"]), "shard sample"
+                except (ShardReadError, VideoError) as e:  # a corrupt shard / frames.mp4 of the dataset
+                    raise ScoreError(f"{target} in {args.shards}: {e}") from None
+                kind = "shard sample"
             (score,) = score_videos(model, [frames], stride=args.stride, names=[target])
             results.append({"input": target, "kind": kind, "frames": int(len(frames)), "score": float(score)})
     except (ScoreError, CheckpointError) as e:
@@ -60,13 +97,27 @@ def _cmd_score(args: argparse.Namespace) -> int:
 def _cmd_features(args: argparse.Namespace) -> int:
     import torch
 
-    from training.reward.features import add_features_to_dataset
+    from shards.reader import ShardReadError
+    from training.reward.backbone import BackboneError
+    from training.reward.features import add_features_to_dataset, check_feature_paths
     from training.reward.model import Video2Reward
 
+    prog = "resim reward-features"
     torch.set_num_threads(args.threads) if args.threads else None
-    cfg = _load_train_cfg(args)
-    model = Video2Reward(cfg.model)
-    summary = add_features_to_dataset(args.src, args.out, model, where=cfg.data.clip_window, progress=True)
+    cfg = _train_cfg_or_none(args, prog)
+    if cfg is None:
+        return 2
+    try:
+        check_feature_paths(args.src, args.out)  # raises ValueError only for the two folders it checks
+        model = Video2Reward(cfg.model)
+    except (ValueError, BackboneError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    try:
+        summary = add_features_to_dataset(args.src, args.out, model, where=cfg.data.clip_window, progress=True)
+    except ShardReadError as e:  # a corrupt source shard (unreadable clips are quarantined, the job goes on)
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
     print(json.dumps(summary, indent=2))
     return 0 if summary["samples"] else 1
 
@@ -74,27 +125,50 @@ def _cmd_features(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from pipelines.sources.episode import SourceError
     from resim import config as rconfig
-    from shards.reader import iter_samples
-    from training.reward.data import clips_from_samples
-    from training.reward.train import run_training
+    from shards.reader import ShardReadError, iter_samples
+    from training.reward.backbone import BackboneError
+    from training.reward.data import ClipError, clips_from_samples
+    from training.reward.train import SplitError, prepare_training, run_training
 
-    cfg = _load_train_cfg(args)
-    if bool(args.shards) == bool(args.carla):
-        print("resim train reward: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
+    prog = "resim train reward"
+    cfg = _train_cfg_or_none(args, prog)
+    if cfg is None:
         return 2
-    if args.shards:
-        clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
-    else:
-        clips = _carla_clips(args)
+    if bool(args.shards) == bool(args.carla):
+        print(f"{prog}: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
+        return 2
     src = args.shards or args.carla
-    if not clips:
-        print(f"resim train reward: error: {src} has no clip with an infraction score", file=sys.stderr)
+    if not Path(src).is_dir():
+        print(f"{prog}: error: {src}: no such folder", file=sys.stderr)
         return 1
+    try:
+        if args.shards:
+            clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
+        else:
+            clips = _carla_clips(args)
+    except (ShardReadError, ClipError, SourceError) as e:   # corrupt shard, dino.npy without dino_id, bad root
+        print(f"{prog}: error: {src}: {e}", file=sys.stderr)
+        return 1
+    if not clips:
+        print(f"{prog}: error: {src} has no clip with an infraction score", file=sys.stderr)
+        return 1
+    # the split and the backbone are checked before anything is written or trained
+    try:
+        prepared = prepare_training(clips, cfg)
+    except SplitError as e:
+        print(f"{prog}: error: {src}: {e}", file=sys.stderr)
+        return 1
+    except BackboneError as e:
+        print(f"{prog}: config error: model.backbone_dir: {e}", file=sys.stderr)
+        return 2
+    for note in prepared.notes:
+        print(f"note: {note}", file=sys.stderr)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rconfig.save(cfg, out / "config.yaml")
-    r = run_training(clips, cfg, out, progress=not args.no_progress)
+    r = run_training(clips, cfg, out, progress=not args.no_progress, prepared=prepared)
     m = r["metrics"]
     print(f"trained on {r['n_train']} clips, held out {r['n_heldout']} clips of {len(r['heldout_items'])} episodes "
           f"({'stored features' if r['used_features'] else 'backbone on pixels'})")
@@ -152,8 +226,8 @@ def add_train_parser(sub) -> None:
     t.add_argument("--shards", default=None, help="shard dataset folder (labelled clips: infraction_score set)")
     t.add_argument("--carla", default=None, help="or a CARLA-layout folder (Bench2Drive routes + results json, "
                    "e.g. `resim synth` OUT/carla): clips are cut from each route, labelled with its infraction score")
-    t.add_argument("--clip-frames", type=int, default=40, help="with --carla: frames per clip (default 40 = 4 s)")
-    t.add_argument("--clip-stride-frames", type=int, default=20, help="with --carla: frames between clip starts")
+    t.add_argument("--clip-frames", type=_positive_int, default=40, help="with --carla: frames per clip (default 40 = 4 s)")
+    t.add_argument("--clip-stride-frames", type=_positive_int, default=20, help="with --carla: frames between clip starts")
     t.add_argument("--hold-last", action="store_true", help="with --carla: a route shorter than --clip-frames "
                    "(episodes end early after a crash) gives one clip with its last frame held, instead of none")
     t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer)")
@@ -172,7 +246,7 @@ def register(subparsers) -> None:
     p.add_argument("inputs", nargs="+", metavar="VIDEO_OR_SHARD_KEY")
     p.add_argument("--checkpoint", required=True, help="folder written by `resim train reward`")
     p.add_argument("--shards", default=None, help="shard dataset folder to look sample keys up in")
-    p.add_argument("--stride", type=int, default=None, help="frames between window starts (default: window span)")
+    p.add_argument("--stride", type=_positive_int, default=None, help="frames between window starts (default: window span)")
     p.add_argument("--json", action="store_true", help="print JSON (model metadata + one result per input)")
     p.set_defaults(func=_cmd_score)
 
@@ -184,6 +258,6 @@ def register(subparsers) -> None:
         "writing a new dataset. Clips that cannot be featurised are copied without features and quarantined.")
     f.add_argument("src", help="source shard dataset folder")
     f.add_argument("--out", required=True, help="destination dataset folder (must differ from src)")
-    f.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    f.add_argument("--threads", type=_non_negative_int, default=0, help="torch threads (0: torch's default)")
     _add_cfg_args(f)
     f.set_defaults(func=_cmd_features)

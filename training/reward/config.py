@@ -8,6 +8,7 @@ and demo), ``synthetic`` (tiny + whole-episode window for `resim synth` worlds) 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -53,13 +54,17 @@ class RewardModelConfig:
             raise ConfigError(f"image_size_px must be >= 8, got {self.image_size_px}")
         if self.num_frames < 1 or self.frame_step < 1:
             raise ConfigError("num_frames and frame_step must be >= 1")
+        # checked before the divisibility test below, which would otherwise divide by zero
+        for name in ("head_dim", "num_heads", "mlp_hidden_dim"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.head_dim % self.num_heads:
             raise ConfigError(f"head_dim {self.head_dim} must be divisible by num_heads {self.num_heads}")
         if self.num_blocks < 1:
             raise ConfigError("num_blocks must be >= 1")
         if self.output_activation not in ("sigmoid", "none"):
             raise ConfigError(f"output_activation must be 'sigmoid' or 'none', got {self.output_activation!r}")
-        if not 0.0 <= self.dropout < 1.0:
+        if not 0.0 <= self.dropout < 1.0:  # false for nan too
             raise ConfigError(f"dropout must be in [0, 1), got {self.dropout}")
 
     @property
@@ -77,7 +82,7 @@ class RewardDataConfig:
     clip_window: Literal["end", "start"] = "end"
 
     def __post_init__(self):
-        if not 0.0 < self.heldout_fraction < 1.0:
+        if not 0.0 < self.heldout_fraction < 1.0:  # false for nan too
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
 
 
@@ -95,8 +100,18 @@ class RewardTrainConfig:
     use_stored_features: bool = True  # use dino.npy when every sample has it and the id matches
 
     def __post_init__(self):
-        if self.lr <= 0 or self.epochs < 1 or self.batch_size_per_gpu < 1:
-            raise ConfigError("lr must be > 0, epochs and batch_size_per_gpu >= 1")
+        # math.isfinite: nan passes `<= 0` / `< 0` tests and inf is no learning rate; both would train to nan
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
+            raise ConfigError(f"weight_decay must be a finite number >= 0, got {self.weight_decay}")
+        if not (math.isfinite(self.grad_clip_norm) and self.grad_clip_norm >= 0):
+            raise ConfigError(f"grad_clip_norm must be a finite number >= 0 (0: no clipping), got {self.grad_clip_norm}")
+        if self.epochs < 1 or self.batch_size_per_gpu < 1:
+            raise ConfigError(f"epochs and batch_size_per_gpu must be >= 1, got {self.epochs} and "
+                              f"{self.batch_size_per_gpu}")
+        if self.seed < 0:  # numpy's shuffling RNG (seed * 1000 + epoch) refuses negative seeds
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")
 
 
 PRESETS: dict[str, dict] = {

@@ -68,6 +68,25 @@ def iter_samples_with_features(model: Video2Reward, samples: Iterable[dict], whe
         yield add_sample_features(model, s, where)
 
 
+def check_feature_paths(src_root, dst_root) -> list:
+    """The committed shards of ``src_root``; ValueError naming the folder when it has none (or does not
+    exist) or when ``dst_root`` is the same folder (the copy would overwrite its own source)."""
+    from pathlib import Path
+
+    from shards import layout
+
+    src, dst = Path(src_root), Path(dst_root)
+    if not src.is_dir():
+        raise ValueError(f"{src}: no such dataset folder")
+    if src.resolve() == dst.resolve():
+        raise ValueError(f"output folder {dst} is the source dataset {src}: the features are written to a new "
+                         "dataset, give another output folder")
+    shards = layout.committed_shards(src)
+    if not shards:
+        raise ValueError(f"{src}: no committed shards (expected DIR/shards/*.tar with DIR/index/*.json)")
+    return shards
+
+
 def add_features_to_dataset(src_root, dst_root, model: Video2Reward, where: str = "end",
                             max_samples_per_shard: int = 1000, progress: bool = False) -> dict:
     """Copy the shard dataset ``src_root`` to ``dst_root`` with ``dino.npy`` + ``meta.dino_id`` added
@@ -89,11 +108,7 @@ def add_features_to_dataset(src_root, dst_root, model: Video2Reward, where: str 
     from shards.writer import ShardWriter
 
     src, dst = Path(src_root), Path(dst_root)
-    if src.resolve() == dst.resolve():
-        raise ValueError("add_features_to_dataset writes a new dataset: dst_root must differ from src_root")
-    shards = layout.committed_shards(src)
-    if not shards:
-        raise ValueError(f"{src}: no committed shards (expected DIR/shards/*.tar with DIR/index/*.json)")
+    shards = check_feature_paths(src, dst)
     if layout.prompts_dir(src).is_dir():
         shutil.copytree(layout.prompts_dir(src), layout.prompts_dir(dst), dirs_exist_ok=True)
     if (src / "config.yaml").is_file():

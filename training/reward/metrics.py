@@ -31,10 +31,17 @@ def rankdata(x) -> np.ndarray:
 
 
 def spearman(pred, true) -> float:
-    """Spearman's rho = Pearson correlation of average ranks; nan if either side is constant."""
+    """Spearman's rho = Pearson correlation of average ranks.
+
+    nan (undefined, not an error) when either side is constant or there are fewer than 2 items: a held-out
+    split of one clip is a legitimate, if useless, outcome of a small dataset, and the run that produced it
+    must still write its checkpoint (docs/reward.md). Arrays of different shapes are a caller bug and raise.
+    """
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
-    if pred.shape != true.shape or pred.size < 2:
-        raise ValueError(f"spearman needs two arrays of one shape with >= 2 items, got {pred.shape}, {true.shape}")
+    if pred.shape != true.shape:
+        raise ValueError(f"spearman needs two arrays of one shape, got {pred.shape}, {true.shape}")
+    if pred.size < 2:
+        return float("nan")
     a, b = rankdata(pred), rankdata(true)
     a, b = a - a.mean(), b - b.mean()
     den = np.sqrt((a * a).sum() * (b * b).sum())
@@ -58,7 +65,10 @@ def auc(scores, positive) -> float:
 
 
 def reward_metrics(pred, true, hazard) -> dict[str, float]:
-    """{"mae", "spearman", "hazard_auc", "n", "n_hazard"} for predicted vs true infraction scores."""
+    """{"mae", "spearman", "hazard_auc", "n", "n_hazard"} for predicted vs true infraction scores.
+
+    Spearman is nan for fewer than 2 clips (or a constant side), hazard AUC nan unless both classes are
+    present; JSON writers turn nan into null (training.reward.checkpoint.json_safe)."""
     pred, true, hazard = np.asarray(pred), np.asarray(true), np.asarray(hazard, bool)
     out = {"n": int(len(pred)), "n_hazard": int(hazard.sum()), "mae": mae(pred, true),
            "spearman": spearman(pred, true)}

@@ -78,7 +78,8 @@ def score_videos(model: Video2Reward, videos, stride: int | None = None, batch_s
         raise ScoreError("no videos to score")
     names = list(names) if names is not None else [f"video[{i}]" for i in range(len(videos))]
     cfg = model.cfg
-    stride = stride or cfg.window_frames
+    if stride is None:  # not `stride or ...`: a stride of 0 is an error, not a request for the default
+        stride = cfg.window_frames
     if stride < 1:
         raise ScoreError(f"stride must be >= 1, got {stride}")
     was_training = model.training

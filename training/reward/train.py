@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -123,20 +124,63 @@ def predict(model: Video2Reward, clips: Sequence[RewardClip], use_features: bool
     return torch.cat(out).numpy() if out else np.zeros(0, np.float32)
 
 
-def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
-                 progress: bool = False) -> dict:
-    """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
+class SplitError(ValueError):
+    """The labelled clips cannot be split into train and held-out episodes (says why)."""
 
-    Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
-    "n_heldout", "heldout_items", "model"}.
-    """
+
+@dataclass
+class PreparedRun:
+    """What :func:`prepare_training` checked and built before any training step."""
+
+    train: list[RewardClip]
+    held: list[RewardClip]
+    skipped: list[dict]
+    model: Video2Reward
+    notes: list[str]        # held-out metrics that will be undefined (nan), said before training
+
+
+def prepare_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> PreparedRun:
+    """Everything of a run that can fail on bad input, done before training: the model (its backbone
+    folder), usable clips, the split by episode. Raises :class:`SplitError` (no held-out or no training
+    episode), ``training.reward.backbone.BackboneError`` (backbone folder)."""
+    # the model first: a bad backbone folder is a config error whatever the data
+    torch.manual_seed(cfg.seed)
+    model = Video2Reward(cfg.model)
     clips, skipped = usable_clips([c for c in clips if c.infraction_score is not None], cfg)
     train, held = split_by_episode(clips, cfg.data.heldout_fraction, cfg.data.split_seed)
     if not train or not held:
-        raise ValueError(f"cannot split {len(clips)} labelled clips of {len({c.item_id for c in clips})} episodes "
-                         "into train and held-out: need at least 2 episodes")
-    torch.manual_seed(cfg.seed)
-    model = Video2Reward(cfg.model)
+        eps: dict[str, bool] = {}
+        for c in clips:
+            eps[c.item_id] = eps.get(c.item_id, False) or bool(c.hazard)
+        n_h = sum(eps.values())
+        raise SplitError(
+            f"cannot split {len(clips)} usable labelled clips into train and held-out episodes: the split is "
+            f"stratified by hazard and holds out episodes only from a class with at least 2 episodes; got "
+            f"{n_h} hazardous and {len(eps) - n_h} clean episode(s) (need >= 2 of one class)")
+    notes = []
+    if len(held) < 2:
+        notes.append(f"the held-out set has {len(held)} clip: Spearman is undefined (nan); "
+                     "more labelled episodes give a meaningful evaluation")
+    if len({bool(c.hazard) for c in held}) < 2:
+        notes.append("the held-out set holds only " + ("hazardous" if held[0].hazard else "clean")
+                     + " episodes: hazard AUC is undefined (nan)")
+    return PreparedRun(train, held, skipped, model, notes)
+
+
+def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
+                 progress: bool = False, prepared: PreparedRun | None = None) -> dict:
+    """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
+
+    ``prepared``: the result of :func:`prepare_training` on the same clips and config (callers that check
+    the input first, e.g. the CLI, pass it on instead of repeating the work).
+
+    Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
+    "n_heldout", "heldout_items", "model", "notes"}. Metrics undefined on the held-out set (Spearman of
+    one clip, AUC of one class) are nan, listed in "notes", and null in meta.json.
+    """
+    if prepared is None:
+        prepared = prepare_training(clips, cfg)
+    train, held, skipped, model = prepared.train, prepared.held, prepared.skipped, prepared.model
     use_features = False
     if cfg.use_stored_features and cfg.model.freeze_backbone:
         if not can_use_features(model, train + held):
@@ -159,18 +203,20 @@ def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
     result = {"metrics": metrics, "train_metrics": train_metrics, "history": history, "samples_per_s": fitted["samples_per_s"],
               "used_features": use_features, "n_train": len(train), "n_heldout": len(held),
               "heldout_items": sorted({c.item_id for c in held}), "model": model,
-              "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h}
+              "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h,
+              "notes": list(prepared.notes)}
     if out_dir is not None:
-        from training.reward.checkpoint import save_checkpoint
+        from training.reward.checkpoint import save_checkpoint, write_json
 
         out = Path(out_dir)
         save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
                                           "heldout_items": result["heldout_items"],
-                                          "used_stored_features": use_features, "skipped_clips": skipped})
-        (out / "heldout_predictions.json").write_text(json.dumps(
-            [{"key": c.key, "item_id": c.item_id, "true": float(t), "pred": float(p), "hazard": bool(c.hazard)}
-             for c, t, p in zip(held, true_h, pred_h)], indent=1))
-        (out / "history.json").write_text(json.dumps(history, indent=1))
+                                          "used_stored_features": use_features, "skipped_clips": skipped,
+                                          "notes": result["notes"]})
+        write_json([{"key": c.key, "item_id": c.item_id, "true": float(t), "pred": float(p),
+                     "hazard": bool(c.hazard)} for c, t, p in zip(held, true_h, pred_h)],
+                   out / "heldout_predictions.json", indent=1)
+        write_json(history, out / "history.json", indent=1)
         plot_predictions(pred_h, true_h, haz_h, out / "heldout_pred_vs_true.png", metrics)
     return result
 

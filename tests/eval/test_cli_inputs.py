@@ -1,0 +1,135 @@
+"""`resim eval ...` on bad input: argparse refuses malformed values (exit 2), and the commands check clips,
+held-out lists, weight files and the IDM's window before loading the world model or rolling anything out.
+The world-model checkpoint given here does not exist: any test that got as far as loading it would fail."""
+import json
+
+import pytest
+import torch
+import yaml
+
+from resim.cli import main
+from resim.config import ConfigError
+from shards.schema import ClipSpec
+from training.eval.synthetic import SynthConfig, write_synthetic_shards
+
+
+@pytest.fixture(scope="module")
+def ds(tmp_path_factory):
+    """2 episodes x one 21-frame clip (9 history + 12 future), and two IDM runs: one whose window fits the clips,
+    one (the tiny preset: 21 frames every 2 after the history) that needs 49-frame clips."""
+    from safetensors.torch import save_file
+
+    from resim.config import to_dict
+    from training.eval.idm import InverseDynamicsModel, idm_preset
+
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("evalinputs")
+    spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
+    write_synthetic_shards(root / "ds", SynthConfig(episodes=2, frames_per_episode=21, seed=1), spec)
+    for name, cfg in (("idm-fits", idm_preset("tiny", future_frames=12, num_frames=7)), ("idm-49", idm_preset("tiny"))):
+        d = root / name / "final"
+        d.mkdir(parents=True)
+        torch.manual_seed(0)
+        m = InverseDynamicsModel(cfg)
+        save_file({k: v.contiguous() for k, v in m.state_dict().items()}, str(d / "model.safetensors"))
+        (d / "config.yaml").write_text(yaml.safe_dump({"model_name": "idm", "model": to_dict(cfg)}))
+    return root
+
+
+def _world(root, *extra):
+    return ["--checkpoint", str(root / "no-world-model"), "--shards", str(root / "ds"), "--out", str(root / "out"),
+            "--device", "cpu", *extra]
+
+
+def _usage_error(capsys, argv, needle):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err, err
+
+
+def _error(capsys, needle):
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "Traceback" not in err and len(err.splitlines()) == 1, err
+
+
+def test_malformed_values_are_usage_errors(ds, capsys):
+    _usage_error(capsys, ["eval", "quality", *_world(ds, "--resolution", "64")], "expected HxW")   # was IndexError
+    _usage_error(capsys, ["eval", "quality", *_world(ds, "--resolution", "0x64")], "both >= 1")
+    _usage_error(capsys, ["eval", "quality", *_world(ds, "--steps", "0")], "--steps: must be >= 1")  # was: 50 steps
+    _usage_error(capsys, ["eval", "quality", *_world(ds, "--limit", "0")], "--limit: must be >= 1")  # was: all clips
+    _usage_error(capsys, ["eval", "control", *_world(ds, "--limit", "-1"), "--idm", "x"], "--limit: must be >= 1")
+    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--size", "32"], "expected HxW")  # was ValueError
+    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--size", "32xabc"], "expected HxW")
+    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--clip-stride", "0"], "must be >= 1")
+    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--episodes", "0"], "must be >= 1")
+    assert not (ds / "out").exists() and not (ds / "s").exists()
+
+
+def test_bad_heldout_list_and_weight_files(ds, tmp_path, capsys):
+    q = tmp_path / "quality.json"
+    q.write_text(json.dumps({"protocol": {"clips": 1}}))
+    with pytest.raises(SystemExit, match="no protocol.heldout_items"):   # was KeyError 'heldout_items'
+        main(["eval", "quality", *_world(ds, "--heldout-from", str(q))])
+    q.write_text("{not json")
+    with pytest.raises(SystemExit, match="not valid JSON"):
+        main(["eval", "quality", *_world(ds, "--heldout-from", str(q))])
+    # was FileNotFoundError, after the world model had been loaded
+    assert main(["eval", "quality", *_world(ds, "--metrics", "fid", "--fid-weights", str(tmp_path / "no.pth"))]) == 2
+    _error(capsys, "no.pth is not a file")
+
+
+def test_control_and_planning_check_inputs_before_rollouts(ds, capsys):
+    # one clip, one episode: no non-expert trajectory from another episode (was a ValueError traceback)
+    assert main(["eval", "control", *_world(ds, "--all-clips", "--limit", "1"), "--idm", str(ds / "idm-fits")]) == 2
+    _error(capsys, "all of episode")
+    # the IDM's window does not fit the clips (used to fail only after all rollouts)
+    assert main(["eval", "control", *_world(ds, "--all-clips"), "--idm", str(ds / "idm-49")]) == 2
+    _error(capsys, "does not fit clip")
+    assert main(["eval", "planning", *_world(ds, "--all-clips"), "--idm", str(ds / "idm-49")]) == 2
+    _error(capsys, "does not fit clip")
+    assert not (ds / "out").exists()
+    # inputs fine: the next failure is the missing world model, reported in one line
+    with pytest.raises(SystemExit, match="--checkpoint: .*no-world-model"):
+        main(["eval", "control", *_world(ds, "--all-clips"), "--idm", str(ds / "idm-fits")])
+
+
+def test_idm_training_says_why_no_clip_is_usable(ds, tmp_path, capsys):
+    out = tmp_path / "idm"
+    assert main(["eval", "idm", "--shards", str(tmp_path / "nope"), "--out", str(out), "--preset", "tiny"]) == 1
+    _error(capsys, "does not exist")                       # was "0 clips from 0 episode(s)"
+    assert main(["eval", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--preset", "tiny"]) == 1
+    _error(capsys, "the model's window fits none of the 2 clips")   # and the first clip's reason
+    (tmp_path / "empty").mkdir()
+    assert main(["eval", "idm", "--shards", str(tmp_path / "empty"), "--out", str(out), "--preset", "tiny"]) == 1
+    _error(capsys, "no samples")
+    assert main(["eval", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--lr", "nan"]) == 2
+    _error(capsys, "lr must be a finite number")
+    assert main(["eval", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--set", "head_heads=0"]) == 2
+    _error(capsys, "head_heads must be >= 1")           # was ZeroDivisionError
+    assert not out.exists()
+
+
+def test_synth_refuses_configs_that_write_nothing(tmp_path, capsys):
+    # an episode shorter than one 49-frame clip: used to print "wrote 0 clips" and exit 0
+    assert main(["eval", "synth", "--out", str(tmp_path / "s"), "--frames-per-episode", "20"]) == 2
+    _error(capsys, "frames_per_episode 20 is shorter than one clip of 49 frames")
+    assert not (tmp_path / "s").exists()
+    with pytest.raises(ConfigError, match="clip_stride_frames must be >= 1"):   # was a range() traceback
+        SynthConfig(clip_stride_frames=0)
+    with pytest.raises(ConfigError, match="fps_hz"):
+        SynthConfig(fps_hz=float("nan"))
+
+
+def test_idm_configs_validate_without_dividing_by_zero():
+    from training.eval.idm import idm_preset
+    from training.eval.idm_train import IDMTrainConfig
+
+    with pytest.raises(ConfigError, match="head_heads must be >= 1"):
+        idm_preset("tiny", head_heads=0)
+    with pytest.raises(ConfigError, match="target_scale"):
+        idm_preset("tiny", target_scale=(1.0, float("nan"), 1.0))
+    for bad in (float("nan"), float("inf"), 0.0):
+        with pytest.raises(ConfigError, match="lr must be a finite number"):
+            IDMTrainConfig(lr=bad)

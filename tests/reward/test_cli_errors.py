@@ -1,0 +1,153 @@
+"""User mistakes in `resim reward`, `resim train reward`, `resim reward-features`: one line on stderr naming
+the item and the reason, a non-zero exit, no traceback."""
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+
+from resim.cli import main
+from training.reward.toy import toy_episode_frames
+
+TINY = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
+TINY_SETS = [a for k, v in TINY.items() for a in ("--set", f"model.{k}={v}")]
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory):
+    """An untrained tiny checkpoint (scoring plumbing only) and a 20-frame video."""
+    import cv2
+
+    from resim.config import from_dict
+    from training.reward.checkpoint import save_checkpoint
+    from training.reward.config import RewardTrainConfig
+    from training.reward.model import Video2Reward
+
+    root = tmp_path_factory.mktemp("ck")
+    tc = from_dict(RewardTrainConfig, {"epochs": 1, "model": TINY})
+    save_checkpoint(Video2Reward(tc.model), root / "ck", tc)
+    vid = root / "v.avi"
+    w = cv2.VideoWriter(str(vid), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (32, 24))
+    for i in range(20):
+        w.write(np.full((24, 32, 3), i * 10, np.uint8))
+    w.release()
+    return root / "ck", vid
+
+
+@pytest.fixture(scope="module")
+def two_episodes(tmp_path_factory):
+    """Shards of two labelled episodes, one hazardous and one clean: no held-out split possible."""
+    from shards.schema import ClipSpec
+    from shards.testing import make_dummy_sample
+    from shards.video import encode_mp4
+    from shards.writer import ShardWriter
+
+    root = tmp_path_factory.mktemp("two")
+    spec = ClipSpec(num_history_frames=1, num_future_frames=8)
+    rng = np.random.default_rng(0)
+    with ShardWriter(root, "toy", max_samples_per_shard=8) as w:
+        for e, score in enumerate((0.1, 1.0)):
+            s = make_dummy_sample(item_id=f"toy/ep{e}", start_frame=0, spec=spec, hazard=bool(score < 0.5), seed=e)
+            s["frames.mp4"] = encode_mp4(toy_episode_frames(score, 9, 32, 48, rng), 10.0)
+            s["meta.json"]["infraction_score"] = score
+            w.write(s)
+    return root
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    for n in needles:
+        assert n in err, err
+    return err
+
+
+def _corrupt(src, dst, edit):
+    shutil.copytree(src, dst)
+    edit(dst)
+    return dst
+
+
+def test_score_corrupt_checkpoints_name_the_file(ckpt, tmp_path, capsys):
+    ck, vid = ckpt
+    assert main(["reward", str(vid), "--checkpoint", str(ck)]) == 0
+    capsys.readouterr()
+
+    def bad_config(d):
+        (d / "config.yaml").write_text("model: {num_frames: 0}\n")
+
+    def truncated_weights(d):
+        (d / "reward.safetensors").write_bytes((d / "reward.safetensors").read_bytes()[:100])
+
+    def gone_backbone(d):
+        c = yaml.safe_load((d / "config.yaml").read_text())
+        c["model"]["backbone_dir"] = "/nonexistent/dinov2"
+        (d / "config.yaml").write_text(yaml.safe_dump(c))
+
+    def other_head(d):   # config.yaml no longer matches the stored weights
+        c = yaml.safe_load((d / "config.yaml").read_text())
+        c["model"]["head_dim"] = 64
+        (d / "config.yaml").write_text(yaml.safe_dump(c))
+
+    cases = [(bad_config, "config.yaml", "num_frames and frame_step must be >= 1"),
+             (truncated_weights, "reward.safetensors", "not a readable safetensors file"),
+             (gone_backbone, "config.yaml", "/nonexistent/dinov2"),
+             (other_head, "reward.safetensors", "do not match config.yaml")]
+    for edit, name, reason in cases:
+        d = _corrupt(ck, tmp_path / edit.__name__, edit)
+        assert main(["reward", str(vid), "--checkpoint", str(d)]) == 1, edit.__name__
+        _one_line_error(capsys, f"{d / name}", reason)
+    assert main(["reward", str(vid), "--checkpoint", str(tmp_path / "nope")]) == 1
+    _one_line_error(capsys, "no such checkpoint folder")
+
+
+def test_score_stride_zero_is_refused(ckpt, capsys):
+    """--stride 0 used to score with the default stride (`stride or default`) and exit 0."""
+    from training.reward.checkpoint import load_checkpoint
+    from training.reward.score import ScoreError, score_videos
+
+    ck, vid = ckpt
+    with pytest.raises(SystemExit) as e:
+        main(["reward", str(vid), "--checkpoint", str(ck), "--stride", "0"])
+    assert e.value.code == 2 and "--stride: must be >= 1, got 0" in capsys.readouterr().err
+    import torch
+
+    with pytest.raises(ScoreError, match="stride must be >= 1, got 0"):
+        score_videos(load_checkpoint(ck), [torch.rand(8, 3, 16, 16)], stride=0)
+
+
+def test_train_bad_config_is_a_one_line_error(two_episodes, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "reward", "--preset", "bogus", "--shards", str(two_episodes), "--out", str(out)]) == 2
+    _one_line_error(capsys, "config error", "unknown preset 'bogus'")
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out),
+                 "--set", "model.num_heads=0"]) == 2
+    _one_line_error(capsys, "num_heads must be >= 1")
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out),
+                 "--config", str(tmp_path / "missing.yaml")]) == 2
+    _one_line_error(capsys, "missing.yaml does not exist")
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out), *TINY_SETS,
+                 "--set", "model.backbone_dir=/nonexistent/dinov2"]) == 2
+    _one_line_error(capsys, "/nonexistent/dinov2")
+    assert main(["train", "reward", "--shards", str(tmp_path / "nope"), "--out", str(out)]) == 1
+    _one_line_error(capsys, "no such folder")
+    assert not out.exists()
+
+
+def test_train_unsplittable_data_fails_before_training(two_episodes, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out), *TINY_SETS]) == 1
+    _one_line_error(capsys, str(two_episodes), "1 hazardous and 1 clean episode(s)")
+    assert not out.exists()   # nothing written, nothing trained
+
+
+def test_features_bad_source_or_destination(two_episodes, tmp_path, capsys):
+    assert main(["reward-features", str(two_episodes), "--out", str(two_episodes), *TINY_SETS]) == 1
+    _one_line_error(capsys, "is the source dataset")
+    assert main(["reward-features", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), *TINY_SETS]) == 1
+    _one_line_error(capsys, "no such dataset folder")
+    (tmp_path / "empty").mkdir()
+    assert main(["reward-features", str(tmp_path / "empty"), "--out", str(tmp_path / "o"), *TINY_SETS]) == 1
+    _one_line_error(capsys, "no committed shards")
+    assert main(["reward-features", str(two_episodes), "--out", str(tmp_path / "o"), "--preset", "bogus"]) == 2
+    _one_line_error(capsys, "unknown preset 'bogus'")
