@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from resim.argtypes import positive_int as _positive_int
+
 DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
 
 STATS_EPILOG = """\
@@ -151,13 +153,6 @@ def _cmd_preview(args) -> int:
             return 1
         print(render_preview(s, o))
     return 0
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return v
 
 
 def _on_dataset(cmd):

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from resim.argtypes import height_width as _hw, positive_int as _positive_int
+
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
@@ -28,29 +30,6 @@ typical flow (held-out = the episodes the IDM did not train on):
 Weights are never downloaded; docs/eval.md says where to get the standard ones. Without them quality runs
 only with --allow-placeholder-networks (random-init networks, marked as such everywhere).
 """
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1. 0 used to mean "default" or "all" by accident (`if args.x:`)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def _hw(text: str) -> tuple[int, int]:
-    """argparse type: ``HxW`` with two integers >= 1, e.g. ``64x112``."""
-    parts = text.lower().split("x")
-    try:
-        h, w = (int(v) for v in parts)
-    except ValueError:   # wrong count or not integers
-        raise argparse.ArgumentTypeError(f"expected HxW, two integers >= 1 such as 64x112, got {text!r}") from None
-    if h < 1 or w < 1:
-        raise argparse.ArgumentTypeError(f"expected HxW with both >= 1, got {text!r}")
-    return h, w
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:

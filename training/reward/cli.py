@@ -8,26 +8,7 @@ import argparse
 import json
 import sys
 
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (0 or negative is refused with a one-line usage error)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
+from resim.argtypes import non_negative_int as _non_negative_int, positive_int as _positive_int
 
 
 def _load_train_cfg(args):
