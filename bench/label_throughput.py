@@ -91,7 +91,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--video", help="a 1280x720 H.264 video (made with ffmpeg when omitted)")
     ap.add_argument("--fps", type=float, default=30.0, help="frame rate of the video to make (default 30)")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="interleaved runs, best of each (>= 1)")
     ap.add_argument("--presets", default="default,fast",
                     help="labeler presets to time, comma-separated (labeling.config.PRESETS; default: default,fast)")
     ap.add_argument("--rig", metavar="AHEAD_M,HEIGHT_M",
@@ -101,6 +101,8 @@ def main() -> int:
                     help="also time every preset with the per-pair FOE (flow.foe_model=per_pair, the labeler before "
                          "the pooled FOE model), as '<preset>+per_pair'")
     args = ap.parse_args()
+    if args.repeats < 1:
+        ap.error("--repeats must be >= 1")
     sys.path.insert(0, str(REPO))
     from labeling.config import preset
     from labeling.video import probe
@@ -157,10 +159,11 @@ def main() -> int:
           f"{'own ms/frame':>12} {'frames decoded':>14}  windows (heading change, deg)")
     for name, cfg in cfgs.items():
         b, r = best[name], res[name]
-        base = a2 if have_av and r.decode.get("decoder") == "pyav" else best["a"]
+        pyav = have_av and r.decode.get("decoder") == "pyav"
+        base, n_base = (a2, n2) if pyav else (best["a"], n)   # own work per frame of the decode it ran on
         ba2 = f"{b / a2:6.3f}" if have_av else f"{'-':>6}"
         print(f"{name:<20} {cfg.flow.work_width_px:5d} {b:7.3f} {dur / b:16.1f}x {b / a1:6.3f} {ba2} "
-              f"{(b - base) / n * 1e3:12.2f} {r.decode.get('frames_decoded', 0):14d}  "
+              f"{(b - base) / n_base * 1e3:12.2f} {r.decode.get('frames_decoded', 0):14d}  "
               + " ".join(f"{w.yaw_deg:+.1f}" for w in r.windows))
     print("b/a2 = b / a'. Targets (issue 4): b/a <= 1.3 against decoding the frames the labeler needs (a' where PyAV "
           "is used), "
