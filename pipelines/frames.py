@@ -35,6 +35,12 @@ def center_crop(img: np.ndarray, dst_hw: tuple[int, int]) -> np.ndarray:
     return img[y:y + dh, x:x + dw]
 
 
+# A source this much below a clip rate still counts as that rate (9.99-fps files): resampling to the nearest source
+# frame then repeats one frame per 100+. Further below, frames would be repeated, i.e. motion timing invented
+# (the OpenDV reader quarantines such a video; the sampler refuses such a history).
+MIN_RATE_SLACK = 0.01
+
+
 def rate_step(source_fps_hz: float, clip_fps_hz: float) -> int | None:
     """Integer subsampling step from the source rate to the clip rate, or None if impossible."""
     ratio = source_fps_hz / clip_fps_hz

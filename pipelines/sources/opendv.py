@@ -25,6 +25,7 @@ from typing import Iterator
 
 import numpy as np
 
+from pipelines.frames import MIN_RATE_SLACK
 from resim.config import ConfigError, from_dict
 
 from .episode import Episode, SourceError
@@ -165,9 +166,8 @@ class OpenDVReader:
             if h < self.cfg.min_height_px:
                 raise SourceError(item_id, f"height {h} px < min_height_px {self.cfg.min_height_px} (skipped)")
             # Resampling keeps the nearest source frame: below the output rate that repeats frames (a
-            # 5 fps video at 10 Hz is every frame twice), i.e. invents motion timing. 1% slack for
-            # 9.99-style rates (one repeat per 100+ frames).
-            if src_fps < self.cfg.fps_hz * 0.99:
+            # 5 fps video at 10 Hz is every frame twice), i.e. invents motion timing (pipelines.frames).
+            if src_fps < self.cfg.fps_hz * (1 - MIN_RATE_SLACK):
                 raise SourceError(item_id, f"frame rate {src_fps:g} fps is below the output rate "
                                            f"{self.cfg.fps_hz:g} Hz (frames would be repeated)")
             if self.cfg.verify_last_frame:

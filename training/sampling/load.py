@@ -32,8 +32,6 @@ class SamplingInputError(ValueError):
 # clip.fps_hz), so one latent frame = 4 pixel frames = 0.4 s (ObjectiveConfig.latent_frame_dt_s). The fallback
 # when the model states no time scale; see video_clip_fps_hz.
 VIDEO_CLIP_FPS_HZ = 10.0
-# a source rate this close below the clip rate is taken as equal (9.99 fps files), as pipelines.frames.rate_step
-_RATE_TOLERANCE = 0.02
 
 
 def video_clip_fps_hz(model: Any, temporal_compression: int = 4) -> float:
@@ -121,6 +119,8 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
     than the clip rate is refused: its missing frames would have to be invented."""
     import cv2
 
+    from pipelines.frames import MIN_RATE_SLACK   # the pipeline's rule: a history is resampled as its clips were
+
     p = Path(path)
     if not p.is_file():
         raise SamplingInputError(f"history {p}: no such file (give a video file or --shards ROOT with a sample key)")
@@ -134,11 +134,11 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
         cap.release()
         raise SamplingInputError(f"history {p}: the file states no frame rate; cannot resample it to the "
                                  f"{clip_fps_hz:g} Hz the model was trained at (re-mux it with a frame rate)")
-    if src_fps < clip_fps_hz * (1 - _RATE_TOLERANCE):
+    if src_fps < clip_fps_hz * (1 - MIN_RATE_SLACK):
         cap.release()
         raise SamplingInputError(f"history {p}: {src_fps:g} fps is below the {clip_fps_hz:g} Hz clip rate the "
                                  f"model was trained at; give a video of at least {clip_fps_hz:g} fps")
-    step = max(src_fps / clip_fps_hz, 1.0)   # source frames per clip frame (>= 1 within the tolerance)
+    step = max(src_fps / clip_fps_hz, 1.0)   # source frames per clip frame (>= 1 within the slack)
     need = 1 + 4 * (num_latent_frames - 1)
     back = [round((need - 1 - k) * step) for k in range(need)]    # source frames before the last one
     buf: deque = deque(maxlen=back[0] + 1)   # only the tail is kept: long files need no memory for the rest
