@@ -5,7 +5,9 @@
 
 A shard is *committed* when its index file exists: the writer renames the tar
 into place first, then writes the manifest, then the index. Readers list
-committed shards only.
+committed shards only. Removal goes the other way (index first, then manifest
+and tar), so an interrupted removal leaves an uncommitted tar, never a committed
+index without its tar.
 """
 from __future__ import annotations
 
@@ -57,6 +59,27 @@ def all_shard_files(root) -> list[Path]:
     """Every ``*.tar`` under ``DIR/shards`` (committed or not), sorted by name."""
     d = shards_dir(root)
     return sorted(p for p in d.glob("*.tar") if not p.name.startswith(".")) if d.is_dir() else []
+
+
+def shards_of_prefix(root, prefix: str) -> list[str]:
+    """Shard names ``<prefix>-<seq:05d>.tar`` of exactly ``prefix`` with any file on disk (tar, index or
+    manifest, committed or not; temporaries excluded), sorted by sequence number."""
+    found = set()
+    for d, suffix in ((shards_dir(root), ".tar"), (index_dir(root), ".json"), (manifest_dir(root), ".parquet")):
+        for p in d.glob(f"*{suffix}") if d.is_dir() else []:
+            name = p.name[:-len(suffix)] + ".tar"
+            m = SHARD_RE.match(name)
+            if m and not p.name.startswith(".") and m.group("prefix") == prefix:
+                found.add(name)
+    return sorted(found, key=shard_seq)
+
+
+def shard_seq(shard: str) -> int:
+    """The sequence number of shard name ``<prefix>-<seq:05d>.tar`` (ValueError for another name)."""
+    m = SHARD_RE.match(shard)
+    if not m:
+        raise ValueError(f"{shard!r} is not a shard name <prefix>-<seq:05d>.tar")
+    return int(m.group("seq"))
 
 
 def committed_shards(root) -> list[Path]:

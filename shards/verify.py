@@ -1,13 +1,17 @@
 """``verify``: check a whole dataset folder; every problem names its shard and key.
 
 Checks, in order:
-* leftovers: temporary files of an interrupted writer, tars without an index
-  (uncommitted), indexes whose tar is missing;
+* leftovers: temporary files of an interrupted writer, tars and manifests
+  without an index (uncommitted, e.g. an interrupted write or stale-shard
+  removal), indexes whose tar is missing;
 * prompt table: every entry's ``.npy`` exists, matches its sha256, decodes to the
   declared dtype/shape, and its id is ``sha256(text)``;
 * per shard: size and sha256 against the index; the tar parses; sample count and
-  keys equal the index's; the manifest has one row per sample with the same keys;
-  the index's label histograms match the samples;
+  keys equal the index's, **in tar order** and without duplicates (a key listed
+  twice in the index, or a sample key repeated within the tar, is an error; an
+  order mismatch is reported once, at the first key out of place); the manifest
+  has one row per sample with the same keys; the index's label histograms match
+  the samples;
 * per sample: no forbidden member, every member decodes with the safe decoders,
   the sample matches the schema (members, dtypes, shapes vs meta, meta fields),
   frames.mp4 decodes to meta.num_frames frames of the declared size, and
@@ -80,6 +84,27 @@ def _check_prompts(root, problems: list[Problem]) -> dict:
     return entries
 
 
+def _key_order_problems(shard: str, keys: list[str], ikeys: list[str]) -> list[Problem]:
+    """Keys the index lists more than once, and the first key (of those both in the tar and the index) whose
+    position in the tar differs from the index's order. ``keys``: the tar's sample keys in order (repeats in
+    the tar are reported while reading it); ``ikeys``: the index's ``keys``."""
+    out = []
+    counts = Counter(ikeys)
+    for k in dict.fromkeys(ikeys):   # first-occurrence order
+        if counts[k] > 1:
+            out.append(Problem(shard, k, f"listed {counts[k]} times in the index (keys must be unique)"))
+    common = set(keys) & set(ikeys)
+    in_tar = [k for k in dict.fromkeys(keys) if k in common]
+    in_index = [k for k in dict.fromkeys(ikeys) if k in common]
+    for k, ik in zip(in_tar, in_index):
+        if k != ik:
+            out.append(Problem(shard, k, f"out of order: sample {keys.index(k)} of the tar, but position "
+                                         f"{ikeys.index(k)} in the index, which lists {ik} at {ikeys.index(ik)} "
+                                         "(the index lists keys in tar order)"))
+            break
+    return out
+
+
 def verify(root, decode_video: bool = True, progress: Callable[[str], None] | None = None) -> list[Problem]:
     """All problems found in dataset ``root`` (empty list: everything holds)."""
     import pyarrow as pa
@@ -100,7 +125,14 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
         if layout.index_dir(root).is_dir() else []
     indexed = {p.stem + ".tar" for p in idx_files}
     for name in sorted(tars - indexed):
-        problems.append(Problem(name, None, "shard has no index (uncommitted: its writer was interrupted)"))
+        problems.append(Problem(name, None, "shard has no index (uncommitted: its writer was interrupted; "
+                                            "rerun that work unit, or delete it)"))
+    mdir = layout.manifest_dir(root)
+    for mp in sorted(mdir.glob("*.parquet")) if mdir.is_dir() else []:
+        shard = mp.stem + ".tar"
+        if not mp.name.startswith(".") and shard not in indexed and shard not in tars:
+            problems.append(Problem(shard, None, f"manifest {mp.name} has neither an index nor a shard (left by an "
+                                                 "interrupted writer; rerun that work unit, or delete it)"))
     seen_keys: dict[str, str] = {}
     for ip in idx_files:
         shard = ip.stem + ".tar"
@@ -134,7 +166,10 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
             for raw in iter_raw_shard(path):
                 key = raw["__key__"]
                 keys.append(key)
-                if key in seen_keys:
+                if seen_keys.get(key) == shard:
+                    problems.append(Problem(shard, key, "duplicate key: a second sample with this key in the shard "
+                                                        "(keys must be unique)"))
+                elif key in seen_keys:
                     problems.append(Problem(shard, key, f"key also in shard {seen_keys[key]}"))
                 seen_keys.setdefault(key, shard)
                 try:
@@ -185,10 +220,13 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
         if len(keys) != n_index:
             problems.append(Problem(shard, None, f"holds {len(keys)} samples, index says {n_index}"))
         ikeys = index.get("keys") or []
+        if len(ikeys) != n_index:
+            problems.append(Problem(shard, None, f"index lists {len(ikeys)} keys but num_samples is {n_index}"))
         for k in sorted(set(ikeys) - set(keys)):
             problems.append(Problem(shard, k, "listed in the index but missing from the shard"))
         for k in sorted(set(keys) - set(ikeys)):
             problems.append(Problem(shard, k, "in the shard but not listed in the index"))
+        problems += _key_order_problems(shard, keys, ikeys)
         ih = index.get("histograms", {})
         for name, c in hist.items():
             if set(ikeys) == set(keys) and not undecoded and dict(c) != ih.get(name):

@@ -20,11 +20,26 @@ Naming and concurrency rule (many Ray workers at once)
     - with a different committed index: :class:`ShardExistsError`, unless the
       writer was built with ``overwrite=True`` (the index is removed first, so the
       shard is uncommitted while it is replaced).
+* A prefix holds exactly one run's shards. When :meth:`ShardWriter.close` has
+  committed the last shard, shards of the prefix numbered at or above the count
+  this run wrote (an earlier run of the unit that produced more shards) are
+  *stale*: with ``overwrite=True`` they are removed, index first (so each is
+  uncommitted at once), then manifest and tar; without it, committed stale shards
+  raise :class:`ShardExistsError` and stay. Stale shards are only touched after
+  every new shard is committed, so a crash during the rerun leaves each shard
+  either committed and complete (new, or the earlier run's) or uncommitted; a
+  crash during the removal leaves uncommitted tars, which readers skip,
+  ``verify`` reports and the next writer of the prefix deletes. Until ``close``
+  returns, a rerun with ``overwrite=True`` may leave a mix of new and earlier
+  shards committed under the prefix (the pipeline's per-unit commit marker,
+  written after ``close``, is what says a unit is complete).
 * On start, a writer deletes leftovers of *its own prefix* only: temporary files
-  from a killed run and uncommitted final tars. The pipeline redoes uncommitted
-  units deterministically, so nothing committed is ever lost.
+  from a killed run, uncommitted final tars and manifests without an index. The
+  pipeline redoes uncommitted units deterministically, so nothing committed is
+  ever lost.
 * If the writer's ``with`` block raises, the open shard's temporary file is
-  deleted; shards already committed stay (they are complete).
+  deleted; shards already committed stay (they are complete), and so do the
+  earlier run's higher-numbered shards (the run did not finish).
 """
 from __future__ import annotations
 
@@ -49,7 +64,8 @@ TAR_BLOCK = 512
 
 
 class ShardExistsError(FileExistsError):
-    """A committed shard with different content already has this name."""
+    """A committed shard with different content already has this name, or an earlier run's committed shards
+    of this prefix are numbered past this run's last shard (and the writer may not overwrite)."""
 
 
 @dataclass
@@ -105,8 +121,11 @@ class ShardWriter:
         max_samples_per_shard / max_bytes_per_shard: roll to a new shard before either
             would be exceeded (a single sample larger than the byte limit gets a shard alone).
         config_hash: hash of the resolved config that produced the data (stored in each index).
-        overwrite: replace committed shards of this prefix whose content differs.
+        overwrite: replace committed shards of this prefix whose content differs, and on ``close`` remove the
+            prefix's shards an earlier run numbered past this run's last one (see the module docstring).
         mtime: modification time stamped on every tar member (fixed, for reproducible bytes).
+
+    After ``close``, ``removed_stale`` lists the names of the earlier run's shards it removed.
     """
 
     def __init__(self, root, prefix: str, max_samples_per_shard: int = 1000,
@@ -132,6 +151,7 @@ class ShardWriter:
         self._fh = None
         self._tar: tarfile.TarFile | None = None
         self._closed = False
+        self.removed_stale: list[str] = []
 
     # ---- context manager -------------------------------------------------------------------------
     def __enter__(self) -> "ShardWriter":
@@ -178,11 +198,13 @@ class ShardWriter:
         self._add_row(sample, sum(len(b) for _, b in payloads))
 
     def close(self) -> list[ShardInfo]:
-        """Commit the open shard (if any) and return every shard this writer committed."""
+        """Commit the open shard (if any), deal with the prefix's stale shards (:meth:`_drop_stale_shards`) and
+        return every shard this writer committed."""
         if not self._closed:
             if self._tar is not None:
                 self._finish_shard()
             self._closed = True
+            self._drop_stale_shards()
         return list(self._infos)
 
     def abort(self) -> None:
@@ -203,10 +225,38 @@ class ShardWriter:
             for p in d.iterdir():
                 if is_tmp_name(p.name) and own.match(p.name):
                     p.unlink(missing_ok=True)
-        for p in layout.all_shard_files(self.root):
-            if own.match(p.name) and not layout.index_path(self.root, p.name).exists():
-                p.unlink(missing_ok=True)  # renamed but never committed: the rerun rewrites it
-                layout.manifest_path(self.root, p.name).unlink(missing_ok=True)
+        for name in layout.shards_of_prefix(self.root, self.prefix):
+            if not layout.index_path(self.root, name).exists():
+                # renamed but never committed, or left by an interrupted removal: the rerun rewrites what it needs
+                layout.manifest_path(self.root, name).unlink(missing_ok=True)
+                (layout.shards_dir(self.root) / name).unlink(missing_ok=True)
+
+    def _drop_stale_shards(self) -> None:
+        """After the run's last commit: remove the prefix's shards numbered >= the shards this run wrote.
+
+        They are an earlier run's (a prefix holds one run's shards, numbered from 0). Indexes go first, highest
+        number first, and are made durable before any manifest or tar is deleted, so an interrupted removal
+        leaves only uncommitted files (see the module docstring). Without ``overwrite``, committed stale shards
+        raise :class:`ShardExistsError` and nothing is removed.
+        """
+        stale = [n for n in layout.shards_of_prefix(self.root, self.prefix) if layout.shard_seq(n) >= self._seq]
+        committed = [n for n in stale if layout.index_path(self.root, n).exists()]
+        if committed and not self.overwrite:
+            raise ShardExistsError(
+                f"prefix {self.prefix!r}: this run wrote {self._seq} shard(s), but {', '.join(committed)} from an "
+                "earlier run with more shards are still committed; another writer may be using this prefix, or "
+                "the input changed. Pass overwrite=True to remove them.")
+        for name in reversed(stale):
+            layout.index_path(self.root, name).unlink(missing_ok=True)   # uncommit first
+        if stale:
+            fsync_dir(layout.index_dir(self.root))
+        for name in stale:
+            layout.manifest_path(self.root, name).unlink(missing_ok=True)
+            (layout.shards_dir(self.root) / name).unlink(missing_ok=True)
+        if stale:
+            fsync_dir(layout.manifest_dir(self.root))
+            fsync_dir(layout.shards_dir(self.root))
+        self.removed_stale = stale
 
     def _open_shard(self) -> None:
         self._name = layout.shard_name(self.prefix, self._seq)

@@ -108,3 +108,74 @@ def test_prompt_file_corrupted_and_index_without_shard(dataset):
     msgs = _msgs(dataset)
     assert any(npy.stem in m and "sha256" in m for m in msgs), msgs
     assert any(m.startswith("shard unitA-00002.tar") and "missing" in m for m in msgs)
+
+
+def _regroup(root, shard, order):
+    """Rebuild a shard with its samples in ``order(keys) -> keys`` (may repeat a key), and make the index's
+    sha/size match (a writer bug, not disk corruption). Returns the new key order."""
+    path = layout.shards_dir(root) / shard
+    with tarfile.open(path) as tin:
+        members = [(ti, tin.extractfile(ti).read()) for ti in tin.getmembers()]
+    by_key: dict = {}
+    for ti, data in members:
+        by_key.setdefault(ti.name.split(".", 1)[0], []).append((ti, data))
+    keys = order(list(by_key))
+    with tarfile.open(path, "w", format=tarfile.USTAR_FORMAT) as tout:
+        for k in keys:
+            for ti, data in by_key[k]:
+                tout.addfile(ti, io.BytesIO(data))
+    ip = layout.index_path(root, shard)
+    idx = json.loads(ip.read_text())
+    idx["sha256"], idx["bytes"] = sha256_file(path)
+    ip.write_text(json.dumps(idx))
+    return keys
+
+
+def _edit_index(root, shard, fn):
+    ip = layout.index_path(root, shard)
+    idx = json.loads(ip.read_text())
+    fn(idx)
+    ip.write_text(json.dumps(idx))
+
+
+def test_index_keys_out_of_tar_order(dataset):
+    keys = read_indexes(dataset)[1]["keys"]
+    _edit_index(dataset, SHARD, lambda idx: idx.update(keys=[keys[0], keys[2], keys[1], keys[3]]))
+    msgs = _msgs(dataset)
+    assert len(msgs) == 1 and msgs[0].startswith(f"shard {SHARD} key {keys[1]}: out of order: sample 1 of the tar, "
+                                                 f"but position 2 in the index"), msgs
+
+
+def test_tar_samples_out_of_index_order(dataset):
+    keys = read_indexes(dataset)[1]["keys"]
+    _regroup(dataset, SHARD, lambda ks: [ks[3], *ks[:3]])
+    msgs = _msgs(dataset)
+    assert len(msgs) == 1 and msgs[0].startswith(f"shard {SHARD} key {keys[3]}: out of order: sample 0 of the tar, "
+                                                 f"but position 3 in the index"), msgs
+
+
+def test_duplicate_keys_in_tar_and_index(dataset):
+    keys = read_indexes(dataset)[1]["keys"]
+    _regroup(dataset, SHARD, lambda ks: [*ks[:3], ks[0]])     # the last sample replaced by a copy of the first
+    _edit_index(dataset, SHARD, lambda idx: idx.update(keys=[*keys[:3], keys[0]]))
+    msgs = _msgs(dataset)
+    assert f"shard {SHARD} key {keys[0]}: duplicate key: a second sample with this key in the shard " \
+           "(keys must be unique)" in msgs, msgs
+    assert f"shard {SHARD} key {keys[0]}: listed 2 times in the index (keys must be unique)" in msgs, msgs
+    assert not any("also in shard" in m for m in msgs), msgs
+
+
+def test_duplicate_key_in_index_only(dataset):
+    keys = read_indexes(dataset)[1]["keys"]
+    _edit_index(dataset, SHARD, lambda idx: idx.update(keys=[keys[0], *keys[:3], keys[3]]))
+    msgs = _msgs(dataset)
+    assert f"shard {SHARD} key {keys[0]}: listed 2 times in the index (keys must be unique)" in msgs, msgs
+    assert f"shard {SHARD}: index lists 5 keys but num_samples is 4" in msgs, msgs
+    assert not any("out of order" in m for m in msgs), msgs
+
+
+def test_orphan_manifest_is_reported(dataset):
+    layout.manifest_path(dataset, SHARD).rename(layout.manifest_path(dataset, "unitA-00009.tar"))
+    msgs = _msgs(dataset)
+    assert "shard unitA-00009.tar: manifest unitA-00009.parquet has neither an index nor a shard (left by an " \
+           "interrupted writer; rerun that work unit, or delete it)" in msgs, msgs

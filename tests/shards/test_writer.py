@@ -163,3 +163,89 @@ def test_many_concurrent_writers(tmp_path):
     assert len(names) == len(set(names)) == 12
     assert len(list(iter_samples(tmp_path, attach_prompts=False))) == 18
     assert verify(tmp_path) == []
+
+
+def _unit_files(root, prefix="unit"):
+    """Names of the prefix's tars, indexes and manifests on disk (temporaries excluded)."""
+    return {sub: sorted(p.name for p in (root / sub).iterdir() if p.name.startswith(prefix + "-"))
+            for sub in ("shards", "index", "manifest")}
+
+
+def _keys(root):
+    return [s["__key__"] for s in iter_samples(root, attach_prompts=False)]
+
+
+def test_overwrite_rerun_with_fewer_shards_removes_the_earlier_runs_higher_shards(tmp_path):
+    from shards.manifest import read_manifest
+
+    _write_unit(tmp_path, n=10)                                         # shards 0..3
+    with ShardWriter(tmp_path, "unit", max_samples_per_shard=3, overwrite=True) as w:
+        new = [make_dummy_sample(item_id=f"u/{i}", seed=i + 100) for i in range(4)]
+        for s in new:
+            w.write(s)
+    assert [i.name for i in w.close()] == ["unit-00000.tar", "unit-00001.tar"]
+    assert _keys(tmp_path) == [s["__key__"] for s in new]              # no stale samples mixed in
+    assert read_manifest(tmp_path)["key"].to_pylist() == [s["__key__"] for s in new]
+    assert _unit_files(tmp_path) == {"shards": ["unit-00000.tar", "unit-00001.tar"],
+                                     "index": ["unit-00000.json", "unit-00001.json"],
+                                     "manifest": ["unit-00000.parquet", "unit-00001.parquet"]}
+    assert w.removed_stale == ["unit-00002.tar", "unit-00003.tar"]
+    assert verify(tmp_path) == []
+    with ShardWriter(tmp_path, "unit", overwrite=True) as w:            # a rerun that yields nothing
+        pass
+    assert w.removed_stale == ["unit-00000.tar", "unit-00001.tar"] and _keys(tmp_path) == []
+
+
+def test_rerun_with_fewer_shards_without_overwrite_is_refused_and_removes_nothing(tmp_path):
+    _write_unit(tmp_path, n=6)                                          # shards 0..1
+    before = _unit_files(tmp_path)
+    with pytest.raises(ShardExistsError, match=r"unit-00001.tar from an earlier run.*overwrite=True"):
+        _write_unit(tmp_path, n=3)                                      # shard 0 identical, shard 1 stale
+    assert _unit_files(tmp_path) == before and len(_keys(tmp_path)) == 6 and verify(tmp_path) == []
+
+
+def test_overwrite_rerun_interrupted_leaves_every_committed_shard_complete(tmp_path):
+    _write_unit(tmp_path, n=9)                                          # shards 0..2
+    old = {p.name: p.read_bytes() for p in layout.committed_shards(tmp_path)}
+    with pytest.raises(RuntimeError):
+        with ShardWriter(tmp_path, "unit", max_samples_per_shard=3, overwrite=True) as w:
+            for i in range(4):                                          # shard 0 replaced, shard 1 open
+                w.write(make_dummy_sample(item_id=f"u/{i}", seed=i + 100))
+            raise RuntimeError("worker died mid-rerun")
+    # the run did not finish: its new shard 0 is committed, the earlier run's 1..2 stay committed and intact
+    assert [p.name for p in layout.committed_shards(tmp_path)] == sorted(old)
+    assert all((layout.shards_dir(tmp_path) / n).read_bytes() == b for n, b in old.items() if n != "unit-00000.tar")
+    assert verify(tmp_path) == []
+
+
+def test_crash_while_removing_stale_shards_leaves_only_uncommitted_files(tmp_path, monkeypatch):
+    from shards import writer as writer_mod
+    from shards.manifest import read_manifest
+
+    _write_unit(tmp_path, n=9)                                          # shards 0..2
+    real_fsync_dir = writer_mod.fsync_dir
+
+    def crash_after_uncommit(path):
+        if Path(path) == layout.index_dir(tmp_path):                   # stale indexes are gone, nothing else yet
+            raise KeyboardInterrupt("killed")
+        real_fsync_dir(path)
+
+    monkeypatch.setattr(writer_mod, "fsync_dir", crash_after_uncommit)
+    new = [make_dummy_sample(item_id=f"u/{i}", seed=i + 100) for i in range(3)]
+    with pytest.raises(KeyboardInterrupt):
+        with ShardWriter(tmp_path, "unit", max_samples_per_shard=3, overwrite=True) as w:
+            for s in new:
+                w.write(s)
+    monkeypatch.undo()
+    files = _unit_files(tmp_path)
+    assert files["index"] == ["unit-00000.json"] and len(files["shards"]) == 3   # 1..2: tars without an index
+    assert _keys(tmp_path) == [s["__key__"] for s in new]              # readers see the new run only
+    assert read_manifest(tmp_path)["key"].to_pylist() == [s["__key__"] for s in new]
+    msgs = [str(p) for p in verify(tmp_path)]
+    assert msgs == [f"shard unit-0000{i}.tar: shard has no index (uncommitted: its writer was interrupted; "
+                    "rerun that work unit, or delete it)" for i in (1, 2)], msgs
+    with ShardWriter(tmp_path, "unit", max_samples_per_shard=3, overwrite=True) as w:   # the rerun cleans up
+        for s in new:
+            w.write(s)
+    assert [i.reused for i in w.close()] == [True]
+    assert _unit_files(tmp_path)["shards"] == ["unit-00000.tar"] and verify(tmp_path) == []
