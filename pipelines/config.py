@@ -13,13 +13,16 @@ Sections (one dataclass each; units in field names):
 
 Every error names the dotted key (``clip.stride_frames: ...``); paths that must exist, every reader's own
 options and a reused synthetic world are checked in :func:`check_paths` before Ray starts.
-``--set key.sub=value`` overrides any value (YAML-parsed).
+``--set key.sub=value`` overrides any value (YAML-parsed). Relative paths are relative to the working
+directory and are made absolute on load (:func:`absolute_paths`), so the config a run saves, ships to its
+workers and hashes names the data it read wherever it is read from.
 """
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+import os
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -366,12 +369,36 @@ class PipelineConfig:
         return clip.stride_frames // self.balance.turn_factor
 
 
+def _absolute(p: Optional[Path]) -> Optional[Path]:
+    # abspath, not resolve(): no symlink is followed, so a path already absolute is left as it is on every
+    # machine (Ray workers re-derive the data hash from it; a node with other symlinks must get the same)
+    return None if p is None else Path(os.path.abspath(os.path.expanduser(str(p))))
+
+
+def absolute_paths(cfg: PipelineConfig) -> PipelineConfig:
+    """``cfg`` with every path (``out``, each ``sources.*.root``, ``encode.vae`` / ``text_encoder``) made
+    absolute against the working directory; idempotent, null stays null (placeholder models, disabled sources).
+
+    Applied on load, by the runner and by the data hash, so the saved ``OUT/config.yaml`` says which data was
+    read, the hash does not depend on how a path was spelled (``data/x`` vs ``/repo/data/x``, or rerunning
+    from ``OUT/config.yaml``), and the same relative config run from another folder is another config.
+    """
+    s = cfg.sources
+    sources = replace(s, opendv=replace(s.opendv, root=_absolute(s.opendv.root)),
+                      navsim=replace(s.navsim, root=_absolute(s.navsim.root)),
+                      carla=replace(s.carla, root=_absolute(s.carla.root)),
+                      synthetic=replace(s.synthetic, root=_absolute(s.synthetic.root)))
+    enc = replace(cfg.encode, vae=_absolute(cfg.encode.vae), text_encoder=_absolute(cfg.encode.text_encoder))
+    return replace(cfg, out=_absolute(cfg.out), sources=sources, encode=enc)
+
+
 def load_config(path: str | Path | None, overrides=(), out: str | Path | None = None) -> PipelineConfig:
-    """YAML + ``--set`` overrides (+ ``--out``) → validated :class:`PipelineConfig`; paths checked too."""
+    """YAML + ``--set`` overrides (+ ``--out``) → validated :class:`PipelineConfig`, paths made absolute
+    (:func:`absolute_paths`; the YAML file itself is only read) and checked."""
     extra = list(overrides or ())
     if out is not None:
         extra.append(f"out={Path(out)}")
-    cfg = load(PipelineConfig, path, extra)
+    cfg = absolute_paths(load(PipelineConfig, path, extra))
     check_paths(cfg)
     return cfg
 
@@ -444,5 +471,5 @@ def config_from_dict(data: dict) -> PipelineConfig:
     return from_dict(PipelineConfig, data)
 
 
-__all__ = ["PipelineConfig", "load_config", "check_paths", "check_synthetic_world", "config_from_dict", "to_dict",
-           "ConfigError"]
+__all__ = ["PipelineConfig", "load_config", "absolute_paths", "check_paths", "check_synthetic_world",
+           "config_from_dict", "to_dict", "ConfigError"]

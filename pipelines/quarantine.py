@@ -1,4 +1,5 @@
-"""The quarantine table: items the pipeline could not use, with the stage, the reason and the attempts.
+"""The quarantine table: items the pipeline could not use (or used with a caveat), with the stage, the reason
+and the attempts.
 
 Bad input (a corrupt, truncated, zero-byte, too-short or too-low-resolution video, a log with missing
 frames, NaN annotations) never stops the job: the reader raises ``SourceError(item, reason)``, the
@@ -14,7 +15,9 @@ marker, so a rerun never loses or duplicates them. Columns (``QUARANTINE_COLUMNS
 * ``stage``     cut | label | balance | encode | write
 * ``status``    ``quarantined`` (the whole unit is skipped) or ``dropped`` (this window only; the
                 unit's other clips were written — or, for an enumerate row, this file only, e.g. an
-                unreadable CARLA results file; the source's units still ran)
+                unreadable CARLA results file; the source's units still ran) or ``warning`` (the unit was
+                used, and its clips written, but the reader repaired or could not fill something: one row
+                per ``Episode.warnings`` entry, e.g. a NaN compass interpolated, a route without outcome)
 * ``reason``    why, in words (the reader's ``SourceError.reason`` or our check's message), prefixed
                 with the file/frame the reader named when that is not the item itself
 * ``attempts``  how many times the item was tried (I/O errors are retried; reruns with
@@ -26,6 +29,7 @@ import time
 from pathlib import Path
 
 QUARANTINE_COLUMNS = ("item", "unit_id", "source", "stage", "status", "reason", "attempts")
+WARNING = "warning"          # a row that did not keep anything out of the dataset
 
 
 def row(state: dict, stage: str, reason: str, *, item: str | None = None, status: str = "quarantined",
@@ -43,6 +47,16 @@ def quarantine_unit(state: dict, stage: str, reason: str, attempts: int | None =
 
 def drop_window(state: dict, stage: str, start: int, reason: str) -> None:
     state["quarantine"].append(row(state, stage, reason, item=f"{state['item_id']}#f{start:07d}", status="dropped"))
+
+
+def warn(state: dict, stage: str, reason: str) -> None:
+    """Record a caveat on a unit that is still used (status ``warning``); its clips are written as usual."""
+    state["quarantine"].append(row(state, stage, reason, status=WARNING))
+
+
+def problems(rows: list[dict]) -> list[dict]:
+    """The rows that kept something out of the dataset (``quarantined`` / ``dropped``), warnings left out."""
+    return [r for r in rows if r["status"] != WARNING]
 
 
 def table_path(root: str | Path, unit_id: str) -> Path:

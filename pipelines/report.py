@@ -5,9 +5,10 @@ stage), a resumed run reports on the whole dataset, not just the units it redid.
 
 stats.json keys: ``units`` (total / ok / quarantined), ``clips`` (total, by origin, commands by origin,
 by command source, flow/trajectory agreement), ``turning_share`` (before and after the turn balance),
-``quarantine`` (rows by stage and status, first reasons), ``stages`` (seconds, share of time and clips
-per stage-second for each stage), ``this_run`` (wall time, units run/skipped, clips per second and per
-core).
+``quarantine`` (quarantined/dropped rows by stage and status, first reasons), ``warnings`` (rows of status
+``warning``: units used with a caveat their reader reported, first reasons), ``stages`` (seconds, share of
+time and clips per stage-second for each stage), ``this_run`` (wall time, units run/skipped, clips per
+second and per core).
 """
 from __future__ import annotations
 
@@ -47,7 +48,9 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
                   "share": round(seconds[k] / top_total, 4) if "." not in k else None,
                   "clips_per_s": round(total_clips / seconds[k], 3) if seconds[k] > 0 else None}
               for k in STAGE_ORDER if k in seconds}
-    rows = quarantine.read_table(out)
+    table = quarantine.read_table(out)
+    rows = quarantine.problems(table)
+    warned = [r for r in table if r["status"] == quarantine.WARNING]
     wall = float(this_run.get("wall_s", 0.0))
     run_clips = int(this_run.get("clips_written", 0))
     cpus = float(this_run.get("cpus", 1.0)) or 1.0
@@ -72,6 +75,11 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
             "by_stage": dict(Counter(r["stage"] for r in rows)),
             "by_status": dict(Counter(r["status"] for r in rows)),
             "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in rows[:20]],
+        },
+        "warnings": {
+            "rows": len(warned),
+            "units": len({r["unit_id"] for r in warned}),
+            "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in warned[:20]],
         },
         "stages": stages,
         "this_run": {**this_run, "clips_per_s": round(run_clips / wall, 4) if wall > 0 else None,
@@ -139,11 +147,14 @@ def write_report_png(out: str | Path, stats: dict) -> Path:
 
 def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
     ts, q, run = stats["turning_share"], stats["quarantine"], stats["this_run"]
+    wr = stats.get("warnings") or {"rows": 0}
     lines = [
         f"clips written     {stats['clips']['total']}  ({', '.join(f'{k}: {v}' for k, v in stats['clips']['by_origin'].items()) or 'none'})",
         f"units             {stats['units']['ok']} ok, {stats['units']['quarantined']} quarantined "
         f"({run.get('units_run', 0)} run now, {run.get('units_skipped', 0)} already committed)",
         f"quarantine rows   {q['rows']}" + (f"  e.g. {q['examples'][0]}" if q["examples"] else ""),
+        *([f"warnings          {wr['rows']} in {wr['units']} unit(s) (quarantine/*.parquet, status warning)  "
+           f"e.g. {wr['examples'][0]}"] if wr["rows"] else []),
         f"turning share     {_pct(ts['before'])} before → {_pct(ts['after'])} after {ts['turn_factor']}x balance",
         f"throughput        {run.get('clips_per_s')} clips/s ({run.get('clips_per_s_per_core')} per core), "
         f"wall {run.get('wall_s', 0):.1f} s",

@@ -1,8 +1,9 @@
 """Resumability: one commit marker per work unit, written last.
 
 ``commits/<unit_id>.json`` holds the unit's summary (source, status, clips written, shard names,
-balance counts, per-stage seconds, quarantine count). It is written atomically after the unit's shards
-(with their manifests and indexes) and its quarantine rows, so its presence means the unit is complete.
+balance counts, per-stage seconds, quarantine and warning row counts). It is written atomically after the
+unit's shards (with their manifests and indexes) and its quarantine rows, so its presence means the unit is
+complete.
 The driver reads the markers before starting: committed units are skipped (quarantined ones too,
 unless ``quarantine.retry_quarantined``); everything else is redone from scratch. Stats and the report
 are computed from all markers, so a resumed run reports on the whole dataset.
@@ -13,6 +14,8 @@ import json
 import os
 from pathlib import Path
 
+from pipelines import quarantine
+
 SUMMARY_KEYS = ("unit_id", "kind", "origin", "item_id", "status", "attempts", "balance", "timings_s", "written")
 
 
@@ -22,7 +25,8 @@ def marker_path(out: str | Path, unit_id: str) -> Path:
 
 def summary(state: dict) -> dict:
     s = {k: state.get(k) for k in SUMMARY_KEYS}
-    s["num_quarantined"] = len(state["quarantine"])
+    s["num_quarantined"] = len(quarantine.problems(state["quarantine"]))   # quarantined + dropped rows
+    s["num_warnings"] = len(state["quarantine"]) - s["num_quarantined"]
     s["selected"] = [{k: w[k] for k in ("start", "command", "command_source", "is_turning")}
                      for w in state.get("selected") or []] if state["status"] == "ok" else []
     s["commands_agree"] = [w.get("command_flow") == w.get("command_trajectory")

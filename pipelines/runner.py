@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipelines import quarantine, resume
-from pipelines.config import PipelineConfig, check_synthetic_world, to_dict
+from pipelines.config import PipelineConfig, absolute_paths, check_synthetic_world, to_dict
 from pipelines.units import dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save
 
@@ -43,7 +43,13 @@ class RunResult:
 
 # ------------------------------------------------------------------------------------- enumerate
 class EnumerateStage:
-    """Stage 1: the configured sources → one initial state per item (driver side; listing is cheap)."""
+    """Stage 1: the configured sources → one initial state per item (driver side; listing is cheap).
+
+    Listing follows the stages' rules (``stages/base.py``): a ``SourceError`` quarantines the source at once,
+    an ``OSError`` (e.g. EIO reading a CARLA results file) is retried ``quarantine.max_attempts`` times
+    first. Two items whose samples would get the same keys are refused here, before any unit runs
+    (:func:`check_unique_keys`).
+    """
 
     name = "enumerate"
 
@@ -55,28 +61,77 @@ class EnumerateStage:
 
         states, bad = [], []
         for spec in source_specs(self.cfg):
-            reader = make_reader(spec)   # a ConfigError here is a config mistake: it propagates
-            try:
-                items = reader.list_items()
-            except SourceError as e:   # e.g. a missing NAVSIM split, an undecodable videos.csv: source unusable
-                bad.append(self._row(spec, spec.root, f"{e.item}: {e.reason}"))
+            attempts = 0
+            while True:
+                attempts += 1
+                reader = make_reader(spec)   # a ConfigError here is a config mistake: it propagates
+                try:
+                    items = reader.list_items()
+                except SourceError as e:   # e.g. a missing NAVSIM split, an undecodable videos.csv: source unusable
+                    bad.append(self._row(spec, spec.root, f"{e.item}: {e.reason}", attempts=attempts))
+                    items = None
+                except OSError as e:       # transient I/O: a fresh reader lists again, then the source is quarantined
+                    if attempts < self.cfg.quarantine.max_attempts:
+                        continue
+                    bad.append(self._row(spec, spec.root, f"I/O error after {attempts} attempts: {e}",
+                                         attempts=attempts))
+                    items = None
+                break
+            if items is None:
                 continue
             # Problems a reader found while listing that leave the source usable (CARLA: an unreadable
             # results file, whose routes then get no outcome) are quarantine rows too, never ignored;
             # `dropped`: that file alone is skipped, the source's units still run.
             for e in getattr(reader, "problems", ()):
-                bad.append(self._row(spec, e.item, e.reason, status="dropped"))
+                bad.append(self._row(spec, e.item, e.reason, status="dropped", attempts=attempts))
             if spec.max_items is not None:
                 items = items[:spec.max_items]
             states.extend(new_state(spec, item) for item in items)
+        check_unique_keys(states)
         ids = [s["unit_id"] for s in states]
         if len(set(ids)) != len(ids):
-            raise RuntimeError("two work units share an id")   # our bug (unit ids hash kind + item id)
+            raise RuntimeError("two work units share an id")   # our bug (unit ids hash origin + item id)
         return states, bad
 
-    def _row(self, spec, item: str, reason: str, status: str = "quarantined") -> dict:
+    def _row(self, spec, item: str, reason: str, status: str = "quarantined", attempts: int = 1) -> dict:
         return {"item": str(item), "unit_id": f"_source-{spec.origin.replace('/', '-')}", "source": spec.origin,
-                "stage": self.name, "status": status, "reason": reason, "attempts": 1}
+                "stage": self.name, "status": status, "reason": reason, "attempts": attempts}
+
+
+def check_unique_keys(states: list[dict]) -> None:
+    """Refuse two units whose samples would share ``__key__``s; ``ConfigError`` naming both items.
+
+    A sample's key is ``shards.schema.make_key(source kind, item id, start frame)`` — the schema's key, which
+    ``resim shards verify`` recomputes from ``meta.json`` — so it does not say which configured section an item
+    came from. Two sections reading the same layout kind (``sources.opendv`` and the synthetic world's
+    ``opendv`` layout, both holding ``synth/synth_0000.mp4``, e.g. because one points into the other) would
+    write different units under identical keys. Unit ids (shard prefixes) differ, so only this check sees it.
+    """
+    seen: dict[tuple[str, str], dict] = {}
+    clashes: list[tuple[dict, dict]] = []
+    for st in states:
+        k = (st["kind"], st["item_id"])
+        if k in seen:
+            clashes.append((seen[k], st))
+        else:
+            seen[k] = st
+    if not clashes:
+        return
+    from shards.schema import make_key
+
+    a, b = clashes[0]
+
+    def where(st: dict) -> str:
+        s = st["spec"]
+        return f"{s['section']}" + (f" (layout {st['kind']})" if st["origin"] != st["kind"] else "") + \
+            f" item {st['item_id']!r} under {s['root']}"
+
+    more = f" ({len(clashes)} such pairs in all)" if len(clashes) > 1 else ""
+    raise ConfigError(
+        f"sources: {where(a)} and {where(b)} would write samples under the same keys "
+        f"(make_key({a['kind']!r}, item_id, start_frame), e.g. {make_key(a['kind'], a['item_id'], 0)}){more}; "
+        "the same data is configured twice, or two sources share relative paths: point one of them elsewhere, "
+        "or leave the layout out of sources.synthetic.layouts")
 
 
 def ensure_synthetic(cfg: PipelineConfig) -> None:
@@ -274,6 +329,7 @@ def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
     """
     from pipelines.stages.encode import data_config_hash
 
+    cfg = absolute_paths(cfg)   # config.yaml says which data was read, wherever it is read from later
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     stamp = out / "config_hash.txt"
@@ -303,6 +359,7 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
     from pipelines import report
 
     t0 = time.perf_counter()
+    cfg = absolute_paths(cfg)   # already so when loaded with load_config; workers get the same paths
     progress = cfg.ray.progress_bars if progress is None else progress
     out = prepare_out(cfg, force)
     ensure_synthetic(cfg)

@@ -20,7 +20,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from pipelines.config import PLACEHOLDER_T5, PLACEHOLDER_VAE, PipelineConfig
+from pipelines.config import PLACEHOLDER_T5, PLACEHOLDER_VAE, PipelineConfig, absolute_paths
 from resim.config import save
 
 PACKAGES = ("resim", "shards", "labeling", "pipelines")
@@ -29,20 +29,13 @@ JOB_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0", "HF_HUB_
 TERMINAL = ("SUCCEEDED", "FAILED", "STOPPED")
 
 
-def _abs(p):
-    return None if p is None else Path(p).expanduser().resolve()
-
-
 def absolutize(cfg: PipelineConfig) -> PipelineConfig:
-    """Relative paths are relative to where the user typed the command, not to the job's working dir."""
-    s = cfg.sources
-    sources = replace(s, opendv=replace(s.opendv, root=_abs(s.opendv.root)),
-                      navsim=replace(s.navsim, root=_abs(s.navsim.root)),
-                      carla=replace(s.carla, root=_abs(s.carla.root)),
-                      synthetic=replace(s.synthetic, root=_abs(s.synthetic.root)))
-    enc = replace(cfg.encode, vae=_abs(cfg.encode.vae), text_encoder=_abs(cfg.encode.text_encoder))
-    return replace(cfg, out=_abs(cfg.out), sources=sources, encode=enc,
-                   ray=replace(cfg.ray, address=None, executor="ray"))
+    """Relative paths are relative to where the user typed the command, not to the job's working dir.
+
+    The same :func:`pipelines.config.absolute_paths` as a local run (no symlink followed), so a submitted job
+    and a local run of one config have one data hash and may resume each other's OUT."""
+    cfg = absolute_paths(cfg)
+    return replace(cfg, ray=replace(cfg.ray, address=None, executor="ray"))
 
 
 def package_dirs() -> list[str]:
@@ -78,7 +71,7 @@ def submit(cfg: PipelineConfig, address: str, job_id: str | None = None, agent_w
                 return c.submit_job(
                     entrypoint="python -m resim pipeline run job_config.yaml --no-progress",
                     runtime_env=runtime_env, submission_id=job_id,
-                    metadata={"resim": "pipeline", "out": str(_abs(cfg.out))})
+                    metadata={"resim": "pipeline", "out": str(absolute_paths(cfg).out)})
             except RuntimeError as e:   # a head that just started has its dashboard up before its job agent
                 if "No available agent" not in str(e) or time.monotonic() > deadline:
                     raise

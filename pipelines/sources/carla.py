@@ -20,7 +20,9 @@ STRAIGHT/LANEFOLLOW -> straight, VOID/CHANGELANE* -> unknown.
 
 The outcome comes from the results file's record for the route: matched by
 ``save_name`` == folder name, else by route number (``Route<id>`` in the folder
-name vs ``RouteScenario_<id>``).
+name vs ``RouteScenario_<id>``). A results file that is bad data is skipped and
+reported in ``problems``; a transient ``OSError`` while reading one propagates
+(nothing is cached), so the pipeline retries it like any other read.
 """
 from __future__ import annotations
 
@@ -77,13 +79,18 @@ class CarlaReader:
     # results ---------------------------------------------------------------------------------
     def records(self) -> list[RouteRecord]:
         if self._records is None:
-            self._records = []
+            # Built aside and kept only once every file was read: an OSError (transient I/O, see
+            # load_results) propagates and leaves nothing cached, so a retry reads all files again
+            # instead of finding a partial list (routes silently without outcome).
+            records: list[RouteRecord] = []
+            problems: list[SourceError] = []
             for p in sorted(self.cfg.root.glob(self.cfg.results_glob)):
                 try:
-                    self._records.extend(load_results(p).records)
+                    records.extend(load_results(p).records)
                 except SourceError as e:
-                    self.problems.append(SourceError(e.item, f"{e.reason}; results file skipped, so routes "
-                                                             "recorded only there get no outcome (hazard unknown)"))
+                    problems.append(SourceError(e.item, f"{e.reason}; results file skipped, so routes "
+                                                        "recorded only there get no outcome (hazard unknown)"))
+            self._records, self.problems = records, problems
         return self._records
 
     def record_for(self, item_id: str) -> RouteRecord | None:

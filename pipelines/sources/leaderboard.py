@@ -138,11 +138,19 @@ def parse_results(data, path: str = "<results>") -> ResultsFile:
 
 
 def load_results(path: str | Path) -> ResultsFile:
+    """Read and parse a results file; bad data (not there, not readable by us, not UTF-8 JSON, malformed
+    records) is a ``SourceError`` naming it. Any other ``OSError`` (EIO, a stale NFS handle, a timeout) may be
+    transient and propagates, as the NAVSIM and CARLA annotation reads do, so the pipeline retries it
+    ``quarantine.max_attempts`` times before quarantining."""
     p = Path(path)
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
-    except OSError as e:
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as e:
         raise SourceError(str(p), f"cannot read results file ({e.strerror})") from None
+    except OSError as e:                     # transient: propagates, naming the file (quarantine reasons)
+        if e.filename is None:
+            e.filename = str(p)
+        raise
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise SourceError(str(p), f"malformed results JSON ({e})") from None
     return parse_results(data, str(p))

@@ -7,10 +7,13 @@ stages that need them, each at its own size (flow: tiny; VAE: the training resol
 
 Quarantined here (bad input, not our bug): unreadable / zero-byte / truncated items (the reader's
 ``SourceError``), a frame rate that cannot be brought to ``clip.fps_hz``, fewer frames than one clip,
-frames lower than ``sources.opendv.min_height_px`` (OpenDV) or smaller than the VAE input.
+frames lower than ``sources.opendv.min_height_px`` (OpenDV) or smaller than the VAE input. The episode's
+``warnings`` (defects the reader repaired, a route without outcome) become ``warning`` rows of the
+quarantine table: the unit goes on, and the caveat is saved with the dataset.
 """
 from __future__ import annotations
 
+from pipelines import quarantine
 from pipelines.frames import rate_step
 from pipelines.stages.base import BadInput, Stage
 from pipelines.units import clip_of, make_reader, spec_from_state
@@ -35,6 +38,11 @@ class CutStage(Stage):
     def process(self, state: dict) -> None:
         cfg, clip = self.cfg, clip_of(state)
         ep = self.open(state)
+        if (ep.source, ep.item_id) != (state["kind"], state["item_id"]):
+            # sample keys are make_key(ep.source, ep.item_id, start); enumerate checked them for collisions
+            # as (kind, item_id), so a reader must not rename its items (our bug, fail loudly)
+            raise RuntimeError(f"{state['item_id']}: the {state['kind']} reader returned an episode of "
+                               f"({ep.source!r}, {ep.item_id!r})")
         step = rate_step(ep.fps_hz, clip.fps_hz)
         if step is None:
             raise BadInput(f"frame rate {ep.fps_hz:g} Hz cannot be brought to the clip rate {clip.fps_hz:g} Hz "
@@ -70,3 +78,5 @@ class CutStage(Stage):
             "warnings": [str(x) for x in getattr(ep, "warnings", [])],
         }
         state["windows"] = [{"start": s} for s in starts]
+        for w in state["episode"]["warnings"]:   # last, so a retried or failed cut adds none
+            quarantine.warn(state, self.name, w)

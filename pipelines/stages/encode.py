@@ -34,10 +34,12 @@ def staging_dir(out: str | Path, unit_id: str) -> Path:
 
 
 def data_config_hash(cfg) -> str:
-    """Hash of what determines the data (sources, clip, labels, balance, encode, shards)."""
+    """Hash of what determines the data (sources, clip, labels, balance, encode, shards), with paths absolute
+    (``config.absolute_paths``: a no-op on the runner's config, which is absolute already, on any worker)."""
+    from pipelines.config import absolute_paths
     from resim.config import to_dict
 
-    d = to_dict(cfg)
+    d = to_dict(absolute_paths(cfg))
     return config_hash({k: d[k] for k in ("sources", "clip", "labels", "balance", "encode", "shards")})
 
 

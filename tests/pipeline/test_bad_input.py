@@ -9,6 +9,7 @@
 """
 import errno
 import gzip
+import json
 import pathlib
 import pickle
 import shutil
@@ -195,6 +196,69 @@ def test_unreadable_carla_results_file_becomes_a_quarantine_row(part, tmp_path):
         assert any("simulation_results.json" in w for w in st["episode"]["warnings"])
     quarantine.write_rows(tmp_path / "out", "_enumerate", bad)        # what runner.run does with them
     assert [r["item"] for r in quarantine.read_table(tmp_path / "out")] == [row["item"]]
+
+
+@pytest.mark.parametrize("fail_times", [1, 99])
+def test_carla_results_file_read_error_is_retried(part, tmp_path, monkeypatch, fail_times):
+    root = part("carla")
+    cfg = _only("carla", root, tmp_path, "quarantine.max_attempts=2")
+    units, bad = _cut_all(cfg)
+    hazards = {i: st["episode"]["hazard"] for i, st in units.items()}
+    assert bad == [] and None not in hazards.values()
+
+    def flaky():
+        return _flaky(monkeypatch, pathlib.Path, "read_text", lambda p: p.endswith("simulation_results.json"),
+                      fail_times)
+
+    calls = flaky()
+    states, bad = EnumerateStage(cfg)()                                         # driver side: list_items
+    if fail_times == 1:                                                         # was: a `dropped` row, no retry
+        assert bad == [] and calls["failed"] == 1 and len(states) == len(units)
+    else:                                                                       # persistent: quarantines the
+        [row] = bad                                                             # source, like any listing failure
+        assert states == [] and (row["status"], row["attempts"], row["item"]) == ("quarantined", 2, str(root))
+        assert row["reason"].startswith("I/O error after 2 attempts") and "simulation_results.json" in row["reason"]
+        monkeypatch.undo()
+        states, _ = EnumerateStage(cfg)()
+        calls = flaky()
+    calls["failed"] = 0
+    st = CutStage(cfg).run_one(states[0])                                       # a stage's reader reads it too
+    if fail_times == 1:                                                         # was: ok at once, hazard None
+        assert (st["status"], st["attempts"]) == ("ok", 2)
+        assert st["episode"]["hazard"] == hazards[st["item_id"]] and st["episode"]["warnings"] == []
+    else:
+        assert (st["status"], st["attempts"]) == ("quarantined", 2)
+        assert st["quarantine"][0]["reason"].startswith("I/O error after 2 attempts")
+
+
+# ---------------------------------------------------------------------------------- episode warnings
+def test_episode_warnings_are_saved_as_warning_rows(part, tmp_path):
+    from pipelines import report
+
+    root = part("carla")
+    route = sorted(p for p in root.iterdir() if (p / "anno").is_dir())[0]
+    anno = route / "anno" / "00003.json.gz"
+    a = json.loads(gzip.decompress(anno.read_bytes()))
+    a["theta"] = None                                                           # NaN compass: interpolated
+    anno.write_bytes(gzip.compress(json.dumps(a).encode()))
+    cfg = _only("carla", root, tmp_path, "ray.executor=local")
+    st = _cut_all(cfg)[0][route.name]
+    assert st["status"] == "ok" and "interpolated" in st["episode"]["warnings"][0]
+    [row] = st["quarantine"]                                                    # was: no row, only the state
+    assert (row["item"], row["status"], row["stage"]) == (route.name, "warning", "cut")
+    assert row["reason"] == st["episode"]["warnings"][0]
+
+    res = runner.run(cfg, progress=False)                                       # end to end: saved in OUT
+    assert [(r["item"], r["status"], r["reason"]) for r in quarantine.read_table(res.out)] == \
+        [(route.name, "warning", row["reason"])]
+    marker = resume.read_markers(res.out)[st["unit_id"]]
+    assert (marker["status"], marker["num_quarantined"], marker["num_warnings"]) == ("ok", 0, 1)
+    assert marker["written"]["num_samples"] > 0                                 # the unit was used
+    stats = res.stats
+    assert stats["quarantine"]["rows"] == 0 and stats["units"]["quarantined"] == 0
+    assert stats["warnings"]["rows"] == 1 and stats["warnings"]["units"] == 1
+    assert stats["warnings"]["examples"] == [f"{route.name} [cut]: {row['reason']}"]
+    assert "warnings          1 in 1 unit(s)" in report.format_summary(stats, res.out, None)
 
 
 # ----------------------------------------------------------------------------------- OpenDV videos.csv

@@ -112,3 +112,62 @@ def test_reused_synthetic_world_must_match_the_config(synth_world, tmp_path):
     (bare / "ground_truth.json").write_text("{}")
     with pytest.raises(ConfigError, match="without synth_config.json"):
         _load(f"sources.synthetic.root={bare}")
+
+
+# ------------------------------------------------------------------------------- paths made absolute
+def test_paths_are_saved_absolute_and_a_rerun_from_the_saved_config_resumes(tmp_path, monkeypatch):
+    import yaml
+
+    from pipelines import runner
+    from pipelines.stages.encode import data_config_hash
+
+    work = tmp_path / "work"
+    (work / "routes").mkdir(parents=True)
+    user_yaml = work / "my.yaml"
+    user_yaml.write_text((REPO / "configs/pipeline/carla.yaml").read_text().replace("out: null", "out: ds", 1))
+    before = user_yaml.read_bytes()
+    monkeypatch.chdir(work)
+    cfg = load_config("my.yaml", ["sources.carla.root=routes", "ray.address=null"])
+    assert cfg.out == work / "ds" and cfg.sources.carla.root == work / "routes"   # was: ds, routes
+    out = runner.prepare_out(cfg)
+    saved = yaml.safe_load((out / "config.yaml").read_text())
+    assert saved["out"] == str(work / "ds") and saved["sources"]["carla"]["root"] == str(work / "routes")
+    assert user_yaml.read_bytes() == before                                     # the user's file untouched
+    (out / "commits").mkdir()
+    (out / "commits" / "unit.json").write_text("{}")                             # OUT now holds a committed unit
+
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "routes").mkdir(parents=True)
+    monkeypatch.chdir(elsewhere)
+    again = load_config(out / "config.yaml")                                    # rerun from the saved config
+    assert data_config_hash(again) == data_config_hash(cfg) == (out / "config_hash.txt").read_text().strip()
+    runner.prepare_out(again)                                                   # resumes: not "a different config"
+    other = load_config(user_yaml, ["sources.carla.root=routes", "ray.address=null", f"out={out}"])
+    assert other.sources.carla.root == elsewhere / "routes"                     # the same words, other data
+    with pytest.raises(ConfigError, match="different config"):
+        runner.prepare_out(other)
+
+
+# ---------------------------------------------------------------------------------- sample keys
+def test_two_sources_whose_samples_would_share_keys_are_refused_at_enumerate(synth_world, tmp_path):
+    from pipelines import runner
+    from pipelines.runner import EnumerateStage
+
+    world = f"sources.synthetic.root={synth_world}"
+    opendv = [f"sources.opendv.root={synth_world / 'opendv'}", "sources.opendv.min_height_px=32"]
+    item = sorted(p.relative_to(synth_world / "opendv").as_posix() for p in (synth_world / "opendv").rglob("*.mp4"))[0]
+    cfg = _load(world, "sources.synthetic.layouts=[opendv]", *opendv, out=tmp_path / "out")
+    with pytest.raises(ConfigError) as e:                                       # was: duplicate __key__s in the shards
+        EnumerateStage(cfg)()
+    msg = str(e.value)
+    assert f"sources.opendv item {item!r} under {synth_world / 'opendv'}" in msg, msg
+    assert f"sources.synthetic (layout opendv) item {item!r} under {synth_world / 'opendv'}" in msg, msg
+    assert "same keys" in msg and "(2 such pairs in all)" in msg
+    with pytest.raises(ConfigError, match="same keys"):                          # the run stops before any unit
+        runner.run(cfg, progress=False)
+    assert not (tmp_path / "out" / "commits").exists()
+    # a source of another kind beside the synthetic world is fine
+    ok = _load(world, "sources.synthetic.layouts=[opendv]", f"sources.carla.root={synth_world / 'carla'}",
+               out=tmp_path / "out2")
+    states, bad = EnumerateStage(ok)()
+    assert len(states) == 4 and bad == []

@@ -57,3 +57,24 @@ def test_broken_routes_reported_with_item_and_reason(carla_root):
     assert "rgb_front/00003.jpg: missing rgb_front frame 3" in txt
     assert "anno/00001.json.gz: missing annotation frame 1" in txt
     assert "rgb_front/00004.jpg: cannot decode image" in txt
+
+
+def test_results_read_error_propagates_and_is_not_cached(carla_root, monkeypatch):
+    import errno
+
+    from pipelines.sources import carla
+
+    real, calls = carla.load_results, {"n": 0}
+
+    def eio_once(p):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise OSError(errno.EIO, "Input/output error", str(p))
+        return real(p)
+    monkeypatch.setattr(carla, "load_results", eio_once)
+    r = CarlaReader(CarlaConfig(root=carla_root))
+    with pytest.raises(OSError):                                   # transient: the pipeline retries it
+        r.open("HardBreakRoute_Town01_Route30_Weather3")
+    ep = r.open("HardBreakRoute_Town01_Route30_Weather3")           # the retry reads every file again
+    assert ep.outcome is not None and ep.outcome.infraction_score == 0.6 and ep.warnings == []
+    assert [p.item.endswith("broken_results.json") for p in r.problems] == [True]   # once, not twice

@@ -63,3 +63,20 @@ def test_malformed_results_are_source_errors(tmp_path):
     p.write_text(json.dumps(bad)[:20])
     with pytest.raises(SourceError, match="malformed results JSON"):
         load_results(p)
+
+
+def test_transient_read_error_propagates_bad_files_do_not(tmp_path, monkeypatch):
+    import errno
+    import pathlib
+
+    with pytest.raises(SourceError, match="cannot read results file"):             # not there: bad data
+        load_results(tmp_path / "missing.json")
+    p = tmp_path / "r.json"
+    p.write_text("{}")
+
+    def eio(self, *a, **k):
+        raise OSError(errno.EIO, "Input/output error")
+    monkeypatch.setattr(pathlib.Path, "read_text", eio)
+    with pytest.raises(OSError) as e:                                               # was: SourceError (never retried)
+        load_results(p)
+    assert not isinstance(e.value, SourceError) and e.value.errno == errno.EIO and str(p) in str(e.value)
