@@ -75,6 +75,9 @@ def _run(args: argparse.Namespace) -> int:
     n_dec = res.decode.get("frames_decoded", 0)
     skipped = (" (non-reference frames not decoded)"
                if res.decode.get("nonref_skipped") and n_dec < info.num_frames - 1 else "")
+    if res.decode.get("nonref_skipped_until_s") is not None:
+        skipped = (f" (non-reference frames not decoded until {res.decode['nonref_skipped_until_s']:g} s, every frame "
+                   f"after it: reference frames alone were {res.decode['nonref_gap_s']:g} s apart there)")
     if res.decode.get("timestamps") == "frame count / fps":
         skipped += f" (no usable frame times in the file: times are frame count / {info.fps_hz:g} fps)"
     note = "" if full else f" (shorter than the {cfg.command.window_s:g}-s window: one short window)"
@@ -92,6 +95,10 @@ def _run(args: argparse.Namespace) -> int:
           f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "
           f"decoded {n_dec} of {info.num_frames or 'an unknown number of'} frames"
           f"{skipped}", file=sys.stderr)
+    if res.decode.get("incomplete"):
+        # a truncated or damaged file: the labels above cover the part that decodes (docs/labeling.md, "Odd files")
+        print(f"resim label: warning: {info.path}: {res.decode['incomplete']}; "
+              f"the labels cover 0-{res.times_s[-1]:.2f} s only", file=sys.stderr)
     return 0
 
 

@@ -5,7 +5,8 @@ Two decoder paths (``decoder="auto"`` takes PyAV when it is installed):
 * **PyAV** (FFmpeg's own API): the 8-bit luma plane is read straight from the decoded
   frame (no colour conversion), and, where the stream has non-reference
   frames (B-frames) and skipping them still leaves at least ``sample_hz`` frames per
-  second (checked on the first 2 s of the same decode), they are not decoded at all (``skip_frame=NONREF``:
+  second (checked on the first 2 s of the same decode, and kept true to the end: a later gap between reference
+  frames makes it seek back and decode every frame from there on), they are not decoded at all (``skip_frame=NONREF``:
   ~40 % less decode time on x264's default stream; the frames that are decoded are
   bit-identical). Skipping the deblocking filter too (``skip_loop_filter=all``) saved
   another ~15 % but moved the yaw of the straight real clip by 3 deg over 9 s (block
@@ -19,6 +20,10 @@ YUV, OpenCV is asked not to convert to BGR (``CAP_PROP_CONVERT_RGB = 0``) and th
 luma plane it returns *is* the greyscale image the flow needs; this is verified on
 the first frame against a normal BGR decode, and the reader falls back to BGR
 otherwise. The sample aspect ratio (anamorphic video) is applied when resizing.
+
+Both readers end a truncated or damaged file where it stops decoding (the first packet FFmpeg rejects; PyAV
+also at the first frame FFmpeg flags as concealed after a clean one) and report it in ``stats["incomplete"]``: the part before is
+labelled, nothing after it is made up (docs/labeling.md, "Odd files").
 """
 from __future__ import annotations
 
@@ -49,10 +54,38 @@ class VideoInfo:
     width_px: int
     height_px: int
     pixel_aspect: float      # sample aspect ratio (1.0 = square pixels)
+    # the video stream's own duration as the container states it (None = unknown): what a complete decode must
+    # reach (``iter_grey_samples`` reports a decode that stops short of it, e.g. a truncated download)
+    video_duration_s: float | None = None
 
     @property
     def duration_s(self) -> float:
         return self.num_frames / self.fps_hz
+
+
+def _video_duration_s(path: str, fps: float, num_frames: int) -> float | None:
+    """The video stream's duration as the container states it, or None where it states none.
+
+    With PyAV: the stream's duration (MP4, AVI, TS), else Matroska/WebM's ``DURATION`` tag (what FFmpeg's muxer
+    writes). Not the format's duration, which runs to the end of the longest stream (an audio track that outlasts
+    the video). Without PyAV: OpenCV's frame count / fps, which for Matroska and TS is the format's duration.
+    """
+    try:
+        import av
+    except ImportError:
+        return num_frames / fps if num_frames > 0 else None
+    try:
+        with av.open(path) as c:
+            s = c.streams.video[0]
+            if s.duration and s.time_base:
+                return float(s.duration * s.time_base)
+            tag = s.metadata.get("DURATION") or s.metadata.get("duration")
+            if tag:
+                h, m, sec = tag.split(":")
+                return int(h) * 3600 + int(m) * 60 + float(sec)
+    except (av.error.FFmpegError, IndexError, ValueError):
+        pass
+    return None
 
 
 def _open(path: str, convert_rgb: bool = True) -> cv2.VideoCapture:
@@ -94,7 +127,7 @@ def probe(path: str | Path) -> VideoInfo:
     finally:
         cap.release()
     sar = (num / den) if (num and den and num > 0 and den > 0) else 1.0
-    return VideoInfo(str(p), fps, n, w, h, float(sar))
+    return VideoInfo(str(p), fps, n, w, h, float(sar), _video_duration_s(str(p), fps, n))
 
 
 def _luma_plane_ok(path: str, h: int, w: int) -> bool:
@@ -127,7 +160,11 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
     Frames are taken at the first decoded frame at or after each tick k / sample_hz (all
     frames when the video is slower than ``sample_hz``). Raises VideoError on undecodable input.
     ``decoder``: "auto" (PyAV if installed, else OpenCV), "pyav", "opencv". ``stats``, if given, is
-    filled with ``decoder``, ``frames_decoded`` and ``nonref_skipped`` (PyAV skipped non-reference frames).
+    filled with ``decoder``, ``frames_decoded``, ``nonref_skipped`` (PyAV skipped non-reference frames; with
+    ``nonref_skipped_until_s`` / ``nonref_gap_s`` where a gap between reference frames made it decode every frame
+    from there on, ``frames_redecoded`` the frames decoded twice for that), ``timestamps``, ``decoded_s`` (seconds
+    decoded), ``video_duration_s`` (the container's) and ``incomplete``: None, or why the decode stopped short of
+    the container's duration (a truncated or damaged file: the samples before are yielded, ``_check_complete``).
     """
     stats = {} if stats is None else stats
     info = info or probe(path)
@@ -142,9 +179,29 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
         else:
             stats["decoder"] = "pyav"
             yield from _iter_pyav(info, sample_hz, work_width_px, stats=stats)
+            _check_complete(info, sample_hz, stats)
             return
     stats.update(decoder="opencv", nonref_skipped=False, timestamps="stream")
     yield from _iter_opencv(info, sample_hz, work_width_px, use_luma, stats)
+    _check_complete(info, sample_hz, stats)
+
+
+def _check_complete(info: VideoInfo, sample_hz: float, stats: dict) -> None:
+    """A decode that stopped early (truncated or damaged file) ends the video there, in both readers: the samples
+    decoded so far are labelled, and ``stats["incomplete"]`` says so (None for a complete decode), with
+    ``decoded_s`` (seconds decoded) and ``video_duration_s`` (the container's). Early = FFmpeg reported damage
+    (PyAV), or the decoded part falls short of the container's video duration by more than one sampling period
+    and two frames (what skipped trailing non-reference frames and rounded durations can account for)."""
+    end, full = stats.get("decoded_s"), info.video_duration_s
+    stats["video_duration_s"] = full
+    err = stats.get("decode_error")
+    short = full is not None and end is not None and end < full - (1.0 / sample_hz + 2.0 / info.fps_hz)
+    if not (err or short):
+        stats["incomplete"] = None
+        return
+    of = f" of the {full:.2f} s the container states" if full is not None else ""
+    why = err or "the decoder found no more frames: the file is truncated or damaged"
+    stats["incomplete"] = f"decoded {end:.2f} s{of} ({why})"
 
 
 def _av_open(path: str, skip_nonref: bool):
@@ -185,6 +242,56 @@ class _BadTimestamps(Exception):
     """Frames without a time, or times that do not increase (raised while probing)."""
 
 
+def _frames(c, s, stats: dict):
+    """Decoded frames of stream ``s``, in display order, up to the first packet FFmpeg cannot read or decode, or
+    the first frame it flags as damaged (errors concealed) after a clean one, whichever comes first.
+
+    A truncated or damaged file ends the video there (``docs/labeling.md``, "Odd files"): the frames the decoder
+    still holds are drained and returned (after a rejected packet), and ``stats["decode_error"]`` says what stopped
+    it and where. OpenCV's reader also stops at the first packet it cannot decode; carrying on past the damage
+    would give frames made up by FFmpeg's error concealment until the next key frame.
+    """
+    import av
+
+    cc = s.codec_context
+    at, good = None, False
+    try:
+        for p in c.demux(s):
+            if p.pts is not None and p.time_base is not None:
+                at = float(p.pts * p.time_base)
+            try:
+                frames = cc.decode(p)
+            except av.error.FFmpegError as e:
+                stats["decode_error"] = _ffmpeg_reason(e, "decoding", at)
+                break
+            for f in frames:
+                if f.is_corrupt:               # decoded, but with errors concealed: pixels FFmpeg made up
+                    if not good:               # a stream (or a seek) that starts before a clean key frame: skip
+                        continue
+                    stats["decode_error"] = f"FFmpeg found damaged data in the frame at {f.time:.2f} s"
+                    return
+                good = True
+                yield f
+        else:
+            return
+    except av.error.FFmpegError as e:          # the demuxer: a container cut short or damaged
+        stats["decode_error"] = _ffmpeg_reason(e, "reading", at)
+    try:
+        drained = cc.decode(None)              # drain: frames decoded before the damage are good
+    except av.error.FFmpegError:
+        return
+    for f in drained:
+        f.time_base = s.time_base              # no packet to take it from: ``time`` would be NaN
+        if f.is_corrupt:
+            return
+        yield f
+
+
+def _ffmpeg_reason(e, what: str, at_s: float | None) -> str:
+    msg = getattr(e, "strerror", None) or str(e)
+    return f"FFmpeg stopped {what} the stream" + (f" at {at_s:.2f} s" if at_s is not None else "") + f": {msg}"
+
+
 def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_nonref: bool,
                   probe_s: float, stats: dict, count_frames: bool = False) -> Iterator[tuple[float, np.ndarray]]:
     """One decode: yield (t_s, grey) at the first decoded frame at or after each tick.
@@ -194,6 +301,11 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
     1 / sample_hz (+ a quarter frame of slack); without ``count_frames``, raises ``_BadTimestamps`` at a
     frame without a time (raw .h264) or whose time does not increase (H.264 in AVI carries decode-order
     stamps). ``count_frames``: times are frame count / fps (every frame decoded, constant rate assumed).
+    After ``probe_s``, such a gap (the encoder's choice of frame types can change within a video: x264's
+    adaptive B-frames) is repaired in the same decode: it seeks back to the key frame at or before the last
+    frame handled and decodes every frame from there to the end (``stats["nonref_skipped_until_s"]``), so the
+    samples never miss a tick while skipping; the common case decodes nothing twice. Where the container
+    cannot seek there, the file is reopened and decoded from the start, frames already handled dropped.
     """
     import av
 
@@ -203,37 +315,87 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
         raise VideoError(info.path, f"PyAV/FFmpeg cannot open it ({e})") from None
     period, half = 1.0 / sample_hz, 0.5 / info.fps_hz
     max_gap = period + 0.25 / info.fps_hz
+    eps = 0.25 / info.fps_hz
     nxt, n, t0, prev, rot = 0.0, 0, None, None, None
+    prev_pts = None
+    resume = None          # after a seek back: frames at or before this time were handled already
+    first_after_seek = reopened = False
+    skipping = skip_nonref
+    stats.update(decode_error=None, nonref_skipped_until_s=None, nonref_gap_s=None, frames_redecoded=0, decoded_s=0.0)
+    frames = _frames(c, s, stats)
     try:
-        for fr in c.decode(s):
-            if count_frames:
-                t = n / info.fps_hz
-            elif fr.time is None or (prev is not None and fr.time - t0 <= prev):
-                if prev is None or prev < probe_s:
-                    raise _BadTimestamps
-                raise VideoError(info.path, f"frame times stop increasing after {prev:.2f} s (frame {n}: "
-                                            f"{fr.time}); remux the file (e.g. ffmpeg -i IN -c copy OUT.mp4)")
+        while frames is not None:
+            it, frames = frames, None
+            for fr in it:
+                if count_frames:
+                    t = n / info.fps_hz
+                elif fr.time is None or (prev is not None and resume is None and fr.time - t0 <= prev):
+                    if prev is None or prev < probe_s:
+                        raise _BadTimestamps
+                    raise VideoError(info.path, f"frame times stop increasing after {prev:.2f} s (frame {n}: "
+                                                f"{fr.time}); remux the file (e.g. ffmpeg -i IN -c copy OUT.mp4)")
+                else:
+                    t = fr.time
+                t0 = t if t0 is None else t0
+                t -= t0                                  # times from the first decoded frame
+                if resume is not None:
+                    if first_after_seek and t > resume + eps and not reopened:
+                        # the seek landed after the frame we need: decode from the start instead
+                        it.close()
+                        c.close()
+                        c, s = _av_open(info.path, skip_nonref=False)
+                        stats["decode_error"] = None
+                        frames, reopened = _frames(c, s, stats), True
+                        break
+                    first_after_seek = False
+                    if t <= resume + eps:                # handled before the seek
+                        stats["frames_redecoded"] += 1
+                        continue
+                    resume = None
+                n += 1
+                stats["frames_decoded"] = n
+                if skipping and prev is not None and t - prev > max_gap:
+                    if prev < probe_s:
+                        raise _RefsTooSparse
+                    # reference frames alone are too sparse from here on: every frame from the key frame at or
+                    # before ``prev`` to the end (nothing after ``prev`` has been handled yet)
+                    n -= 1
+                    it.close()
+                    skipping, resume, first_after_seek = False, prev, True
+                    stats.update(frames_decoded=n, nonref_skipped_until_s=round(prev, 3),
+                                 nonref_gap_s=round(t - prev, 3))
+                    s.codec_context.skip_frame = "DEFAULT"
+                    try:
+                        c.seek(prev_pts, stream=s, backward=True)
+                    except av.error.FFmpegError:
+                        c.close()
+                        c, s = _av_open(info.path, skip_nonref=False)
+                        reopened = True
+                    frames = _frames(c, s, stats)
+                    break
+                prev, prev_pts = t, fr.pts
+                stats["decoded_s"] = t + 1.0 / info.fps_hz
+                if t + half < nxt:
+                    continue
+                rot = _rot90_of(fr) if rot is None else rot
+                yield t, prepare_frame(_luma(fr, rot), work_width_px, info.pixel_aspect)
+                while nxt <= t + half:
+                    nxt += period
             else:
-                t = fr.time
-            t0 = t if t0 is None else t0
-            t -= t0                                  # times from the first decoded frame
-            n += 1
-            stats["frames_decoded"] = n
-            if skip_nonref and prev is not None and t - prev > max_gap and prev < probe_s:
-                raise _RefsTooSparse
-            prev = t
-            if t + half < nxt:
-                continue
-            rot = _rot90_of(fr) if rot is None else rot
-            yield t, prepare_frame(_luma(fr, rot), work_width_px, info.pixel_aspect)
-            while nxt <= t + half:
-                nxt += period
+                if resume is not None and not reopened:
+                    # the seek found no decodable frame (it landed past the last key frame: TS seeks by bytes):
+                    # decode from the start instead
+                    c.close()
+                    c, s = _av_open(info.path, skip_nonref=False)
+                    stats["decode_error"] = None
+                    frames, reopened = _frames(c, s, stats), True
     except av.error.FFmpegError as e:
         raise VideoError(info.path, f"decoding failed after {n} frames ({e})") from None
     finally:
         c.close()
     if n == 0:
-        raise VideoError(info.path, "no decodable video frame")
+        err = stats.get("decode_error")
+        raise VideoError(info.path, "no decodable video frame" + (f" ({err})" if err else ""))
 
 
 def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: float = 2.0,
@@ -242,7 +404,9 @@ def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: f
     every 1 / sample_hz s, and the stream's frame times are used where they increase. Both are checked on
     the first ``probe_s`` of the same decode, not by a second pass (which cost ~6 % of labeling a 30-s
     clip): the samples of that stretch are held back until it passes, and where it fails the decode
-    restarts (nothing has been yielded yet) with every frame, or with frame count / fps as the time."""
+    restarts (nothing has been yielded yet) with every frame, or with frame count / fps as the time.
+    A gap between reference frames later on is repaired inside ``_pyav_samples`` (seek back, every frame
+    from there)."""
     stats = {} if stats is None else stats
     stats["frames_decoded"] = 0
     skip, count = info.fps_hz >= 1.5 * sample_hz, False
@@ -302,6 +466,7 @@ def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
             prev = t
             i += 1
             stats["frames_decoded"] = i
+            stats["decoded_s"] = t + 1.0 / info.fps_hz
             if t + half < nxt:
                 continue
             ok, img = cap.retrieve()

@@ -46,7 +46,7 @@ class VideoLabels:
     yaw_inc_deg: np.ndarray   # (S-1,) yaw change per sample pair, degrees, left +
     quality: np.ndarray       # (S-1,) per-pair share of grid points kept
     windows: list[WindowLabel]
-    decode: dict              # decoder, frames_decoded, nonref_skipped (labeling/video.py)
+    decode: dict              # decoder, frames_decoded, nonref_skipped, incomplete, ... (labeling/video.py)
     foe_sources: list[str] = field(default_factory=list)   # per chunk of pairs: "rig" / "pooled" / "per_pair"
 
 
@@ -65,6 +65,10 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
                 stride_s: float = 2.0, progress: bool = False) -> VideoLabels:
     """Per-pair yaw over the whole video, then one label per window. Raises VideoError on bad input.
 
+    A truncated or damaged file is labelled up to where it stops decoding, and ``decode["incomplete"]`` says so
+    (seconds decoded vs the container's video duration, and why; None for a complete decode): check it where
+    partial labels are not wanted (docs/labeling.md, "Odd files").
+
     ``progress``: a tqdm bar on stderr in seconds of video (OpenDV videos run for hours: at 15-22x real time per
     core, an hour of 720p video is ~3-4 min of CPU).
     """
@@ -78,9 +82,10 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     times: list[float] = []
     stats: dict = {}
 
-    # the container's frame count may be approximate: the bar's total is a guess, its position the decoded time;
-    # no total where the count is unknown (raw .h264)
-    bar = tqdm(total=round(info.duration_s, 1) if info.num_frames > 0 else None, unit="s", desc=Path(path).name[:30], disable=not progress,
+    # the container's video duration (else its frame count) may be approximate: the bar's total is a guess, its
+    # position the decoded time; no total where neither is known (raw .h264)
+    total_s = info.video_duration_s or (info.duration_s if info.num_frames > 0 else None)
+    bar = tqdm(total=round(total_s, 1) if total_s else None, unit="s", desc=Path(path).name[:30], disable=not progress,
                file=sys.stderr, bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s of video "
                                            "[{elapsed}<{remaining}, {rate_fmt}]")
 
@@ -96,7 +101,7 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     eff_hz = min(fc.sample_hz, info.fps_hz)
     try:
         rates = labeler.yaw_rates_from_grey(greys(), eff_hz)
-        if bar.total is not None:
+        if bar.total is not None and not stats.get("incomplete"):
             bar.update(max(bar.total - bar.n, 0.0))   # the last pair is done (the frame count's duration runs 1 frame on)
     finally:
         bar.close()

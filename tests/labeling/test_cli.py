@@ -118,3 +118,30 @@ def test_a_window_between_samples_sums_its_own_length_of_pairs(left_turn_video):
     w = {(x.start_s, x.end_s): x.yaw_deg for x in offset.windows}
     assert w[(0.25, 4.25)] == pytest.approx(inc[2:42].sum())    # pairs (0.2, 0.3) ... (4.1, 4.2)
     assert w[(0.0, 4.0)] == pytest.approx(inc[0:40].sum())
+
+
+def test_truncated_file_is_labelled_up_to_the_cut_with_a_warning(left_turn_video, tmp_path, capsys):
+    """A download cut short: the labels of the part that decodes, exit 0, and a warning on stderr naming the file,
+    the seconds decoded and the container's duration (the PyAV reader used to abort: "decoding failed")."""
+    import shutil
+    import subprocess
+
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test video")
+    whole = tmp_path / "whole.mp4"   # index (moov) in front, as a streamed download has it
+    p = subprocess.run(["ffmpeg", "-v", "error", "-y", "-i", str(left_turn_video), "-c:v", "libx264", "-crf", "18",
+                        "-movflags", "+faststart", str(whole)], capture_output=True)
+    if p.returncode != 0:
+        pytest.skip(f"ffmpeg/libx264 unavailable: {p.stderr.decode()[-200:]}")
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(whole.read_bytes()[: int(whole.stat().st_size * 0.6)])
+    for decoder in ("pyav", "opencv"):
+        assert main(["label", str(cut), "--json", "--window-s", "2", "--set", f"flow.decoder={decoder}"]) == 0
+        out = capsys.readouterr()
+        rows = [json.loads(line) for line in out.out.splitlines()]
+        assert rows and rows[-1]["end_s"] < 5.0 and all(12 < r["yaw_deg"] < 20 for r in rows), rows   # 8 deg/s
+        warn = [line for line in out.err.splitlines() if "warning" in line]
+        assert len(warn) == 1 and str(cut) in warn[0] and "of the 6.10 s the container states" in warn[0], out.err
+        assert "the labels cover 0-" in warn[0]
+    assert main(["label", str(whole), "--json", "--window-s", "2"]) == 0
+    assert "warning" not in capsys.readouterr().err

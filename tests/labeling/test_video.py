@@ -36,6 +36,7 @@ def test_pyav_skips_nonreference_frames_and_keeps_the_samples(h264_30fps):
     # x264 with B-frames: reference frames come every <= 0.1 s, so the non-reference ones are not decoded
     assert st10["nonref_skipped"] and st10["frames_decoded"] < 0.8 * stcv["frames_decoded"], (st10, stcv)
     assert stcv["frames_decoded"] == 91 and not stcv["nonref_skipped"]
+    assert st10["nonref_skipped_until_s"] is None and st10["frames_redecoded"] == 0   # nothing decoded twice
     assert abs(len(t_av) - len(t_cv)) <= 1
     n = min(len(t_av), len(t_cv))
     assert np.all(np.abs(t_av[:n] - t_cv[:n]) <= 1 / 30 + 1e-6)   # at most one source frame later
@@ -136,3 +137,134 @@ def test_variable_frame_rate_uses_the_frame_times(tmp_path, render):
         r = label_video(path, LabelerConfig(flow=FlowConfig(decoder=d)))
         assert abs(r.times_s[-1] - 159 / 30) <= 0.05, (d, r.times_s[-3:])
         assert abs(r.windows[0].yaw_deg - true4) <= 0.12 * true4, (d, r.windows[0], true4)
+
+
+def _cut(src, dst, frac: float):
+    data = src.read_bytes()
+    dst.write_bytes(data[: int(len(data) * frac)])
+    return dst
+
+
+@pytest.mark.parametrize("kind", ["mp4_cut", "mkv_cut", "mp4_damaged"])
+def test_truncated_or_damaged_file_is_labelled_up_to_the_damage_by_both_readers(tmp_path, left_turn_25fps, kind):
+    """A download cut short (MP4 with its index in front: the index promises 5 s; Matroska: nothing promises
+    anything but the DURATION tag) or a file damaged in the middle. The PyAV reader used to abort with "decoding
+    failed" where OpenCV's labelled the readable part, and both labelled a cut Matroska file as if it were whole.
+    Now both label the part that decodes and say, in ``decode["incomplete"]``, how much of how much and why."""
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test videos")
+    frames, _ = left_turn_25fps   # 126 frames at 25 fps: 5.04 s
+    if kind == "mkv_cut":
+        path = _cut(_x264(tmp_path / "whole.mkv", frames, "25"), tmp_path / "cut.mkv", 0.5)
+    else:
+        whole = _x264(tmp_path / "whole.mp4", frames, "25", "-movflags", "+faststart")
+        if kind == "mp4_cut":
+            path = _cut(whole, tmp_path / "cut.mp4", 0.5)
+        else:   # 3 kB of zeros in the middle of the frame data: the rest of the file is intact
+            data = bytearray(whole.read_bytes())
+            mid = len(data) // 2
+            data[mid: mid + 3000] = bytes(3000)
+            path = tmp_path / "damaged.mp4"
+            path.write_bytes(bytes(data))
+    res = {d: label_video(path, LabelerConfig(flow=FlowConfig(decoder=d)), window_s=1.0, stride_s=1.0)
+           for d in ("pyav", "opencv")}
+    for d, r in res.items():
+        msg = r.decode["incomplete"]
+        assert msg and "of the 5.04 s the container states" in msg, (d, r.decode)
+        assert 1.0 < r.decode["decoded_s"] < 4.0 and r.times_s[-1] < r.decode["decoded_s"], (d, r.decode)
+        assert np.all(np.diff(r.times_s) > 0) and r.windows[-1].end_s <= r.times_s[-1] + 1e-6
+        assert all(w.command == "Turning left" or abs(w.yaw_deg) > 4.0 for w in r.windows)   # 8 deg/s: real frames
+    if kind != "mkv_cut":   # FFmpeg reports the broken packet; the Matroska demuxer just stops
+        assert "Invalid data" in res["pyav"].decode["incomplete"]
+    # the two readers stop at the same place, give or take the frames the decoder holds back for reordering
+    # (x264 -bf 3): PyAV drains them after the broken packet, OpenCV does not
+    assert abs(res["pyav"].times_s[-1] - res["opencv"].times_s[-1]) <= 0.3
+    assert abs(len(res["pyav"].times_s) - len(res["opencv"].times_s)) <= 3
+
+
+def test_a_complete_file_is_not_reported_incomplete_even_where_audio_outlasts_the_video(tmp_path, left_turn_25fps):
+    """Matroska's (and TS's) format duration runs to the end of the longest stream: the check compares with the
+    video stream's own duration, so 5 s of video with 8 s of sound is complete."""
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test videos")
+    frames, _ = left_turn_25fps
+    video = _x264(tmp_path / "v.mkv", frames, "25")
+    path = tmp_path / "with_audio.mkv"
+    p = subprocess.run(["ffmpeg", "-v", "error", "-y", "-i", str(video), "-f", "lavfi", "-i", "sine=d=8", "-c:v", "copy",
+                        "-c:a", "aac", str(path)], capture_output=True)
+    if p.returncode != 0:
+        pytest.skip(f"ffmpeg cannot add an audio track: {p.stderr.decode()[-200:]}")
+    assert probe(path).duration_s > 7.5   # what OpenCV's frame count says: the audio's length
+    for d in ("pyav", "opencv"):
+        r = label_video(path, LabelerConfig(flow=FlowConfig(decoder=d)))
+        assert r.decode["incomplete"] is None, (d, r.decode)
+        assert abs(r.decode["decoded_s"] - 5.04) <= 0.1 and abs(r.decode["video_duration_s"] - 5.04) <= 0.05
+
+
+@pytest.fixture(scope="module")
+def refs_thin_out_after_3s(tmp_path_factory, left_turn_25fps):
+    """x264 at 25 fps, B-frames not used as references (b-pyramid none): P B P B ... for 3 s (reference frames
+    0.08 s apart: the reader's 2-s check passes), then P B B B P (0.16 s apart). Frame types are forced; x264's
+    adaptive B-frames do the same on their own when the picture changes character (a car that stops)."""
+    import fractions
+
+    import av
+
+    if "libx264" not in av.codecs_available:
+        pytest.skip("PyAV's FFmpeg has no libx264")
+    frames, _ = left_turn_25fps
+    out = {}
+    for ext in ("mp4", "ts"):   # MP4 seeks to a key frame by its index; TS cannot (the reader then starts over)
+        path = tmp_path_factory.mktemp("refs") / f"thin.{ext}"
+        with av.open(str(path), "w") as c:
+            s = c.add_stream("libx264", rate=25)
+            s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
+            s.options = {"x264-params": "bframes=3:b-pyramid=none:b-adapt=0:keyint=50:scenecut=0", "crf": "18",
+                         "preset": "veryfast"}
+            for i, fr in enumerate(frames):
+                f = av.VideoFrame.from_ndarray(fr, format="rgb24")
+                f.pts, f.time_base = i, fractions.Fraction(1, 25)
+                f.pict_type = 1 if i == 0 else 2 if (i % 2 == 0 if i < 75 else i % 4 == 0) else 3   # I / P / B
+                for p in s.encode(f):
+                    c.mux(p)
+            for p in s.encode():
+                c.mux(p)
+        out[ext] = path
+    return out
+
+
+@pytest.mark.parametrize("ext", ["mp4", "ts"])
+def test_pyav_keeps_every_tick_when_reference_frames_thin_out_after_the_check(refs_thin_out_after_3s, ext):
+    """The check that skipping non-reference frames still leaves a frame every 0.1 s looked at the first 2 s
+    only: here reference frames come 0.16 s apart from 3 s on, and the old reader gave 45 samples for 51 ticks
+    (two ticks sharing one frame, ~6 Hz). Now a gap found later seeks back to the key frame before it and decodes
+    every frame from there: one sample per tick, as OpenCV's reader gives."""
+    from labeling.video import _pyav_samples
+
+    path = refs_thin_out_after_3s[ext]
+    info = probe(path)
+    st, stcv = {}, {}
+    got = list(iter_grey_samples(path, 10.0, 128, info, decoder="pyav", stats=st))
+    t = np.array([x[0] for x in got])
+    t_cv = np.array([t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="opencv", stats=stcv)])
+    assert len(t) == len(t_cv) == 51, (len(t), len(t_cv))
+    d = t - t_cv   # a reference frame at or after each tick: never earlier than OpenCV's pick, at most 2 frames later
+    assert np.all(d >= -1e-6) and np.all(d <= 2 / 25 + 1e-6), np.round(d, 3)
+    assert st["nonref_skipped"] and st["nonref_skipped_until_s"] == pytest.approx(3.04) and st["nonref_gap_s"] > 0.15
+    # from the gap on, exactly what a decode of every frame gives (same frames, bit for bit)
+    full = [x for x in _pyav_samples(info, 10.0, 128, False, 0.0, {}) if x[0] > 3.04 + 1e-6]
+    after = [x for x in got if x[0] > 3.04 + 1e-6]
+    assert [x[0] for x in after] == [x[0] for x in full]
+    assert all(np.array_equal(a[1], b[1]) for a, b in zip(after, full))
+    assert st["incomplete"] is None and st["frames_decoded"] < stcv["frames_decoded"]   # still skipped up to 3 s
+
+
+def test_the_labeler_and_the_cli_report_the_switch(refs_thin_out_after_3s, capsys):
+    from resim.cli import main
+
+    path = refs_thin_out_after_3s["mp4"]
+    r = {d: label_video(path, LabelerConfig(flow=FlowConfig(decoder=d))) for d in ("pyav", "opencv")}
+    assert len(r["pyav"].times_s) == len(r["opencv"].times_s)
+    assert abs(r["pyav"].yaw_inc_deg.sum() - r["opencv"].yaw_inc_deg.sum()) < 1.0
+    assert main(["label", str(path), "--json"]) == 0
+    assert "non-reference frames not decoded until 3.04 s" in capsys.readouterr().err
