@@ -2,14 +2,18 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Optional
 
 from resim.config import ConfigError
 
 
 @dataclass
 class ScheduleConfig:
-    """CogVideoX's training schedule (``CogVideoXDDIMScheduler`` of THUDM/CogVideoX-2b)."""
+    """CogVideoX's training schedule (``CogVideoXDDIMScheduler`` of THUDM/CogVideoX-2b).
+
+    ``num_train_timesteps`` (N) is the number of noise levels, ``t ∈ [0, N)``: the objective, the sampler
+    (DDIM timesteps, ``history_noise_level``), the model's ``text_timestep_value`` and the loss logs all read it
+    from here. CogVideoX was trained with N = 1000; a pretrained CogVideoX refuses another N (``dit.py``)."""
     num_train_timesteps: int = 1000
     beta_start: float = 0.00085
     beta_end: float = 0.012
@@ -21,6 +25,11 @@ class ScheduleConfig:
             raise ConfigError("schedule: need 0 < beta_start < beta_end < 1")
         if self.num_train_timesteps < 2 or self.snr_shift_scale <= 0:
             raise ConfigError("schedule: num_train_timesteps >= 2 and snr_shift_scale > 0")
+
+    @property
+    def max_level(self) -> int:
+        """The noisiest level, ``N - 1`` (ᾱ = 0 with ``rescale_zero_terminal_snr``)."""
+        return self.num_train_timesteps - 1
 
 
 @dataclass
@@ -36,7 +45,7 @@ class ObjectiveConfig:
     """
     noise_mode: Literal["diffusion_forcing", "resim_cond_aug", "uniform"] = "diffusion_forcing"
     num_history_frames: int = 1          # latent frames of context (resim_cond_aug; also the loss mask there)
-    cond_aug_max_t: int = 999            # t_aug ~ U{0, …, cond_aug_max_t}
+    cond_aug_max_t: Optional[int] = None # t_aug ~ U{0, …, cond_aug_max_t}; None: num_train_timesteps - 1
     text_drop_prob: float = 0.5          # command dropped → the prefix-only prompt (null_text) is used
     trajectory_drop_prob: float = 0.5    # trajectory → null embedding ...
     trajectory_keep_sources: tuple[str, ...] = ("carla",)   # ... except for these sources (always kept)
@@ -58,11 +67,18 @@ class ObjectiveConfig:
                 raise ConfigError(f"objective.{name}={v} not in [0, 1]")
         if self.num_history_frames < 0:
             raise ConfigError("objective.num_history_frames must be >= 0")
-        if not 0 <= self.cond_aug_max_t < self.schedule.num_train_timesteps:
-            raise ConfigError("objective.cond_aug_max_t must be in [0, num_train_timesteps)")
+        n = self.schedule.num_train_timesteps
+        if self.cond_aug_max_t is not None and not 0 <= self.cond_aug_max_t < n:
+            raise ConfigError(f"objective.cond_aug_max_t={self.cond_aug_max_t} must be in [0, num_train_timesteps "
+                              f"= {n}) (or null: {n - 1})")
         # durations: actions_from_trajectory divides spans of latent_frame_dt_s by waypoint_dt_s; a zero or
         # negative one gives invalid (all-null) or time-reversed actions without an error
         for name in ("latent_frame_dt_s", "waypoint_dt_s"):
             v = getattr(self, name)
             if not v > 0:
                 raise ConfigError(f"objective.{name}={v} must be > 0 (seconds)")
+
+    @property
+    def cond_aug_max_level(self) -> int:
+        """``cond_aug_max_t`` resolved: the highest history level ``resim_cond_aug`` draws."""
+        return self.schedule.max_level if self.cond_aug_max_t is None else self.cond_aug_max_t

@@ -55,6 +55,13 @@ def _alphas(cfg: ObjectiveConfig, device: torch.device) -> torch.Tensor:
     return _AC_CACHE[key]
 
 
+def loss_level_bins(num_train_timesteps: int) -> tuple[tuple[str, int, int], ...]:
+    """``(name, lo, hi)`` of the logged per-level losses: the thirds ``[0, N/3)``, ``[N/3, 2N/3)``, ``[2N/3, N)`` of
+    the ``N`` noise levels (integer division: 0/333/666/1000 for CogVideoX's N = 1000)."""
+    n = int(num_train_timesteps)
+    return (("loss_t_low", 0, n // 3), ("loss_t_mid", n // 3, 2 * n // 3), ("loss_t_high", 2 * n // 3, n))
+
+
 def _bernoulli_keep(p_drop: float, shape: tuple[int, ...], generator, device) -> torch.Tensor:
     return (torch.rand(shape, generator=generator) >= p_drop).to(device)
 
@@ -133,7 +140,7 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
         if keep_act is not None:
             logs["actions_kept"] = float(keep_act.float().mean())
             logs["actions_derived"] = float(derived)
-        for name, lo, hi in (("loss_t_low", 0, 333), ("loss_t_mid", 333, 666), ("loss_t_high", 666, 1000)):
+        for name, lo, hi in loss_level_bins(cfg.schedule.num_train_timesteps):
             sel = loss_mask & (t >= lo) & (t < hi)
             if sel.any():
                 logs[name] = float(per_frame.detach()[sel].mean())

@@ -2,9 +2,11 @@
 
 ``sample_noise_levels(cfg, B, T) -> (t (B, T) int64, loss_mask (B, T) bool)``:
 
+``N = cfg.schedule.num_train_timesteps`` (the number of noise levels).
+
 * ``diffusion_forcing``: ``t[b, f] ~ U{0..N-1}`` independently per frame (Chen et al. 2024; Vid2World 4.1),
   exposing the model to every mix of history/future levels it meets in causal rollouts; loss everywhere.
-* ``resim_cond_aug``: history frames ``f < H`` share ``t_aug ~ U{0..cond_aug_max_t}``, the future shares
+* ``resim_cond_aug``: history frames ``f < H`` share ``t_aug ~ U{0..cond_aug_max_t}`` (default N-1), the future shares
   ``t ~ U{0..N-1}`` (ReSim App. B.2, conditioning augmentation; t_aug = 0 at inference); loss on the future.
 * ``uniform``: one ``t ~ U{0..N-1}`` for all frames (CogVideoX's full-sequence training); loss everywhere.
 """
@@ -32,7 +34,7 @@ def sample_noise_levels(cfg: ObjectiveConfig, batch_size: int, num_frames: int,
         h = cfg.num_history_frames if num_history_frames is None else int(num_history_frames)
         if not 0 < h < f:
             raise ValueError(f"resim_cond_aug needs 0 < num_history_frames ({h}) < latent frames ({f})")
-        t_aug = torch.randint(0, cfg.cond_aug_max_t + 1, (b, 1), generator=generator)
+        t_aug = torch.randint(0, cfg.cond_aug_max_level + 1, (b, 1), generator=generator)
         t_fut = torch.randint(0, n, (b, 1), generator=generator)
         hist = torch.arange(f)[None] < h
         t = torch.where(hist, t_aug, t_fut)

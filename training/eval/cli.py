@@ -151,7 +151,7 @@ def _runner(args):
     from resim.config import from_dict
     from training.sampling.guidance import guidance_preset
     from training.sampling.load import PromptSource, load_world_model
-    from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
+    from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, model_ddim_schedule
     from training.eval.worldeval import WorldRollouts
 
     from training.sampling.load import SamplingInputError
@@ -167,6 +167,7 @@ def _runner(args):
         rc["num_steps"] = args.steps
     rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset)
     cfg = from_dict(RolloutConfig, rc)
+    model_ddim_schedule(model, cfg)   # --steps vs the model's schedule (num_train_timesteps), before any rollout
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
                            max_tokens=model.cfg.max_text_seq_length)
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,

@@ -228,28 +228,37 @@ def build_networks(cfg: QualityConfig, device: str) -> Networks:
 
 
 class _FrameSums:
-    """Per future-frame-index sums of one per-frame metric (streaming mean/std per frame and per bin)."""
+    """Per future-frame-index sums of one per-frame metric (streaming mean/std per frame and per bin).
 
-    def __init__(self, t: int):
+    ``cap``: the metric's cap (PSNR: ``PSNR_CAP_DB`` for identical frames); values at the cap are counted per
+    frame index, so every mean that includes them is reported with how many (``capped_frames``)."""
+
+    def __init__(self, t: int, cap: float | None = None):
         self.s = torch.zeros(t, dtype=torch.float64)
         self.s2 = torch.zeros(t, dtype=torch.float64)
         self.n = torch.zeros(t, dtype=torch.float64)
-        self.capped = 0
+        self.cap = cap
+        self.capped = torch.zeros(t, dtype=torch.int64)   # (T,) frames that scored the cap, per frame index
 
     def add(self, v: torch.Tensor) -> None:  # (B, T)
         v = v.detach().to("cpu", torch.float64)
         self.s += v.sum(0)
         self.s2 += (v * v).sum(0)
         self.n += v.shape[0]
+        if self.cap is not None:
+            self.capped += (v >= self.cap).sum(0)
 
     def summary(self, ks) -> dict:
         ks = torch.as_tensor(list(ks))
         n = float(self.n[ks].sum())
-        if n == 0:
-            return {"mean": None, "std": None, "frames": 0}
-        m = float(self.s[ks].sum()) / n
-        var = max(float(self.s2[ks].sum()) / n - m * m, 0.0)
-        return {"mean": m, "std": math.sqrt(var), "frames": int(n)}
+        out: dict[str, Any] = {"mean": None, "std": None, "frames": int(n)}
+        if n:
+            m = float(self.s[ks].sum()) / n
+            var = max(float(self.s2[ks].sum()) / n - m * m, 0.0)
+            out.update(mean=m, std=math.sqrt(var))
+        if self.cap is not None:
+            out.update(capped_frames=int(self.capped[ks].sum()), cap=self.cap)
+        return out
 
 
 class VideoQualityEvaluator:
@@ -279,7 +288,8 @@ class VideoQualityEvaluator:
         tf = t - c.num_conditioning_frames
         bins = horizon_bins(tf, c.fps_hz, tuple(c.horizons_s))   # ValueError when no future frame is left
         st: dict[str, Any] = {"t_future": tf, "input_hw": hw, "bins": bins,
-                              "sums": {m: _FrameSums(tf) for m in PER_FRAME_METRICS if self._on(m)},
+                              "sums": {m: _FrameSums(tf, PSNR_CAP_DB if m == "psnr" else None)
+                                       for m in PER_FRAME_METRICS if self._on(m)},
                               "fid_stats": None, "fid_all": (None, None), "fvd_windows": [], "fvd_skipped": []}
         if self._on("fid"):
             st["fid_stats"] = [(None, None) for _ in bins]  # created lazily (feature dim from the network)
@@ -411,7 +421,8 @@ class VideoQualityEvaluator:
             "metric_resolution_hw": [rh, rw] if rh else (list(self.input_hw) if self.input_hw else None),
             "resize": (f"bilinear, antialias, align_corners=False to {rh}x{rw} (both sets)" if rh else "none"),
             "horizon_bins_s": [[b["from_s"], b["horizon_s"]] for b in self.bins],
-            "psnr": f"10 log10(1/MSE) on [0,1] RGB per frame, capped at {PSNR_CAP_DB} dB",
+            "psnr": f"10 log10(1/MSE) on [0,1] RGB per frame, capped at {PSNR_CAP_DB} dB (identical frames); "
+                    "means include capped frames, counted in capped_frames",
             "ssim": "Gaussian 11x11 sigma 1.5, K=(0.01,0.03), valid region, channel mean (= scikit-image)",
             "fid": "generated future frames vs ground-truth future frames; Inception input 299x299 bilinear "
                    "(align_corners=False), [-1,1], eval mode",
@@ -435,14 +446,21 @@ class VideoQualityEvaluator:
         all_k = range(self.t_future)
         for m, s in self.sums.items():
             overall[m] = s.summary(all_k)
-        if "psnr" in self.sums:
-            overall["psnr"]["capped_frames_note"] = f"identical frames score the cap {PSNR_CAP_DB} dB"
+        if "psnr" in self.sums:   # the PSNR means include frames at the cap: say how many
+            o = overall["psnr"]
+            o["cap_db"] = o.pop("cap")
+            if o["capped_frames"]:
+                warns.append(f"PSNR: {o['capped_frames']} of {o['frames']} future frames are identical to the ground "
+                             f"truth and score the cap {PSNR_CAP_DB:g} dB; the PSNR means include them "
+                             "(capped_frames per horizon and per frame)")
         per_h = []
         for i, b in enumerate(self.bins):
             row: dict[str, Any] = {"horizon_s": b["horizon_s"], "from_s": b["from_s"],
                                    "frames_per_clip": len(b["frames"])}
             for m, s in self.sums.items():
                 row[m] = s.summary(b["frames"])["mean"]
+            if "psnr" in self.sums:
+                row["psnr_capped_frames"] = self.sums["psnr"].summary(b["frames"])["capped_frames"]
             if self.fid_stats is not None:
                 row["fid"] = self._frechet(self.fid_stats[i], f"FID ({b['from_s']:g}-{b['horizon_s']:g} s)", warns)
             per_h.append(row)
@@ -461,6 +479,8 @@ class VideoQualityEvaluator:
         per_frame = {"time_s": [(k + 1) / self.cfg.fps_hz for k in all_k]}
         for m, s in self.sums.items():
             per_frame[m] = (s.s / s.n.clamp_min(1)).tolist()
+        if "psnr" in self.sums:
+            per_frame["psnr_capped_frames"] = self.sums["psnr"].capped.tolist()
         proto = self.protocol()
         if proto["placeholder_networks"]:
             warns.append(f"placeholder (random-init) networks for {proto['placeholder_networks']}: these numbers "

@@ -68,8 +68,9 @@ def format_quality(report: dict) -> str:
     """Protocol, then the per-horizon table, the overall numbers and the warnings."""
     out = [format_protocol(report["protocol"]), "", "per horizon (future frames in (from, to] s):"]
     rows = report["per_horizon"]
-    cols = [c for c in ("psnr", "ssim", "lpips", "dreamsim", "fid") if rows and c in rows[0]]
-    out.append("  " + "  ".join(f"{h:>10s}" for h in ["horizon", "frames", *cols]))
+    cols = [c for c in ("psnr", "psnr_capped_frames", "ssim", "lpips", "dreamsim", "fid") if rows and c in rows[0]]
+    heads = {"psnr_capped_frames": "psnr capped"}   # frames at the PSNR cap (identical), included in the mean
+    out.append("  " + "  ".join(f"{h:>10s}" for h in ["horizon", "frames", *(heads.get(c, c) for c in cols)]))
     for r in rows:
         vals = [f"{r['from_s']:g}-{r['horizon_s']:g} s", str(r["frames_per_clip"]), *[_fmt(r[c]) for c in cols]]
         out.append("  " + "  ".join(f"{v:>10s}" for v in vals))

@@ -41,6 +41,20 @@ def _read_weights(folder: Path) -> dict[str, torch.Tensor]:
     raise FileNotFoundError(f"{folder}: no *.safetensors or *.bin weights")
 
 
+def cogvideox_num_train_timesteps(src: Any) -> int | None:
+    """``num_train_timesteps`` of the scheduler saved with a CogVideoX transformer folder (a pipeline folder's
+    ``scheduler/scheduler_config.json``, diffusers' default 1000 where the key is absent), or None where there is
+    none (a bare transformer folder, or a model instance)."""
+    if not isinstance(src, (str, Path)):
+        return None
+    folder = _folder(Path(src))
+    root = folder.parent if folder.name == "transformer" else folder
+    path = root / "scheduler" / "scheduler_config.json"
+    if not path.is_file():
+        return None
+    return int(json.loads(path.read_text()).get("num_train_timesteps", 1000))
+
+
 def load_cogvideox_state(src: Any) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     """``(config dict, state dict)`` of a CogVideoX transformer given as an instance or a folder path."""
     if isinstance(src, (str, Path)):

@@ -125,8 +125,8 @@ class WorldModelConfig:
                               "(CogVideoX's) are implemented")
         if (self.num_attention_heads * self.attention_head_dim) % 16:
             raise ConfigError("hidden size (heads * head_dim) must be divisible by 16 for 3D sin-cos positions")
-        if not 0 <= self.text_timestep_value <= 999:
-            raise ConfigError(f"text_timestep_value={self.text_timestep_value} not in [0, 999]")
+        if self.text_timestep_value < 0:   # the upper bound is the schedule's: check_noise_levels
+            raise ConfigError(f"text_timestep_value={self.text_timestep_value} must be >= 0")
         check_attention_backend(self.attention_backend)
         if self.causal and self.text_timestep == "max":
             raise ConfigError("text_timestep='max' with causal=True would make every frame depend on the "
@@ -162,6 +162,24 @@ PRESETS: dict[str, dict[str, Any]] = {
         trajectory=dict(hidden_dim=512, num_heads=8), actions=dict(hidden_dim=512),
     ),
 }
+
+
+def check_noise_levels(cfg: WorldModelConfig, num_train_timesteps: int) -> None:
+    """The noise levels of a model trained with ``num_train_timesteps`` levels (``objective.schedule``) are
+    ``[0, N)``: ``text_timestep_value`` must be one of them."""
+    n = int(num_train_timesteps)
+    if not 0 <= cfg.text_timestep_value < n:
+        raise ConfigError(f"text_timestep_value={cfg.text_timestep_value} not in [0, {n}) "
+                          f"(objective.schedule.num_train_timesteps = {n})")
+
+
+def check_pretrained_noise_levels(num_train_timesteps: int, pretrained_num_train_timesteps: int | None) -> None:
+    """Pretrained weights whose scheduler had another number of levels (CogVideoX: 1000) cannot be trained or
+    sampled with ``num_train_timesteps``: their timestep embedding learnt what each level ``t`` means."""
+    if pretrained_num_train_timesteps is not None and int(pretrained_num_train_timesteps) != int(num_train_timesteps):
+        raise ConfigError(f"objective.schedule.num_train_timesteps={num_train_timesteps}, but the pretrained weights "
+                          f"were trained with {pretrained_num_train_timesteps} noise levels (their "
+                          "scheduler/scheduler_config.json): their timestep embedding cannot take another count")
 
 
 def preset(name: str, **overrides: Any) -> WorldModelConfig:

@@ -3,8 +3,8 @@
 ``WorldModel(cfg)(x, t, text, trajectory=None, actions=None) -> v``
 
 * ``x``: noisy latents ``(B, T, C, h, w)`` (CogVideoX VAE latents, scaled by the VAE's scaling factor);
-* ``t``: integer noise levels ``(B, T)`` in [0, 999], one per latent frame (Diffusion Forcing); ``(B,)`` or a
-  Python int broadcast over frames;
+* ``t``: integer noise levels ``(B, T)`` in ``[0, N)``, ``N = objective.schedule.num_train_timesteps`` (CogVideoX:
+  1000), one per latent frame (Diffusion Forcing); ``(B,)`` or a Python int broadcast over frames;
 * ``text``: T5 embeddings ``(B, L, D_text)`` (any L: text tokens carry no position in CogVideoX-2B);
 * ``trajectory``: ``(B, 8, 3)`` ego-frame waypoints or None (→ the null trajectory);
 * ``actions``: ``(B, T, A)`` float or ``(B, T)`` int ids, or None (→ the null action at every frame).
@@ -33,7 +33,8 @@ from torch.utils.checkpoint import checkpoint
 from training.models.attention import KVCache, block_causal_block_mask, block_causal_mask
 from training.models.blocks import DiTBlock
 from training.models.conditioning import ActionEncoder, TrajectoryEncoder
-from training.models.config import WorldModelConfig, check_attention_backend
+from training.models.config import (WorldModelConfig, check_attention_backend, check_noise_levels,
+                                     check_pretrained_noise_levels)
 from training.models.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
 
 NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.")
@@ -76,6 +77,9 @@ class WorldModel(nn.Module):
         if objective is None:
             from training.diffusion.config import ObjectiveConfig  # light, torch-free dataclass
             objective = ObjectiveConfig()
+        schedule = getattr(objective, "schedule", None)
+        if schedule is not None:
+            check_noise_levels(cfg, schedule.num_train_timesteps)
         self.objective = objective
 
     # ------------------------------------------------------------------ construction
@@ -87,10 +91,18 @@ class WorldModel(nn.Module):
         All DiT weights are copied; the trajectory/action encoders start at zero output, so with
         ``causal=False``, one shared noise level and no trajectory/actions the output equals the source model's.
         ``overrides`` are :class:`WorldModelConfig` fields (nested dicts for ``trajectory``/``actions``).
+        A pipeline folder's ``scheduler/`` must have ``objective.schedule.num_train_timesteps`` levels (CogVideoX:
+        1000): the timestep embedding is tied to them (ConfigError otherwise).
         """
-        from training.models.cogvideox import load_cogvideox_state
-        config, state = load_cogvideox_state(src)
+        from training.models.cogvideox import cogvideox_num_train_timesteps, load_cogvideox_state
         from training.models.config import config_from_cogvideox
+        if objective is None:
+            from training.diffusion.config import ObjectiveConfig
+            objective = ObjectiveConfig()
+        schedule = getattr(objective, "schedule", None)
+        if schedule is not None:   # before reading any weights
+            check_pretrained_noise_levels(schedule.num_train_timesteps, cogvideox_num_train_timesteps(src))
+        config, state = load_cogvideox_state(src)
         cfg = config_from_cogvideox(config, causal=causal, **overrides)
         model = cls(cfg, objective=objective)
         model.load_pretrained_dit(state)

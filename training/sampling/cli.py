@@ -102,7 +102,8 @@ class _Setup:
         from training.sampling.guidance import guidance_preset
         from training.sampling.load import (PromptSource, history_from_shard, history_from_video, load_world_model,
                                             video_clip_fps_hz)
-        from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, rollout_num_future_frames
+        from training.sampling.rollout import (ROLLOUT_PRESETS, RolloutConfig, model_ddim_schedule,
+                                               rollout_num_future_frames)
         from resim.config import from_dict
 
         self.device = args.device or pick_device()
@@ -127,6 +128,7 @@ class _Setup:
             raise SystemExit("resim: --preset vid2world guides on actions; add --actions-from-trajectory "
                              "(and --trajectory) or --no-guidance")
         self.cfg = from_dict(RolloutConfig, rc)
+        model_ddim_schedule(self.model, self.cfg)   # --steps / --history-noise-level vs the model's schedule, now
         if Path(args.history).is_file():
             size = (tuple(int(s) for s in args.size.lower().split("x")) if args.size
                     else (mcfg.sample_height * self.vae.info.spatial_compression,

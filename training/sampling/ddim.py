@@ -7,13 +7,16 @@ CogVideoX-2b samples with diffusers' ``CogVideoXDDIMScheduler`` configured as
 
 Notation: ``a_t`` = ``alphas_cumprod[t]`` (ᾱ_t). With v-prediction
 ``x0 = sqrt(a_t) x_t - sqrt(1-a_t) v`` and ``eps = sqrt(a_t) v + sqrt(1-a_t) x_t``; DDIM (eta = 0) moves to
-``x_prev = sqrt(a_prev) x0 + sqrt(1-a_prev) eps``. Zero terminal SNR gives ``a_999 == 0``: the first step
-then reads ``x0 = -v`` and ``eps = x_t`` (no division by ``sqrt(a_t)`` anywhere, so it stays finite).
+``x_prev = sqrt(a_prev) x0 + sqrt(1-a_prev) eps``. Zero terminal SNR gives ``a_{N-1} == 0`` (N =
+``num_train_timesteps``, the length of ``alphas_cumprod``: 1000 for CogVideoX, whatever the model's
+``objective.schedule`` says otherwise): the first step then reads ``x0 = -v`` and ``eps = x_t`` (no division by
+``sqrt(a_t)`` anywhere, so it stays finite).
 
-Step count: any ``num_steps`` in [1, 1000]. We step from each timestep to the *next timestep of the list*
-(the last one to "t = -1", i.e. ``a_prev = 1``). diffusers instead steps to ``t - 1000 // num_steps``; the two
-agree whenever ``num_steps`` divides 1000 (10, 20, 25, 50, 100, …) and differ by ≤ 1 train step otherwise
-(diffusers' trailing list is rounded but its ``prev`` is not). Tests check equality with diffusers at 50 steps.
+Step count: any ``num_steps`` in [1, N]. We step from each timestep to the *next timestep of the list*
+(the last one to "t = -1", i.e. ``a_prev = 1``). diffusers instead steps to ``t - N // num_steps``; the two
+agree whenever ``num_steps`` divides N (10, 20, 25, 50, 100, … for 1000) and differ by ≤ 1 train step otherwise
+(diffusers' trailing list is rounded but its ``prev`` is not). Tests check equality with diffusers at 50 steps
+(N = 1000, and N = 500).
 
 Shapes: latents ``(B, T, C, h, w)`` float; ``a_t``/``a_prev`` are Python floats or tensors broadcastable to
 the latents (e.g. ``(B, T, 1, 1, 1)`` for per-frame levels).
@@ -28,11 +31,11 @@ import torch
 if TYPE_CHECKING:
     from training.diffusion.config import ScheduleConfig
 
-NUM_TRAIN_TIMESTEPS = 1000
+NUM_TRAIN_TIMESTEPS = 1000   # CogVideoX's (ScheduleConfig's default); schedules carry their own N
 
 
 def cogvideox_alphas_cumprod(schedule: "ScheduleConfig | None" = None) -> torch.Tensor:
-    """ᾱ_t of CogVideoX's schedule, ``(num_train_timesteps,)`` float64, ``ᾱ_0 ≈ 0.9975``, ``ᾱ_999 = 0``.
+    """ᾱ_t of CogVideoX's schedule, ``(num_train_timesteps,)`` float64, ``ᾱ_0 ≈ 0.9975``, ``ᾱ_{N-1} = 0``.
 
     The one definition lives with the training objective (``training.diffusion.schedule.alphas_cumprod``:
     scaled-linear betas → cumprod → SNR shift by 3 → zero-terminal-SNR rescale); sampling must use exactly
@@ -43,7 +46,8 @@ def cogvideox_alphas_cumprod(schedule: "ScheduleConfig | None" = None) -> torch.
 
 
 def ddim_timesteps(num_steps: int, num_train_timesteps: int = NUM_TRAIN_TIMESTEPS) -> list[int]:
-    """Trailing spacing: ``round(arange(N_train, 0, -N_train/num_steps)) - 1``; 50 → [999, 979, …, 19]."""
+    """Trailing spacing: ``round(arange(N_train, 0, -N_train/num_steps)) - 1``; 50 of 1000 → [999, 979, …, 19],
+    50 of 500 → [499, 489, …, 9] (diffusers' ``timestep_spacing="trailing"``)."""
     if not 1 <= num_steps <= num_train_timesteps:
         raise ValueError(f"num_steps must be in [1, {num_train_timesteps}], got {num_steps}")
     ratio = num_train_timesteps / num_steps
@@ -68,7 +72,8 @@ class DDIMStep:
 class DDIMSchedule:
     """The steps of a ``num_steps`` DDIM run over ``alphas_cumprod`` (default: CogVideoX's).
 
-    Iterating yields :class:`DDIMStep` from the noisiest (``t = 999``) to the last (``t_prev = -1``).
+    Iterating yields :class:`DDIMStep` from the noisiest (``t = N - 1``) to the last (``t_prev = -1``), with
+    ``N = len(alphas_cumprod)``.
     """
 
     def __init__(self, num_steps: int, alphas_cumprod: torch.Tensor | None = None):

@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -27,10 +28,15 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     ``F = 1 + 4 (T - 1)`` (frame 0 alone, then 4 pixel frames per latent frame, as the encoder made them).
 
     ``vae``: a ``pipelines.encoders.VideoVAE`` (uses its ``.model`` and ``.info.scaling_factor``) or a diffusers
-    ``AutoencoderKLCogVideoX``. diffusers decodes in batches of 2 latent frames and only keeps frame 0 alone
-    when ``T`` is odd (an even ``T`` gives ``4 T`` frames with no "first frame"); for an even ``T`` we append a
-    copy of the last latent frame, decode ``T + 1`` and drop the last 4 pixel frames. The causal convolutions
-    make earlier frames independent of the copy; only the last 2-frame batch's GroupNorm statistics see it.
+    ``AutoencoderKLCogVideoX``. diffusers decodes in batches of 2 latent frames (the first batch takes 3 when ``T``
+    is odd, so frame 0 is upsampled alone) and each batch's GroupNorms normalise over (group channels, time, H, W)
+    of that batch; an even ``T`` would give ``4 T`` frames with no "first frame". For an even ``T`` we append a
+    padding latent frame (a copy of the last), decode ``T + 1`` as diffusers does and drop the padding's 4 pixel
+    frames. The padding shares the last decode batch with the last real latent frame: the causal convolutions
+    and the nearest-neighbour temporal upsampling never carry it into earlier frames, and
+    :func:`_group_norm_without_padding` computes that batch's GroupNorm statistics over the real frames only, so
+    the decoded frames do not depend on the padding at all. Every other batch (and any odd ``T``) is diffusers'
+    decode unchanged.
     """
     import torch
 
@@ -39,24 +45,84 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
         info = getattr(vae, "info", None)
         scaling_factor = float(info.scaling_factor if info is not None else model.config.scaling_factor)
     z = torch.as_tensor(np.asarray(latents) if not isinstance(latents, torch.Tensor) else latents)
-    if z.dim() != 5:
-        raise ValueError(f"latents must be (B, T, C, h, w), got {tuple(z.shape)}")
+    if z.dim() != 5 or z.shape[1] < 1:
+        raise ValueError(f"latents must be (B, T, C, h, w) with T >= 1, got {tuple(z.shape)}")
     t = z.shape[1]
-    if t % 2 == 0:
+    want = 1 + 4 * (t - 1)
+    padded = t % 2 == 0
+    if padded:
         z = torch.cat([z, z[:, -1:]], dim=1)
     p = next(model.parameters())
     out = []
     with torch.inference_mode():
         for i in range(0, z.shape[0], batch_size):
             zz = (z[i:i + batch_size].float() / scaling_factor).permute(0, 2, 1, 3, 4).to(p.device, p.dtype)
-            x = model.decode(zz).sample                                  # (b, 3, F, H, W) in ~[-1, 1]
+            with _group_norm_without_padding(model, zz.shape[2]) if padded else nullcontext():
+                x = model.decode(zz).sample                              # (b, 3, F', H, W) in ~[-1, 1]
+            if x.shape[2] < want:  # our bug (or a VAE with another temporal layout)
+                raise AssertionError(f"VAE decoded {x.shape[2]} frames from {t} latent frames, expected >= {want}")
+            x = x[:, :, :want]                                           # the padding's frames never reach uint8
             x = ((x.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
             out.append(x.permute(0, 2, 3, 4, 1).cpu().numpy())
-    frames = np.concatenate(out)
-    want = 1 + 4 * (t - 1)
-    if frames.shape[1] < want:  # our bug (or a VAE with another temporal layout)
-        raise AssertionError(f"VAE decoded {frames.shape[1]} frames from {t} latent frames, expected >= {want}")
-    return frames[:, :want]
+    return np.concatenate(out)
+
+
+@contextmanager
+def _group_norm_without_padding(model: Any, num_frames: int):
+    """While ``model`` (a diffusers ``AutoencoderKLCogVideoX``) decodes ``num_frames`` latent frames whose last one
+    is padding, the GroupNorms of the decoder batch holding the padding take their statistics from the real
+    frames only (the padding's own frames are normalised with them too, and dropped by the caller).
+
+    diffusers' ``_decode`` and ``tiled_decode`` call ``model.decoder`` once per frame batch, in order, with
+    ``[2 + r, 2, …, 2]`` latent frames (``r = num_frames % 2``), for every batch slice and spatial tile; the
+    padding is the last frame of each such run's last batch. In that batch of ``L`` latent frames (2, or 3 when it
+    is also the first) a decoder tensor of ``T'`` frames holds the padding in its last
+    ``(T' - L % 2) / (L - L % 2)`` frames: frame 0 of an odd batch is upsampled alone, the others 2× in time
+    (nearest) per temporal upsampling. A batching other than this is refused (AssertionError), never guessed.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    decoder = getattr(model, "decoder", None)
+    fb = getattr(model, "num_latent_frames_batch_size", None)
+    if not isinstance(decoder, torch.nn.Module) or fb != 2:
+        raise ValueError("decoding an even number of latent frames needs a diffusers AutoencoderKLCogVideoX "
+                         f"(a .decoder and 2-frame decode batches); got {type(model).__name__} with "
+                         f"num_latent_frames_batch_size={fb!r}")
+    nb = max(num_frames // fb, 1)
+    lengths = [fb + num_frames % fb] + [fb] * (nb - 1)
+    state = {"calls": 0, "padding_batch": 0}     # padding_batch: L while the batch with the padding runs, else 0
+
+    def before_decoder(module, args, kwargs):
+        sample = args[0] if args else kwargs["sample"]                 # (b, C, L, h, w)
+        k = state["calls"] % nb
+        if sample.shape[2] != lengths[k]:
+            raise AssertionError(f"diffusers decoded batch {k} with {sample.shape[2]} latent frames, expected "
+                                 f"{lengths[k]} (batches {lengths}): its decode batching changed")
+        state["calls"] += 1
+        state["padding_batch"] = lengths[k] if k == nb - 1 else 0
+
+    def group_norm(module, args, out):
+        n_lat = state["padding_batch"]
+        x = args[0]
+        if not n_lat or x.dim() != 5:
+            return None
+        first, tl = n_lat % 2, x.shape[2]
+        if (tl - first) % (n_lat - first):
+            raise AssertionError(f"a decoder tensor of {tl} frames in a batch of {n_lat} latent frames")
+        keep = tl - (tl - first) // (n_lat - first)
+        real = F.group_norm(x[:, :, :keep], module.num_groups, module.weight, module.bias, module.eps)
+        return torch.cat([real, out[:, :, keep:]], dim=2)
+
+    handles = [decoder.register_forward_pre_hook(before_decoder, with_kwargs=True)]
+    handles += [m.register_forward_hook(group_norm) for m in decoder.modules() if isinstance(m, torch.nn.GroupNorm)]
+    try:
+        yield
+    finally:
+        for h in handles:
+            h.remove()
+    if state["calls"] == 0 or state["calls"] % nb:
+        raise AssertionError(f"diffusers called the decoder {state['calls']} times for batches of {lengths}")
 
 
 def decode_rollout(vae: Any, latents, num_history: int, frames_per_round: int, history_frames: int) -> np.ndarray:

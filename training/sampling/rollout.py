@@ -51,24 +51,37 @@ from training.sampling.guidance import GuidanceConfig, combine_branches
 @dataclass
 class RolloutConfig:
     """How to sample. Frame counts are *latent* frames (CogVideoX: 1 latent frame = 4 pixel frames)."""
-    num_steps: int = 50                    # DDIM steps per chunk (ReSim: 50)
+    num_steps: int = 50                    # DDIM steps per chunk (ReSim: 50); <= the model's num_train_timesteps
     history_frames: int = 3                # window kept at each round start (ReSim: 9 px frames = 3 latent)
     frames_per_round: int = 10             # latent frames per round (ReSim: 10 = 40 px = 4 s at 10 Hz)
     chunk_frames: int = 10                 # denoised together: frames_per_round = ReSim, 1 = Vid2World
-    history_noise_level: int = 0           # level history frames are noised to (once) and fed at; 0 = clean
+    history_noise_level: int = 0           # level history frames are noised to (once) and fed at; 0 = clean;
+                                           # < the model's num_train_timesteps
     kv_cache: Literal["auto", "on", "off"] = "auto"   # auto: on for causal models
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
 
     def __post_init__(self) -> None:
-        if self.num_steps < 1 or self.num_steps > 1000:
-            raise ConfigError(f"num_steps={self.num_steps} not in [1, 1000]")
+        # upper bounds depend on the model's schedule: check_schedule, at the start of every rollout
+        if self.num_steps < 1:
+            raise ConfigError(f"num_steps={self.num_steps} must be >= 1")
         if self.history_frames < 1:
             raise ConfigError("history_frames must be >= 1 (the rollout is conditioned on observed frames)")
         if self.frames_per_round < 1 or not 1 <= self.chunk_frames <= self.frames_per_round:
             raise ConfigError(f"need 1 <= chunk_frames ({self.chunk_frames}) <= frames_per_round "
                               f"({self.frames_per_round})")
-        if not 0 <= self.history_noise_level < 1000:
-            raise ConfigError(f"history_noise_level={self.history_noise_level} not in [0, 999]")
+        if self.history_noise_level < 0:
+            raise ConfigError(f"history_noise_level={self.history_noise_level} must be >= 0")
+
+    def check_schedule(self, num_train_timesteps: int) -> None:
+        """The steps and levels this config asks for must exist in a schedule of ``num_train_timesteps`` levels
+        (the model's ``objective.schedule``; CogVideoX: 1000)."""
+        n = int(num_train_timesteps)
+        if self.num_steps > n:
+            raise ConfigError(f"num_steps={self.num_steps} > the model's num_train_timesteps={n} "
+                              f"(DDIM steps are distinct noise levels: at most {n})")
+        if self.history_noise_level >= n:
+            raise ConfigError(f"history_noise_level={self.history_noise_level} not in [0, {n}) "
+                              f"(the model's num_train_timesteps={n})")
 
 
 ROLLOUT_PRESETS: dict[str, dict] = {
@@ -130,6 +143,15 @@ def _model_dtype(model: Any) -> torch.dtype:
     return torch.float32
 
 
+def model_ddim_schedule(model: Any, cfg: RolloutConfig) -> DDIMSchedule:
+    """The DDIM steps of ``cfg`` over the schedule the model was trained with (``model.objective.schedule``;
+    CogVideoX's default for a model without one), after :meth:`RolloutConfig.check_schedule` against it."""
+    sched_cfg = getattr(getattr(model, "objective", None), "schedule", None)
+    ac = cogvideox_alphas_cumprod(sched_cfg)
+    cfg.check_schedule(int(ac.shape[0]))
+    return DDIMSchedule(cfg.num_steps, ac)
+
+
 def rollout_num_steps_total(cfg: RolloutConfig, num_future_frames: int) -> int:
     """DDIM steps a rollout takes (for a progress bar): steps × number of chunks over all rounds."""
     chunks, left = 0, num_future_frames
@@ -155,9 +177,7 @@ class _Roller:
         self.model, self.cfg, self.gen = model, cfg, generator
         self.same_noise = same_noise
         self.device, self.mdtype = history.device, _model_dtype(model)
-        objective = getattr(model, "objective", None)   # sample with the schedule the model trained with
-        sched_cfg = getattr(objective, "schedule", None)
-        self.schedule = DDIMSchedule(cfg.num_steps, cogvideox_alphas_cumprod(sched_cfg))
+        self.schedule = model_ddim_schedule(model, cfg)
         self.latents = history.float()                         # (B, T, C, h, w), grows
         # the fed version of each frame (noised once to history_noise_level when it became history)
         self.fed = self._noise_history(self.latents)
