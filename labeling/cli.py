@@ -90,8 +90,10 @@ def _run(args: argparse.Namespace) -> int:
                                      for x in dict.fromkeys(src))
         if fc.camera_ahead_m is None and fc.foe_model == "pooled" and "per_pair" in src:
             rig += f" (per pair until {fc.foe_min_straight_s:g} s of straight driving is seen)"
-    print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps, sampled at {res.sample_hz:g} Hz, "
-          f"{len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
+    # the video is not the file's first video stream: that one is a still picture (a cover), labeling/video.py
+    stream = f" (video stream {info.stream_index}; the first is a still picture)" if info.opencv_problem else ""
+    print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps{stream}, sampled at "
+          f"{res.sample_hz:g} Hz, {len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
           f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "
           f"decoded {n_dec} of {info.num_frames or 'an unknown number of'} frames"
           f"{skipped}", file=sys.stderr)

@@ -21,6 +21,9 @@ luma plane it returns *is* the greyscale image the flow needs; this is verified 
 the first frame against a normal BGR decode, and the reader falls back to BGR
 otherwise. The sample aspect ratio (anamorphic video) is applied when resizing.
 
+Both read the video stream that ``probe`` (labeling/video_probe.py) picks: never a cover picture stored first (the
+OpenCV reader, which cannot pick a stream, refuses such a file).
+
 Both readers end a truncated or damaged file where it stops decoding (the first packet FFmpeg rejects; PyAV
 also at the first frame FFmpeg flags as concealed after a clean one) and report it in ``stats["incomplete"]``: the part before is
 labelled, nothing after it is made up (docs/labeling.md, "Odd files").
@@ -28,106 +31,15 @@ labelled, nothing after it is made up (docs/labeling.md, "Odd files").
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import cv2
 import numpy as np
 
-from labeling.flow import prepare_frame
-
-
-class VideoError(Exception):
-    """A video that cannot be labeled: ``path`` and ``reason``."""
-
-    def __init__(self, path: str | Path, reason: str):
-        self.path, self.reason = str(path), reason
-        super().__init__(f"{path}: {reason}")
-
-
-@dataclass(frozen=True)
-class VideoInfo:
-    path: str
-    fps_hz: float
-    num_frames: int          # as the container reports it (may be approximate; 0 = unknown)
-    width_px: int
-    height_px: int
-    pixel_aspect: float      # sample aspect ratio (1.0 = square pixels)
-    # the video stream's own duration as the container states it (None = unknown): what a complete decode must
-    # reach (``iter_grey_samples`` reports a decode that stops short of it, e.g. a truncated download)
-    video_duration_s: float | None = None
-
-    @property
-    def duration_s(self) -> float:
-        return self.num_frames / self.fps_hz
-
-
-def _video_duration_s(path: str, fps: float, num_frames: int) -> float | None:
-    """The video stream's duration as the container states it, or None where it states none.
-
-    With PyAV: the stream's duration (MP4, AVI, TS), else Matroska/WebM's ``DURATION`` tag (what FFmpeg's muxer
-    writes). Not the format's duration, which runs to the end of the longest stream (an audio track that outlasts
-    the video). Without PyAV: OpenCV's frame count / fps, which for Matroska and TS is the format's duration.
-    """
-    try:
-        import av
-    except ImportError:
-        return num_frames / fps if num_frames > 0 else None
-    try:
-        with av.open(path) as c:
-            s = c.streams.video[0]
-            if s.duration and s.time_base:
-                return float(s.duration * s.time_base)
-            tag = s.metadata.get("DURATION") or s.metadata.get("duration")
-            if tag:
-                h, m, sec = tag.split(":")
-                return int(h) * 3600 + int(m) * 60 + float(sec)
-    except (av.error.FFmpegError, IndexError, ValueError):
-        pass
-    return None
-
-
-def _open(path: str, convert_rgb: bool = True) -> cv2.VideoCapture:
-    cap = cv2.VideoCapture(path, cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, 1])
-    if cap.isOpened() and not convert_rgb:
-        cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
-    return cap
-
-
-def probe(path: str | Path) -> VideoInfo:
-    """Open ``path`` and read its geometry; raises VideoError naming the file and the reason."""
-    p = Path(path)
-    if not p.exists():
-        raise VideoError(p, "no such file")
-    if p.is_dir():
-        raise VideoError(p, "is a directory, not a video file")
-    try:
-        with open(p, "rb") as fh:
-            fh.read(1)
-    except OSError as e:
-        raise VideoError(p, f"cannot be read ({e.strerror})") from None
-    prev = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # we report the failure ourselves
-    cap = _open(str(p))
-    cv2.utils.logging.setLogLevel(prev)
-    try:
-        if not cap.isOpened():
-            raise VideoError(p, "OpenCV/FFmpeg cannot open it (not a video, or an unsupported container/codec)")
-        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        n = cap.get(cv2.CAP_PROP_FRAME_COUNT)
-        # raw streams (.h264) report garbage (-1.9e17 seen): 0 = unknown
-        n = int(n) if math.isfinite(n) and n > 0 else 0
-        num, den = cap.get(cv2.CAP_PROP_SAR_NUM), cap.get(cv2.CAP_PROP_SAR_DEN)
-        if not math.isfinite(fps) or fps <= 0 or w <= 0 or h <= 0:
-            raise VideoError(p, f"no usable video stream (fps={fps}, size={w}x{h})")
-        if not cap.grab():
-            raise VideoError(p, "no decodable video frame")
-    finally:
-        cap.release()
-    sar = (num / den) if (num and den and num > 0 and den > 0) else 1.0
-    return VideoInfo(str(p), fps, n, w, h, float(sar), _video_duration_s(str(p), fps, n))
+from labeling.flow_sampling import prepare_frame
+# VideoError, VideoInfo and probe are imported from here too (labeling/windows.py, cli.py, bench/, tests/)
+from labeling.video_probe import VideoError, VideoInfo, _open, _pick_video_stream, probe
 
 
 def _luma_plane_ok(path: str, h: int, w: int) -> bool:
@@ -181,6 +93,8 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
             yield from _iter_pyav(info, sample_hz, work_width_px, stats=stats)
             _check_complete(info, sample_hz, stats)
             return
+    if info.opencv_problem:
+        raise VideoError(info.path, info.opencv_problem)
     stats.update(decoder="opencv", nonref_skipped=False, timestamps="stream")
     yield from _iter_opencv(info, sample_hz, work_width_px, use_luma, stats)
     _check_complete(info, sample_hz, stats)
@@ -204,11 +118,15 @@ def _check_complete(info: VideoInfo, sample_hz: float, stats: dict) -> None:
     stats["incomplete"] = f"decoded {end:.2f} s{of} ({why})"
 
 
-def _av_open(path: str, skip_nonref: bool):
+def _av_open(path: str, skip_nonref: bool, index: int | None = None):
+    """Open ``path`` and its video stream ``index`` (None: the one ``_pick_video_stream`` picks), one thread."""
     import av
 
     c = av.open(path)
-    s = c.streams.video[0]
+    s = c.streams[index] if index is not None else _pick_video_stream(c)
+    if s is None:
+        c.close()
+        raise VideoError(path, "no video stream, only a still picture (cover art)")
     s.thread_type = "NONE"                      # one thread: the pipeline runs one labeler per core
     s.codec_context.thread_count = 1
     if skip_nonref:
@@ -310,7 +228,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
     import av
 
     try:
-        c, s = _av_open(info.path, skip_nonref=skip_nonref)
+        c, s = _av_open(info.path, skip_nonref, info.stream_index)
     except av.error.FFmpegError as e:
         raise VideoError(info.path, f"PyAV/FFmpeg cannot open it ({e})") from None
     period, half = 1.0 / sample_hz, 0.5 / info.fps_hz
@@ -343,7 +261,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                         # the seek landed after the frame we need: decode from the start instead
                         it.close()
                         c.close()
-                        c, s = _av_open(info.path, skip_nonref=False)
+                        c, s = _av_open(info.path, False, info.stream_index)
                         stats["decode_error"] = None
                         frames, reopened = _frames(c, s, stats), True
                         break
@@ -369,7 +287,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                         c.seek(prev_pts, stream=s, backward=True)
                     except av.error.FFmpegError:
                         c.close()
-                        c, s = _av_open(info.path, skip_nonref=False)
+                        c, s = _av_open(info.path, False, info.stream_index)
                         reopened = True
                     frames = _frames(c, s, stats)
                     break
@@ -386,7 +304,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                     # the seek found no decodable frame (it landed past the last key frame: TS seeks by bytes):
                     # decode from the start instead
                     c.close()
-                    c, s = _av_open(info.path, skip_nonref=False)
+                    c, s = _av_open(info.path, False, info.stream_index)
                     stats["decode_error"] = None
                     frames, reopened = _frames(c, s, stats), True
     except av.error.FFmpegError as e:
@@ -479,6 +397,16 @@ def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
                 nxt += period
         if i == 0:
             raise VideoError(info.path, "no decodable video frame")
+        if i == 1 and info.num_frames > 1:
+            # what OpenCV does where the first video stream is a cover picture (it cannot pick another stream):
+            # one frame, whatever the video's length; PyAV's probe catches that before decoding (``opencv_problem``),
+            # this is the check where PyAV is not installed
+            raise VideoError(info.path, f"OpenCV decoded a single picture where the container states "
+                                        f"{info.num_frames} frames: the first video stream is most likely a still "
+                                        f"picture (cover art) stored before the video, which OpenCV cannot skip (or "
+                                        f"the file is damaged after its first frame); install PyAV (pip install av), "
+                                        f"whose reader picks the video stream, or keep only the video: ffmpeg -i IN "
+                                        f"-map 0:v:1 -c copy OUT (ffprobe IN lists the streams)")
     finally:
         cap.release()
         cv2.utils.logging.setLogLevel(prev_level)

@@ -1,12 +1,13 @@
 """The labeler's two decoder paths (labeling/video.py) on an H.264 stream with B-frames."""
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from labeling.config import FlowConfig, LabelerConfig
-from labeling.video import iter_grey_samples, probe
+from labeling.video import VideoError, iter_grey_samples, probe
 from labeling.windows import label_video
 
 pytest.importorskip("av")
@@ -268,3 +269,105 @@ def test_the_labeler_and_the_cli_report_the_switch(refs_thin_out_after_3s, capsy
     assert abs(r["pyav"].yaw_inc_deg.sum() - r["opencv"].yaw_inc_deg.sum()) < 1.0
     assert main(["label", str(path), "--json"]) == 0
     assert "non-reference frames not decoded until 3.04 s" in capsys.readouterr().err
+
+
+def _udta_before_tracks(src, dst):
+    """Copy an MP4 with its ``moov/udta`` box (iTunes metadata, the ``covr`` cover) moved in front of the tracks, as
+    some taggers write it: FFmpeg's demuxer then makes the cover stream 0 (its own muxer writes udta last). moov
+    keeps its size, so the chunk offsets into mdat stay valid."""
+    import struct
+
+    b = bytearray(src.read_bytes())
+
+    def boxes(i, end):
+        while i < end:
+            size, kind = struct.unpack(">I4s", b[i:i + 8])
+            yield i, size, kind
+            i += size
+
+    moov = next((i, n) for i, n, k in boxes(0, len(b)) if k == b"moov")
+    kids = list(boxes(moov[0] + 8, sum(moov)))
+    u = next(k for k in kids if k[2] == b"udta")
+    t = next(k for k in kids if k[2] == b"trak")
+    box = bytes(b[u[0]:u[0] + u[1]])
+    del b[u[0]:u[0] + u[1]]
+    b[t[0]:t[0]] = box
+    dst.write_bytes(bytes(b))
+    return dst
+
+
+def _ffmpeg(*args):
+    p = subprocess.run(["ffmpeg", "-v", "error", "-y", *map(str, args)], capture_output=True)
+    if p.returncode != 0:
+        pytest.skip(f"ffmpeg cannot write the test file: {p.stderr.decode()[-200:]}")
+
+
+@pytest.fixture
+def cover_png(tmp_path):
+    import cv2
+
+    img = np.full((64, 64, 3), 40, np.uint8)
+    img[16:48, 16:48] = (0, 0, 255)
+    cv2.imwrite(str(tmp_path / "cover.png"), img)
+    return tmp_path / "cover.png"
+
+
+@pytest.mark.parametrize("kind", ["mp4_attached_pic_first", "mkv_png_track_first"])
+def test_a_cover_picture_stored_before_the_video_is_not_what_gets_labelled(tmp_path, left_turn_25fps, cover_png,
+                                                                          kind, monkeypatch):
+    """A cover picture as the first video stream: an MP4 whose ``covr`` comes before the tracks (flagged attached
+    picture), or Matroska as FFmpeg 5.1 writes a cover (an ordinary one-frame PNG track, unflagged). Both readers
+    decoded the 64x64 cover as a one-frame video ("too short: 1 frame(s)" for a 5-s clip) and ``probe`` described
+    the cover (64x64, 90000 fps). Now PyAV labels the video stream, exactly as the bare video, and OpenCV's reader,
+    which cannot pick a stream, refuses with the reason instead of labelling the cover."""
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test videos")
+    frames, true = left_turn_25fps
+    video = _x264(tmp_path / "v.mp4", frames, "25")
+    if kind == "mp4_attached_pic_first":
+        _ffmpeg("-i", video, "-i", cover_png, "-map", "0", "-map", "1", "-c", "copy", "-disposition:v:1",
+                "attached_pic", tmp_path / "tagged.mp4")
+        path = _udta_before_tracks(tmp_path / "tagged.mp4", tmp_path / "cover_first.mp4")
+    else:
+        path = tmp_path / "cover_first.mkv"
+        _ffmpeg("-i", cover_png, "-i", video, "-map", "0", "-map", "1", "-c", "copy", path)
+    import av
+
+    with av.open(str(path)) as c:   # the layout the test is about: the cover is stream 0
+        assert [s.codec_context.name for s in c.streams.video] == ["png", "h264"]
+    info = probe(path)
+    assert (info.width_px, info.height_px, info.fps_hz) == (256, 144, 25.0), info     # the video's, not the cover's
+    assert info.stream_index == 1
+    assert abs(info.video_duration_s - 5.04) <= 0.1 and abs(info.num_frames - 126) <= 2, info
+    r = label_video(path, LabelerConfig(flow=FlowConfig(decoder="pyav")))
+    assert [(w.start_s, w.end_s, w.command) for w in r.windows] == [(0.0, 4.0, "Turning left")], r.windows
+    assert abs(r.yaw_inc_deg.sum() - true) <= 0.12 * true and r.decode["incomplete"] is None
+    if kind == "mp4_attached_pic_first":   # the same stream, the same times: the same labels as the bare video
+        bare = label_video(video, LabelerConfig(flow=FlowConfig(decoder="pyav")))
+        assert np.array_equal(r.yaw_inc_deg, bare.yaw_inc_deg) and np.array_equal(r.times_s, bare.times_s)
+    # OpenCV decodes the first video stream and cannot be told otherwise: a clear refusal, not the cover's labels
+    with pytest.raises(VideoError) as e:
+        label_video(path, LabelerConfig(flow=FlowConfig(decoder="opencv")))
+    assert e.value.path == str(path) and "first video stream (stream 0, png 64x64" in e.value.reason
+    assert "-map 0:1" in e.value.reason
+    # without PyAV nothing can tell the streams apart before decoding: the one-frame decode of a file that states
+    # 126 frames is refused
+    monkeypatch.setitem(sys.modules, "av", None)
+    info = probe(path)
+    assert (info.width_px, info.stream_index) == (64, None)    # OpenCV's view: the cover
+    with pytest.raises(VideoError) as e:
+        label_video(path)
+    assert e.value.path == str(path) and "single picture" in e.value.reason and "cover" in e.value.reason
+
+
+def test_an_audio_file_with_a_cover_is_not_a_video(tmp_path, cover_png):
+    """Audio with cover art has one video stream, the attached picture: it used to be labelled as a one-frame video
+    ("too short"); now probe says there is no video."""
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test file")
+    path = tmp_path / "song.m4a"
+    _ffmpeg("-f", "lavfi", "-i", "sine=d=3", "-i", cover_png, "-map", "0", "-map", "1", "-c:a", "aac", "-c:v", "copy",
+            "-disposition:v:0", "attached_pic", path)
+    with pytest.raises(VideoError) as e:
+        probe(path)
+    assert e.value.path == str(path) and "no video stream, only a still picture" in e.value.reason
