@@ -3,8 +3,10 @@
 #   bash scripts/setup.sh          # the product (pipeline + training)
 #   bash scripts/setup.sh --dev    # plus the test tools
 # Torch: if the venv has no torch yet and no NVIDIA GPU is visible, the CPU-only
-# torch==2.13.0 is installed first (a local wheel on our dev/CI machines, seconds);
-# with a GPU visible, pip's default (CUDA) torch is used. An existing torch is kept.
+# torch==2.13.0+cpu is installed first: from pip's configured sources where they have it
+# (a local wheel on our dev/CI machines, seconds), else from PyTorch's CPU index (PyPI's
+# own Linux torch is the multi-GB CUDA build). With a GPU visible, pip's default (CUDA)
+# torch is used. An existing torch is kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 extras="all"
@@ -22,8 +24,10 @@ if ! "$venv/bin/python" -c "import torch" >/dev/null 2>&1; then
     echo "[setup] GPU visible: installing torch (CUDA build)"
     pip_ install -q "torch>=2.2"
   else
-    echo "[setup] no GPU visible: installing CPU torch==2.13.0"
-    pip_ install -q "torch==2.13.0"
+    echo "[setup] no GPU visible: installing CPU torch==2.13.0+cpu"
+    pip_ install -q "torch==2.13.0+cpu" 2>/dev/null || \
+      pip_ install -q "torch==2.13.0" --index-url https://download.pytorch.org/whl/cpu \
+        --extra-index-url https://pypi.org/simple
   fi
 fi
 echo "[setup] installing resim[$extras] (editable)"
