@@ -174,8 +174,14 @@ class TextEncoder:
                              dim=int(model.config.d_model))
 
     def encode(self, texts: list[str]) -> np.ndarray:
+        return self.encode_with_counts(texts)[0]
+
+    def encode_with_counts(self, texts: list[str]) -> tuple[np.ndarray, list[int]]:
+        """``encode`` plus each text's token count before padding (the tokenizer's attention-mask sum:
+        the text's tokens and the end-of-sequence token, after truncation to ``max_tokens``)."""
         enc = self.tokenizer(list(texts), padding="max_length", max_length=self.info.max_tokens,
                              truncation=True, add_special_tokens=True, return_tensors="pt")
         with self.torch.inference_mode():
             h = self.model(enc.input_ids.to(self.device)).last_hidden_state
-        return h.float().cpu().numpy()
+        counts = [int(n) for n in enc.attention_mask.sum(dim=1).tolist()]
+        return h.float().cpu().numpy(), counts

@@ -52,7 +52,8 @@ def read_indexes(root) -> list[dict]:
 
 
 def read_quarantine(root):
-    """``DIR/quarantine/*.parquet`` concatenated (columns item, source, stage, reason, attempts), or None."""
+    """``DIR/quarantine/*.parquet`` concatenated (the pipeline's columns: item, unit_id, source, stage, status,
+    reason, attempts; see pipelines/quarantine.py), or None."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 

@@ -161,7 +161,9 @@ META_FIELDS: list[MetaField] = [
     MetaField("infractions", "list|null", "-", "Infraction names of the episode; null without outcomes."),
     MetaField("prompt_id", "str", "sha256 hex", "Prompt table id of the clip's text condition (prefix + command)."),
     MetaField("null_prompt_id", "str", "sha256 hex", "Prompt table id of the prefix alone (command dropped, for CFG)."),
-    MetaField("vae_id", "str", "-", "Which VAE encoded the latent (folder name or 'placeholder-tiny-random')."),
+    MetaField("vae_id", "str", "-", "Which VAE encoded the latent: its folder name, or 'PARENT/vae' for the vae/ "
+              "folder of a diffusers pipeline (e.g. 'CogVideoX-2b/vae'); the default placeholder VAE writes "
+              "'placeholder-cogvideox-vae-tiny'."),
     MetaField("vae_placeholder", "bool", "-", "True when the VAE is a random-init placeholder, not trained weights."),
     MetaField("latent_dtype", "str", "-", "float16 or bfloat16 (bfloat16 stored as uint16 bits)."),
     MetaField("latent_shape", "list", "-", "[T_latent, C, h, w]."),

@@ -10,7 +10,9 @@ Keys of the returned dict (also ``resim shards stats --json``):
   ``by_source_command``: ``{source: {command: count}}``.
 * ``turning_share``: fraction of samples whose command is not "Moving forward" (null if no samples).
 * ``quarantine``: ``num_items``, ``by_source``, ``by_stage``, ``by_reason`` (top 20), ``items`` (first 20 rows:
-  item, source, stage, reason, attempts); ``num_items`` 0 when ``DIR/quarantine`` is absent.
+  item, unit_id, source, stage, status, reason, attempts) of the rows that kept something out of the dataset
+  (status ``quarantined`` / ``dropped``, or no status column); ``num_items`` 0 when ``DIR/quarantine`` is absent.
+* ``warnings``: the same keys for the rows with status ``warning`` (the unit was used, its clips written).
 * ``bytes_per_sample``: mean bytes per sample for each member (``meta.json``, ``latent.npy``, ``traj.npy``,
   ``frames.mp4``, ``dino.npy``; samples without an optional member count 0), ``tar_overhead`` (headers and
   padding), ``in_shards`` (tar bytes / samples), ``prompt_table_amortised`` (prompt table bytes / samples) and
@@ -33,6 +35,19 @@ from shards.schema import MEMBERS
 
 def _counts(values) -> dict:
     return dict(sorted(Counter(values).items(), key=lambda kv: (-kv[1], str(kv[0]))))
+
+
+WARNING_STATUS = "warning"   # = pipelines.quarantine.WARNING (shards/ does not import pipelines/)
+
+
+def _row_summary(rows: list[dict]) -> dict:
+    return {
+        "num_items": len(rows),
+        "by_source": _counts(r.get("source") for r in rows),
+        "by_stage": _counts(r.get("stage") for r in rows),
+        "by_reason": dict(list(_counts(r.get("reason") for r in rows).items())[:20]),
+        "items": rows[:20],
+    }
 
 
 def compute_stats(root) -> dict:
@@ -70,16 +85,12 @@ def compute_stats(root) -> dict:
         bps["prompt_table_amortised"] = ptab_bytes / n_idx
         bps["total"] = bps["in_shards"] + bps["prompt_table_amortised"]
     q = read_quarantine(root)
-    quarantine = {"num_items": 0, "by_source": {}, "by_stage": {}, "by_reason": {}, "items": []}
-    if q is not None:
-        qd = q.to_pydict()
-        quarantine = {
-            "num_items": q.num_rows,
-            "by_source": _counts(qd.get("source", [])),
-            "by_stage": _counts(qd.get("stage", [])),
-            "by_reason": dict(list(_counts(qd.get("reason", [])).items())[:20]),
-            "items": q.slice(0, 20).to_pylist(),
-        }
+    q_rows = q.to_pylist() if q is not None else []
+    # status "warning" (pipelines/quarantine.py): the unit was used, nothing was kept out; counted apart.
+    # Rows without a status column (other writers) count as quarantined.
+    warned = [r for r in q_rows if r.get("status") == WARNING_STATUS]
+    quarantine = _row_summary([r for r in q_rows if r.get("status") != WARNING_STATUS])
+    warnings = _row_summary(warned)
     committed = {i["shard"] for i in indexes}
     return {
         "root": str(root),
@@ -97,6 +108,7 @@ def compute_stats(root) -> dict:
         "by_source_command": {s: dict(sorted(c.items())) for s, c in sorted(by_sc.items())},
         "turning_share": (sum(man["is_turning"]) / n) if n else None,
         "quarantine": quarantine,
+        "warnings": warnings,
         "bytes_per_sample": bps,
         "member_presence": dict(sorted(member_counts.items())),
         "latent": {"shapes": dict(shapes), "dtypes": dict(dtypes)},
@@ -146,6 +158,11 @@ def format_stats(st: dict) -> str:
     for k, v in q["by_stage"].items():
         lines.append(f"  stage {k}: {v}")
     for k, v in list(q["by_reason"].items())[:5]:
+        lines.append(f"  {v} x {k}")
+    w = st.get("warnings") or {"num_items": 0}
+    lines.append(f"warnings: {w['num_items']}" + ("  (units used, clips written; quarantine/*.parquet, "
+                                                  "status warning)" if w["num_items"] else ""))
+    for k, v in list(w.get("by_reason", {}).items())[:5]:
         lines.append(f"  {v} x {k}")
     if st["bytes_per_sample"]:
         lines.append("bytes per sample:")

@@ -13,6 +13,11 @@ under 720 px. The synthetic world's OpenDV part is read with
 Frames are decoded lazily and resized right after decoding (before colour
 conversion); resampling keeps, for output frame k at ``t_k = start + k / fps_hz``,
 the source frame nearest to ``t_k``.
+
+Frames are read with OpenCV, which always decodes the file's first video stream. A file whose first video
+stream is a cover picture stored before the video (an MP4 ``covr`` box ahead of the tracks, a Matroska PNG
+track) is quarantined with that reason rather than cut into clips of the picture: ``open`` asks the labeler's
+probe (``labeling.video_probe.probe``, PyAV) which stream is the video (``VideoInfo.opencv_problem``).
 """
 from __future__ import annotations
 
@@ -153,6 +158,7 @@ class OpenDVReader:
         path = self.cfg.root / item_id
         if not path.is_file():
             raise SourceError(item_id, f"video file {path} does not exist")
+        _refuse_cover_first(path, item_id)
         cap = cv2.VideoCapture(str(path))
         try:
             if not cap.isOpened():
@@ -195,6 +201,26 @@ class OpenDVReader:
 
         return Episode(source="opendv", item_id=item_id, fps_hz=self.cfg.fps_hz, num_frames=n_out,
                        frame_size_hw=(h, w), timestamps_s=t - start_s, _loader=loader)
+
+
+def _refuse_cover_first(path: Path, item_id: str) -> None:
+    """``SourceError`` where OpenCV would decode a cover picture instead of the video: the first video stream is
+    an attached or still picture stored before the video (``labeling.video_probe``; needs PyAV, without it nothing
+    is checked here). Every other problem is left to ``open``'s own checks, which name it as before."""
+    from labeling.video_probe import VideoError, probe
+
+    try:
+        info = probe(path)
+    except VideoError as e:
+        if e.reason.startswith("no video stream, only a still picture"):   # e.g. an audio file with cover art
+            raise SourceError(item_id, f"video file {path}: {e.reason}; OpenCV would read the picture as a "
+                                       "one-frame video") from None
+        return
+    if info.opencv_problem:
+        raise SourceError(item_id, f"video file {path}: its first video stream is a cover picture stored before "
+                                   f"the video (the video is stream {info.stream_index}); OpenCV, which this reader decodes "
+                                   f"with, would read the cover picture instead of the video. Keep only the "
+                                   f"video: ffmpeg -i IN -map 0:{info.stream_index} -c copy OUT")
 
 
 def _opt_float(v) -> float | None:

@@ -45,9 +45,9 @@ class PromptStage:
         roles = [str(r) for r in batch["role"]]
         todo = [i for i, t in enumerate(texts) if prompt_id(t) not in have]
         if todo:
-            emb = self.encoder.encode([texts[i] for i in todo])
+            emb, counts = self.encoder.encode_with_counts([texts[i] for i in todo])
             info = self.encoder.info
-            for j, i in enumerate(todo):
+            for j, i in enumerate(todo):   # num_tokens: the prompt's own tokens (+ EOS), not the padded length
                 table.add(texts[i], emb[j].astype(np.float16), roles[i], info.encoder_id,
-                          placeholder=info.placeholder, num_tokens=info.max_tokens)
+                          placeholder=info.placeholder, num_tokens=counts[j])
         return {"prompt_id": np.array([prompt_id(t) for t in texts], dtype=object)}

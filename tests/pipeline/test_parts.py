@@ -71,6 +71,29 @@ def test_placeholder_encoders_are_deterministic_and_flagged():
     assert not np.allclose(e[0], e[1])
 
 
+def test_prompt_table_records_each_prompts_unpadded_token_count(tmp_path):
+    """num_tokens is the prompt's own token count (attention-mask sum), not the padded length (226)."""
+    from pipelines.stages.prompts import PromptStage, all_prompts
+    from shards.prompts import PromptTable
+    from shards.schema import prompt_id
+
+    from .conftest import make_config
+
+    cfg = make_config(tmp_path / "out")
+    stage = PromptStage(cfg, device="cpu")
+    texts = [t for t, _ in all_prompts()]
+    stage({"text": texts, "role": [r for _, r in all_prompts()]})
+    entries = PromptTable(tmp_path / "out").entries()
+    want = [len(stage.encoder.tokenizer(t).input_ids) for t in texts]   # no padding asked: the real length
+    got = [entries[prompt_id(t)]["num_tokens"] for t in texts]
+    assert got == want
+    assert all(0 < n < cfg.encode.max_text_tokens for n in got)
+    assert len(set(got)) > 1                                          # different prompts, different counts
+    null, left = prompt_id(texts[-1]), prompt_id(next(t for t in texts if t.endswith("Turning left.")))
+    assert entries[null]["num_tokens"] < entries[left]["num_tokens"]  # the bare prefix is shorter
+    assert entries[null]["shape"][0] == cfg.encode.max_text_tokens   # the stored embedding stays padded
+
+
 def test_quarantine_table_roundtrip(tmp_path):
     from pipelines import quarantine
 

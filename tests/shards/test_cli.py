@@ -51,6 +51,26 @@ def test_stats_json(dataset, base_dataset, capsys):
     assert "turning share" in capsys.readouterr().out
 
 
+def test_stats_counts_warning_rows_apart_from_quarantined_items(dataset, capsys):
+    """Rows with status warning (the unit was used) are not quarantined items; they are reported as warnings."""
+    qdir = layout.quarantine_dir(dataset)
+    qdir.mkdir()
+    pq.write_table(pa.table({
+        "item": ["a.mp4", "b.mp4#f0000040", "c", "d"], "unit_id": ["ua", "ub", "uc", "uc"],
+        "source": ["opendv", "opendv", "synthetic/carla", "synthetic/carla"], "stage": ["cut", "label", "cut", "cut"],
+        "status": ["quarantined", "dropped", "warning", "warning"],
+        "reason": ["truncated file", "NaN poses", "NaN compass interpolated", "no results record"],
+        "attempts": pa.array([1, 1, 1, 1], pa.int32())}), qdir / "u.parquet")
+    assert main(["shards", "stats", str(dataset), "--json"]) == 0
+    st = json.loads(capsys.readouterr().out)
+    assert st["quarantine"]["num_items"] == 2 and st["quarantine"]["by_stage"] == {"cut": 1, "label": 1}
+    assert {r["status"] for r in st["quarantine"]["items"]} == {"quarantined", "dropped"}
+    assert st["warnings"]["num_items"] == 2 and st["warnings"]["by_source"] == {"synthetic/carla": 2}
+    assert main(["shards", "stats", str(dataset)]) == 0
+    out = capsys.readouterr().out
+    assert "quarantined items: 2" in out and "warnings: 2" in out and "1 x NaN compass interpolated" in out
+
+
 def test_show(dataset, capsys):
     key = read_indexes(dataset)[0]["keys"][1]
     assert main(["shards", "show", str(dataset), key, "--json"]) == 0

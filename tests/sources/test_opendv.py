@@ -66,3 +66,82 @@ def test_real_dashcam_clip(shared_dashcam):
     assert ep.num_frames == 88 and ep.frame_size_hw == (540, 960)
     fr = list(ep.frames(0, 3, size_hw=(90, 160)))
     assert len(fr) == 3 and fr[0].shape == (90, 160, 3) and fr[0].std() > 10
+
+
+# ---- a cover picture stored before the video ------------------------------------------------------------------
+def _ffmpeg(*args):
+    import subprocess
+
+    p = subprocess.run(["ffmpeg", "-v", "error", "-y", *map(str, args)], capture_output=True)
+    if p.returncode != 0:
+        pytest.skip(f"ffmpeg cannot write the test file: {p.stderr.decode()[-200:]}")
+
+
+def _udta_before_tracks(src, dst):
+    """An MP4 with its ``moov/udta`` box (the ``covr`` cover) moved in front of the tracks, as some taggers write
+    it: FFmpeg's demuxer then makes the cover stream 0 (as tests/labeling/test_video.py does)."""
+    import struct
+
+    b = bytearray(src.read_bytes())
+
+    def boxes(i, end):
+        while i < end:
+            size, kind = struct.unpack(">I4s", b[i:i + 8])
+            yield i, size, kind
+            i += size
+
+    moov = next((i, n) for i, n, k in boxes(0, len(b)) if k == b"moov")
+    kids = list(boxes(moov[0] + 8, sum(moov)))
+    u = next(k for k in kids if k[2] == b"udta")
+    t = next(k for k in kids if k[2] == b"trak")
+    box = bytes(b[u[0]:u[0] + u[1]])
+    del b[u[0]:u[0] + u[1]]
+    b[t[0]:t[0]] = box
+    dst.write_bytes(bytes(b))
+    return dst
+
+
+@pytest.mark.parametrize("kind", ["mp4_attached_pic_first", "mkv_png_track_first"])
+def test_a_cover_picture_stored_before_the_video_is_quarantined_with_the_reason(tmp_path, kind):
+    """OpenCV decodes the first video stream; where that is a cover picture stored before the video, the reader
+    used to cut clips of (or fail on) the picture. Now the file is quarantined, naming it and why."""
+    import shutil
+
+    import cv2
+
+    if shutil.which("ffmpeg") is None:
+        pytest.skip("ffmpeg is needed to write the test videos")
+    pytest.importorskip("av")
+    root = tmp_path / "opendv"
+    root.mkdir()
+    _ffmpeg("-f", "lavfi", "-i", "testsrc=size=128x72:rate=25", "-t", "4", "-c:v", "libx264", "-pix_fmt", "yuv420p",
+            tmp_path / "v.mp4")
+    img = np.full((64, 64, 3), 40, np.uint8)
+    img[16:48, 16:48] = (0, 0, 255)
+    cv2.imwrite(str(tmp_path / "cover.png"), img)
+    if kind == "mp4_attached_pic_first":
+        _ffmpeg("-i", tmp_path / "v.mp4", "-i", tmp_path / "cover.png", "-map", "0", "-map", "1", "-c", "copy",
+                "-disposition:v:1", "attached_pic", tmp_path / "tagged.mp4")
+        item = "cover_first.mp4"
+        _udta_before_tracks(tmp_path / "tagged.mp4", root / item)
+    else:
+        item = "cover_first.mkv"
+        _ffmpeg("-i", tmp_path / "cover.png", "-i", tmp_path / "v.mp4", "-map", "0", "-map", "1", "-c", "copy",
+                root / item)
+    import av
+
+    with av.open(str(root / item)) as c:   # the layout the test is about: the cover is stream 0
+        assert [s.codec_context.name for s in c.streams.video] == ["png", "h264"]
+    (root / "plain.mp4").write_bytes((tmp_path / "v.mp4").read_bytes())
+    r = reader(root)
+    good, problems = scan_items(r)
+    assert good == ["plain.mp4"]                              # the ordinary video is untouched
+    ep = r.open("plain.mp4")
+    assert ep.frame_size_hw == (72, 128) and ep.num_frames == 40
+    [e] = problems
+    assert e.item == item
+    assert str(root / item) in e.reason and "cover picture" in e.reason and "OpenCV" in e.reason
+    assert "-map 0:1" in e.reason
+    # without the last-frame check the old reader opened the file and cut clips of the cover picture
+    with pytest.raises(SourceError, match="cover picture"):
+        reader(root, verify_last_frame=False).open(item)
