@@ -15,9 +15,12 @@ examples:
       --set model.init_weights=runs/s1/final/model.safetensors --set data.num_workers=8
   resim train launch --nnodes 5 --nproc-per-node 8 --dry-run -- world --preset stage1 --shards D --out R
 
+An --out that holds a run of the same model is refused unless --resume (continue; a run already at
+trainer.steps has nothing to do and exits 0) or --overwrite (delete it, start over); an --out that holds
+another kind of run (e.g. `resim train reward`'s) or a dataset is always refused.
 The run folder gets config.yaml (resolved), metrics.jsonl (one JSON object per optimizer step),
 tensorboard/, checkpoints/step_XXXXXXXX/ (sharded, atomic), final/model.safetensors and loss_curve.png.
-Exit codes: 0 ok, 2 bad config, 3 non-finite loss (message names the last good checkpoint), 4 bad data.
+Exit codes: 0 ok, 2 bad config or --out refused, 3 non-finite loss (message names the last good checkpoint), 4 bad data.
 """
 
 
@@ -29,7 +32,11 @@ def add_train_arguments(p: argparse.ArgumentParser, presets: list[str]) -> None:
     p.add_argument("--config", help="YAML file applied over the preset (same keys as config.yaml of a run)")
     p.add_argument("--steps", type=int, help="total optimizer steps = trainer.steps")
     p.add_argument("--checkpoint-every", type=int, help="checkpoint interval in steps = trainer.checkpoint_every_steps")
-    p.add_argument("--resume", action="store_true", help="continue from the latest complete checkpoint in --out")
+    p.add_argument("--resume", action="store_true", help="continue from the latest complete checkpoint in --out "
+                   "(a run already at trainer.steps: nothing to do, exit 0; raise --steps to go on)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="--out holds a run of this model: delete its checkpoints, final weights, metrics and "
+                        "config, then start over (without --resume or --overwrite such a folder is refused)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config value, e.g. --set optim.lr=1e-4 --set data.num_workers=4 (repeatable)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as YAML and exit")
@@ -50,8 +57,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.print_config:
         print(yaml.safe_dump(to_dict(cfg), sort_keys=False))
         return 0
-    from training.run import run_training
+    from training.run import RunFolderError, check_out_dir, finished_step, remove_run, run_training
     from training.stream import DataError
+
+    prog = f"resim train {args.model_name}"
+    try:
+        held = check_out_dir(args.model_name, args.out, resume=args.resume, overwrite=args.overwrite)
+    except RunFolderError as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        return 2
+    if held is not None and args.resume:
+        at = finished_step(args.out)
+        if at is not None and at >= cfg.trainer.steps:
+            print(f"{prog}: {args.out} is already at step {at} (trainer.steps = {cfg.trainer.steps}); nothing to do, "
+                  f"raise --steps above {at} to continue", file=sys.stderr)
+            return 0
+    if held is not None and args.overwrite:
+        removed = remove_run(args.out)
+        if removed:
+            print(f"[resim] --overwrite: removed {', '.join(removed)} of the {args.model_name} run in {args.out}",
+                  file=sys.stderr)
     from training.trainer import NonFiniteLossError
 
     try:

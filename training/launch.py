@@ -7,6 +7,8 @@
 * ``--dry-run``: resolves the config, builds the model on the meta device (no memory), works out the
   parallel layout for N x G ranks and prints parameters, global batch size and an estimate of memory
   per GPU (parameters, gradients, optimizer states, EMA, gathered FSDP units, activations).
+  ``-- reward ...``: the config is resolved and checked and the launch command printed, without a memory
+  estimate (Video2Reward is not a presets.py model and trains on one process).
 """
 from __future__ import annotations
 
@@ -90,6 +92,8 @@ def dry_run(args, train: list[str]) -> dict:
     from training.run import resolve_config
 
     ns = build_parser().parse_args(["train", *train])
+    if getattr(ns, "train_command", None) == "reward":
+        return reward_dry_run(args, train, ns)
     if getattr(ns, "model_name", None) is None:
         raise SystemExit(f"resim train launch --dry-run: `{' '.join(train)}` is not a `resim train NAME` command")
     cfg = resolve_config(ns.model_name, ns.preset, config_file=ns.config, overrides=ns.overrides, shards=ns.shards,
@@ -163,6 +167,32 @@ def dry_run(args, train: list[str]) -> dict:
         print(f"    {k:<48s} {v / GiB:9.2f} GiB")
     print(f"    {'total':<48s} {total / GiB:9.2f} GiB   (+ CUDA context, allocator fragmentation, NCCL buffers)")
     return out
+
+
+def reward_dry_run(args, train: list[str], ns) -> dict:
+    """`--dry-run -- reward ...`: resolve and check the Video2Reward config and print the launch command. There is
+    no memory estimate: Video2Reward is not built from a `training/presets.py` preset (its size depends on the
+    backbone folder) and trains on one process (parallel none, no sharding)."""
+    from training.reward.cli import _load_train_cfg
+
+    cfg = _load_train_cfg(ns)   # ConfigError -> exit 2 in main_launch, as for the other models
+    world = args.nnodes * args.nproc_per_node
+    m = cfg.model
+    print(f"dry run: resim train {' '.join(train)}")
+    print(f"  preset {ns.preset}; model Video2Reward: backbone {m.backbone_dir}, {m.image_size_px} px, window "
+          f"{m.num_frames} frames every {m.frame_step}, {'frozen' if m.freeze_backbone else 'fine-tuned'} backbone; "
+          f"{cfg.epochs} epochs, batch {cfg.batch_size_per_gpu}, lr {cfg.lr:g}")
+    print("  memory per GPU: no estimate for reward (the estimate covers models built from training/presets.py; "
+          "Video2Reward's size depends on its backbone folder)")
+    if world > 1:
+        print(f"  note: reward training does not shard or split data across ranks: each of the {world} ranks would "
+              "train the whole model into the same --out; launch it with --nnodes 1 --nproc-per-node 1")
+    try:
+        cmd = " ".join(shlex.quote(c) for c in torchrun_command(args, train))
+    except SystemExit as e:   # e.g. --nnodes > 1 without --rdzv-endpoint: what the launch itself would say
+        cmd = f"(not launchable: {e})"
+    print(f"  launch command: {cmd}")
+    return {"model": "Video2Reward", "preset": ns.preset, "world_size": world, "memory_total_bytes": None}
 
 
 def main_launch(args: argparse.Namespace) -> int:

@@ -151,3 +151,46 @@ def test_features_bad_source_or_destination(two_episodes, tmp_path, capsys):
     _one_line_error(capsys, "no committed shards")
     assert main(["reward-features", str(two_episodes), "--out", str(tmp_path / "o"), "--preset", "bogus"]) == 2
     _one_line_error(capsys, "unknown preset 'bogus'")
+
+
+def _fake_world_run(d):
+    (d / "checkpoints" / "step_00000020").mkdir(parents=True)
+    (d / "checkpoints" / "step_00000020" / "meta.json").write_text('{"step": 20}')
+    (d / "config.yaml").write_text("model_name: world\ntrainer:\n  steps: 20\n")
+    return d
+
+
+def _fake_reward_run(d):
+    d.mkdir(parents=True)
+    (d / "config.yaml").write_text("model:\n  num_frames: 8\nepochs: 20\n")
+    (d / "reward.safetensors").write_bytes(b"old")
+    (d / "meta.json").write_text("{}")
+    return d
+
+
+def test_train_into_another_kind_of_run_is_refused(two_episodes, tmp_path, capsys):
+    wm = _fake_world_run(tmp_path / "wm")
+    before = sorted(p.relative_to(wm) for p in wm.rglob("*"))
+    for flags in ([], ["--overwrite"]):
+        assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(wm), *TINY_SETS, *flags]) == 2
+        _one_line_error(capsys, "resim train reward:", f"{wm} holds a world run (checkpoints/step_00000020)",
+                        "not a reward run", "choose a new --out")
+    assert sorted(p.relative_to(wm) for p in wm.rglob("*")) == before   # nothing written into the world run
+
+
+def test_train_into_a_reward_run_needs_overwrite(two_episodes, tmp_path, capsys):
+    rw = _fake_reward_run(tmp_path / "rw")
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(rw), *TINY_SETS]) == 2
+    _one_line_error(capsys, "resim train reward:", f"{rw} holds a reward run (reward.safetensors)", "--overwrite")
+    # --overwrite: the old run stays until the new one's data is known to be usable (here it is not: exit 1)
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(rw), *TINY_SETS, "--overwrite"]) == 1
+    _one_line_error(capsys, "1 hazardous and 1 clean episode(s)")
+    assert (rw / "reward.safetensors").read_bytes() == b"old"
+
+
+@pytest.mark.parametrize("flag", [["--clip-frames", "10"], ["--clip-stride-frames", "5"], ["--hold-last"]])
+def test_carla_only_flags_with_shards_are_refused(two_episodes, tmp_path, capsys, flag):
+    out = tmp_path / "run"
+    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out), *TINY_SETS, *flag]) == 2
+    _one_line_error(capsys, "resim train reward:", flag[0], "only with --carla")
+    assert not out.exists()

@@ -98,3 +98,23 @@ def test_cli_features_train_score(dataset, tmp_path, capsys):
     assert main(["reward", short_key, "--checkpoint", str(run), "--shards", str(dataset)]) == 1
     assert "shorter than the model's window of 7" in capsys.readouterr().err
     assert main(["reward", "no-such-key", "--checkpoint", str(run), "--shards", str(dataset)]) == 1
+
+
+def test_cli_train_overwrite_replaces_a_reward_run(dataset, tmp_path, capsys):
+    """A second `train reward` into the same --out is refused; with --overwrite the old run's files (trainer
+    checkpoints included) are replaced, so nothing of the first run is left mixed in."""
+    run = tmp_path / "run"
+    args = ["train", "reward", "--shards", str(dataset), "--out", str(run), "--no-progress",
+            "--set", "batch_size_per_gpu=4", *TINY_SETS]
+    assert main([*args, "--set", "epochs=2"]) == 0
+    steps_first = sorted(p.name for p in (run / "trainer" / "checkpoints").iterdir())
+    capsys.readouterr()
+    assert main([*args, "--set", "epochs=1"]) == 2
+    assert "holds a reward run (reward.safetensors); use --overwrite" in capsys.readouterr().err
+    assert main([*args, "--set", "epochs=1", "--overwrite"]) == 0
+    steps_second = sorted(p.name for p in (run / "trainer" / "checkpoints").iterdir())
+    assert len(steps_second) == 1 and steps_second[0] < steps_first[-1]   # only the new run's checkpoint
+    import yaml
+
+    assert yaml.safe_load((run / "config.yaml").read_text())["epochs"] == 1
+    assert len(json.loads((run / "history.json").read_text())) == int(steps_second[0][len("step_"):])

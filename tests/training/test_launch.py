@@ -43,3 +43,22 @@ def test_bad_override_is_a_clear_config_error(capsys, tmp_path):
     rc = main(["train", "world", "--preset", "tiny", "--out", str(tmp_path), "--set", "optim.lr=1e-4",
                "--print-config"])
     assert rc == 0 and "lr: 0.0001" in capsys.readouterr().out
+
+
+def test_dry_run_accepts_reward(capsys, tmp_path):
+    """`launch -- reward ...` runs without --dry-run, so the dry run accepts it: the config is resolved and
+    checked, the launch command printed; there is no memory estimate for Video2Reward (said so)."""
+    rc = main(["train", "launch", "--dry-run", "--", "reward", "--preset", "tiny", "--shards", str(tmp_path),
+               "--out", str(tmp_path / "r")])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "dry run: resim train reward --preset tiny" in cap.out and "Video2Reward" in cap.out
+    assert "no estimate for reward" in cap.out
+    assert "-m torch.distributed.run --nnodes 1 --nproc-per-node 1 --standalone -m resim train reward" in cap.out
+    rc = main(["train", "launch", "--nproc-per-node", "2", "--dry-run", "--", "reward", "--shards", str(tmp_path),
+               "--out", str(tmp_path / "r")])
+    assert rc == 0 and "each of the 2 ranks would train the whole model" in capsys.readouterr().out
+    rc = main(["train", "launch", "--dry-run", "--", "reward", "--shards", str(tmp_path), "--out", str(tmp_path),
+               "--set", "lr=-1"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "config error" in err and "lr" in err

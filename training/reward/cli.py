@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 
 from resim.argtypes import non_negative_int as _non_negative_int, positive_int as _positive_int
 
@@ -75,6 +76,24 @@ def _cmd_score(args: argparse.Namespace) -> int:
     return 0
 
 
+# what `resim reward-features` writes in OUT: a folder holding only these is an earlier run (a rerun redoes it)
+FEATURES_OUT_NAMES = {"shards", "index", "manifest", "prompts", "quarantine", "config.yaml"}
+
+
+def _check_features_out(out) -> None:
+    """ValueError when OUT is a non-empty folder that is not a shard dataset (the copy would mix into it)."""
+    from pathlib import Path
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output folder {out} exists and is not a folder")
+    foreign = sorted(p.name for p in out.iterdir() if p.name not in FEATURES_OUT_NAMES) if out.is_dir() else []
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+        raise ValueError(f"output folder {out} is not empty and is not a shard dataset (it holds {shown}); "
+                         "give an empty or new folder")
+
+
 def _cmd_features(args: argparse.Namespace) -> int:
     import torch
 
@@ -90,6 +109,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
         return 2
     try:
         check_feature_paths(args.src, args.out)  # raises ValueError only for the two folders it checks
+        _check_features_out(args.out)
         model = Video2Reward(cfg.model)
     except (ValueError, BackboneError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
@@ -120,6 +140,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if bool(args.shards) == bool(args.carla):
         print(f"{prog}: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
         return 2
+    carla_only = [f for f, v in (("--clip-frames", args.clip_frames), ("--clip-stride-frames", args.clip_stride_frames),
+                                 ("--hold-last", args.hold_last or None)) if v is not None]
+    if args.shards and carla_only:
+        print(f"{prog}: error: {' and '.join(carla_only)} {'applies' if len(carla_only) == 1 else 'apply'} only with --carla (clips of a shard dataset are the "
+              f"dataset's samples, cut by `resim pipeline run`)", file=sys.stderr)
+        return 2
+    from training.run import REWARD_RUN_FILES, RunFolderError, check_out_dir, remove_run
+
+    try:
+        held = check_out_dir("reward", args.out, overwrite=args.overwrite, can_resume=False)
+    except RunFolderError as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        return 2
     src = args.shards or args.carla
     if not Path(src).is_dir():
         print(f"{prog}: error: {src}: no such folder", file=sys.stderr)
@@ -147,6 +180,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for note in prepared.notes:
         print(f"note: {note}", file=sys.stderr)
     out = Path(args.out)
+    if held is not None:   # --overwrite (checked above); the old run stays until the new one is known to start
+        removed = remove_run(out, REWARD_RUN_FILES)
+        print(f"note: --overwrite: removed {', '.join(removed)} of the reward run in {out}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     rconfig.save(cfg, out / "config.yaml")
     r = run_training(clips, cfg, out, progress=not args.no_progress, prepared=prepared)
@@ -160,6 +196,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+CARLA_CLIP_FRAMES = 40         # --clip-frames default (4 s at 10 Hz)
+CARLA_CLIP_STRIDE_FRAMES = 20  # --clip-stride-frames default
+
+
 def _carla_clips(args):
     """Clips cut straight from CARLA-layout route folders (Bench2Drive / `resim synth` OUT/carla) through
     pipelines.sources.carla.CarlaReader; routes the reader refuses are named and left out."""
@@ -170,11 +210,12 @@ def _carla_clips(args):
     from training.reward.data import clips_from_episode
 
     reader = CarlaReader(CarlaConfig(root=args.carla))
+    clip_frames = args.clip_frames if args.clip_frames is not None else CARLA_CLIP_FRAMES
+    stride = args.clip_stride_frames if args.clip_stride_frames is not None else CARLA_CLIP_STRIDE_FRAMES
     clips, short = [], []
     for item in tqdm(reader.list_items(), desc="routes", unit="route", disable=args.no_progress):
         try:
-            got = clips_from_episode(reader.open(item), args.clip_frames, args.clip_stride_frames,
-                                     hold_last=args.hold_last)
+            got = clips_from_episode(reader.open(item), clip_frames, stride, hold_last=args.hold_last)
         except SourceError as e:
             print(f"skipped route {item}: {e}", file=sys.stderr)
             continue
@@ -182,7 +223,7 @@ def _carla_clips(args):
             short.append(item)
         clips += got
     if short:  # named, not silently dropped: these are mostly early-crash hazards (the episode ends 2 s after)
-        print(f"{len(short)} routes are shorter than --clip-frames {args.clip_frames} and gave no clip "
+        print(f"{len(short)} routes are shorter than --clip-frames {clip_frames} and gave no clip "
               f"(--hold-last keeps them): {', '.join(short)}", file=sys.stderr)
     return clips
 
@@ -207,11 +248,16 @@ def add_train_parser(sub) -> None:
     t.add_argument("--shards", default=None, help="shard dataset folder (labelled clips: infraction_score set)")
     t.add_argument("--carla", default=None, help="or a CARLA-layout folder (Bench2Drive routes + results json, "
                    "e.g. `resim synth` OUT/carla): clips are cut from each route, labelled with its infraction score")
-    t.add_argument("--clip-frames", type=_positive_int, default=40, help="with --carla: frames per clip (default 40 = 4 s)")
-    t.add_argument("--clip-stride-frames", type=_positive_int, default=20, help="with --carla: frames between clip starts")
-    t.add_argument("--hold-last", action="store_true", help="with --carla: a route shorter than --clip-frames "
+    t.add_argument("--clip-frames", type=_positive_int, default=None,
+                   help=f"with --carla only: frames per clip (default {CARLA_CLIP_FRAMES} = 4 s)")
+    t.add_argument("--clip-stride-frames", type=_positive_int, default=None,
+                   help=f"with --carla only: frames between clip starts (default {CARLA_CLIP_STRIDE_FRAMES})")
+    t.add_argument("--hold-last", action="store_true", help="with --carla only: a route shorter than --clip-frames "
                    "(episodes end early after a crash) gives one clip with its last frame held, instead of none")
-    t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer)")
+    t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer); "
+                   "a folder holding a reward run is refused unless --overwrite, one holding another kind of run always")
+    t.add_argument("--overwrite", action="store_true", help="--out holds a reward run: delete it (checkpoint, "
+                   "predictions, trainer/) once the new run's data and split are checked, then train")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_cfg_args(t)
     t.set_defaults(func=_cmd_train)
@@ -226,7 +272,8 @@ def register(subparsers) -> None:
         "(averaged). A video shorter than the model's window, or with an unreadable frame, is an error.")
     p.add_argument("inputs", nargs="+", metavar="VIDEO_OR_SHARD_KEY")
     p.add_argument("--checkpoint", required=True, help="folder written by `resim train reward`")
-    p.add_argument("--shards", default=None, help="shard dataset folder to look sample keys up in")
+    p.add_argument("--shards", default=None, help="shard dataset folder to look sample keys up in "
+                   "(list them with `resim shards ls DIR --samples`)")
     p.add_argument("--stride", type=_positive_int, default=None, help="frames between window starts (default: window span)")
     p.add_argument("--json", action="store_true", help="print JSON (model metadata + one result per input)")
     p.set_defaults(func=_cmd_score)
@@ -234,11 +281,15 @@ def register(subparsers) -> None:
 
     f = subparsers.add_parser(
         "reward-features", help="copy a shard dataset adding DINOv2 features (dino.npy) for Video2Reward",
-        description="Store per-frame DINOv2 features of the reward model's window (float16 (T, N_tokens, D), "
+        description=textwrap.fill(width=90, text="Store per-frame DINOv2 features of the reward model's window (float16 (T, N_tokens, D), "
         "meta.dino_id names backbone, input size and window) for every sample with an infraction score, "
-        "writing a new dataset. Clips that cannot be featurised are copied without features and quarantined.")
+        "writing a new dataset. Clips that cannot be featurised are copied without features and quarantined."),
+        epilog="example:\n  resim reward-features out/shards --preset tiny --out out/shards-dino\n"
+        "  resim train reward --preset tiny --shards out/shards-dino --out runs/reward   # uses the stored features",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     f.add_argument("src", help="source shard dataset folder")
-    f.add_argument("--out", required=True, help="destination dataset folder (must differ from src)")
+    f.add_argument("--out", required=True, help="destination dataset folder (must differ from src; new, empty, "
+                   "or an earlier reward-features output)")
     f.add_argument("--threads", type=_non_negative_int, default=0, help="torch threads (0: torch's default)")
     _add_cfg_args(f)
     f.set_defaults(func=_cmd_features)
