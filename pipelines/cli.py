@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
 
 RUN_EPILOG = """\
 examples:
@@ -18,6 +19,13 @@ examples:
 Rerunning the same command after a crash resumes: committed units are skipped, the rest redone.
 Output: OUT/{shards,index,manifest,prompts,quarantine,commits}/, config.yaml, stats.json, report.png.
 """
+
+
+_Formatter = argparse.RawDescriptionHelpFormatter   # keeps the epilogs' example lines; descriptions go through _wrap
+
+
+def _wrap(text: str) -> str:
+    return textwrap.fill(text, width=90)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -46,6 +54,35 @@ def _load(args):
     return load_config(args.config, _overrides(args), out=args.out)
 
 
+# What `resim pipeline run` writes in OUT (pipelines.runner.OUTPUT_DIRS + its files): a folder holding only
+# these is an earlier (maybe unfinished) run of the pipeline, which a rerun resumes.
+RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging",
+                    "config.yaml", "config_hash.txt", "stats.json", "report.png"}
+
+
+def foreign_out(out) -> list[str]:
+    """The entries that make ``out`` a non-empty folder that is not a pipeline output ([] when it is absent, empty,
+    or written by `resim pipeline run`: config_hash.txt is stamped before any other output)."""
+    from pathlib import Path
+
+    out = Path(out)
+    if not out.is_dir() or (out / "config_hash.txt").is_file():
+        return []
+    return sorted(p.name for p in out.iterdir() if p.name not in RUN_OUTPUT_NAMES)
+
+
+def _job_error(cmd: str, address: str, e: Exception) -> int:
+    """A cluster that cannot be reached, a malformed address, an unknown job: one line, exit 1."""
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    print(f"resim pipeline {cmd}: error: Ray dashboard at {address}: {msg}", file=sys.stderr)
+    return 1
+
+
+# what the Ray Jobs client raises for an unreachable/malformed address or an unknown job (requests' errors
+# are OSErrors; a bad URL is a ValueError; an unknown job or a refused request a RuntimeError)
+JOB_ERRORS = (OSError, ValueError, RuntimeError)
+
+
 def _cmd_run(args) -> int:
     import logging
 
@@ -56,6 +93,11 @@ def _cmd_run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="[pipeline] %(message)s")
     try:
         cfg = _load(args)
+        foreign = foreign_out(cfg.out)
+        if foreign and not args.force:
+            shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+            raise ConfigError(f"out: {cfg.out} is not empty and is not a pipeline output (it holds {shown}); "
+                              "give an empty or new folder (or --force to write into it anyway)")
         if args.no_progress:
             from dataclasses import replace
 
@@ -92,11 +134,17 @@ def _cmd_submit(args) -> int:
     except ConfigError as e:
         print(f"config error: {e}", file=sys.stderr)
         return 2
-    job_id = submit.submit(cfg, args.address, job_id=args.job_id)
+    try:
+        job_id = submit.submit(cfg, args.address, job_id=args.job_id)
+    except JOB_ERRORS as e:
+        return _job_error("submit", args.address, e)
     print(job_id)
     if args.follow:
-        submit.follow_logs(args.address, job_id)
-        status = submit.wait(args.address, job_id, timeout_s=args.timeout_s)
+        try:
+            submit.follow_logs(args.address, job_id)
+            status = submit.wait(args.address, job_id, timeout_s=args.timeout_s)
+        except JOB_ERRORS as e:
+            return _job_error("submit", args.address, e)
         print(f"job {job_id}: {status}", file=sys.stderr)
         return 0 if status == "SUCCEEDED" else 1
     return 0
@@ -105,17 +153,23 @@ def _cmd_submit(args) -> int:
 def _cmd_status(args) -> int:
     from pipelines import submit
 
-    print(submit.status(args.address, args.job_id))
+    try:
+        print(submit.status(args.address, args.job_id))
+    except JOB_ERRORS as e:
+        return _job_error("status", args.address, e)
     return 0
 
 
 def _cmd_logs(args) -> int:
     from pipelines import submit
 
-    if args.follow:
-        submit.follow_logs(args.address, args.job_id)
-    else:
-        print(submit.logs(args.address, args.job_id), end="")
+    try:
+        if args.follow:
+            submit.follow_logs(args.address, args.job_id)
+        else:
+            print(submit.logs(args.address, args.job_id), end="")
+    except JOB_ERRORS as e:
+        return _job_error("logs", args.address, e)
     return 0
 
 
@@ -128,21 +182,35 @@ def register(subparsers) -> None:
     sub = p.add_subparsers(dest="pipeline_command", metavar="SUBCOMMAND")
 
     r = sub.add_parser("run", help="run a pipeline config (embedded local Ray by default); resumes after a crash",
+                       description=_wrap("Run the data pipeline of a config (+ overrides) into OUT: enumerate the "
+                                         "sources' units, cut 10 Hz clips, label commands, balance turns, encode "
+                                         "VAE latents and prompts, write shards. OUT must be new, empty or an "
+                                         "earlier output of this command (which the run resumes)."),
                        epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _common(r)
     r.add_argument("--force", action="store_true",
-                   help="write into OUT even if it holds data made with a different config")
+                   help="write into OUT even if it holds data made with a different config, or other files")
     r.add_argument("--no-progress", action="store_true", help="no progress bars (logs only)")
     r.set_defaults(func=_cmd_run)
 
-    c = sub.add_parser("check", help="validate a config (+ overrides) and print it resolved; starts nothing")
+    c = sub.add_parser("check", help="validate a config (+ overrides) and print it resolved; starts nothing",
+                       description=_wrap("Load a pipeline config with its --set/--out/--vae/--text-encoder overrides, "
+                                   "check it (keys, types, source and model folders) and print it resolved as "
+                                   "YAML, paths made absolute. Starts no Ray and writes nothing; exit 2 on a "
+                                   "config error."),
+                       epilog="example:\n  resim pipeline check configs/pipeline/synthetic.yaml "
+                              "--set clip.stride_frames=10 --out out/shards",
+                       formatter_class=_Formatter)
     _common(c)
     c.set_defaults(func=_cmd_check)
 
     s = sub.add_parser("submit", help="submit a config as a job to a running Ray cluster (Ray Jobs API)",
-                       description="Ships the resolved config and resim's packages in the job's runtime env "
+                       description=_wrap("Ships the resolved config and resim's packages in the job's runtime env "
                                    "(working_dir + py_modules) and prints the job id. Paths in the config must "
-                                   "be valid on the cluster (relative paths are made absolute here).")
+                                   "be valid on the cluster (relative paths are made absolute here)."),
+                       epilog="example:\n  resim pipeline submit configs/pipeline/synthetic.yaml "
+                              "--address http://HEAD:8265 --out /shared/shards --follow",
+                       formatter_class=_Formatter)
     _common(s)
     s.add_argument("--address", required=True, help="Ray dashboard address, e.g. http://HEAD:8265")
     s.add_argument("--job-id", help="job id to use (default: generated)")
@@ -150,12 +218,21 @@ def register(subparsers) -> None:
     s.add_argument("--timeout-s", type=float, default=None, help="with --follow: give up waiting after this long")
     s.set_defaults(func=_cmd_submit)
 
-    st = sub.add_parser("status", help="status of a submitted job")
+    st = sub.add_parser("status", help="status of a submitted job",
+                        description=_wrap("Print the status of a job submitted with `resim pipeline submit` "
+                                    "(PENDING, RUNNING, SUCCEEDED, FAILED or STOPPED)."),
+                        epilog="example:\n  resim pipeline status raysubmit_XXXX --address http://HEAD:8265",
+                        formatter_class=_Formatter)
     st.add_argument("job_id")
     st.add_argument("--address", required=True, help="Ray dashboard address, e.g. http://HEAD:8265")
     st.set_defaults(func=_cmd_status)
 
-    lg = sub.add_parser("logs", help="logs of a submitted job")
+    lg = sub.add_parser("logs", help="logs of a submitted job",
+                        description=_wrap("Print the logs of a job submitted with `resim pipeline submit` so far, "
+                                    "or with --follow stream them until the job ends."),
+                        epilog="example:\n  resim pipeline logs raysubmit_XXXX --address http://HEAD:8265 "
+                               "--follow",
+                        formatter_class=_Formatter)
     lg.add_argument("job_id")
     lg.add_argument("--address", required=True, help="Ray dashboard address, e.g. http://HEAD:8265")
     lg.add_argument("--follow", action="store_true", help="stream until the job ends")

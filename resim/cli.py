@@ -25,16 +25,19 @@ COMMANDS: list[str] = [
 ]
 
 EPILOG = """\
-typical flow:
-  resim synth --out data/synth --episodes 12        # a synthetic world in the three real layouts
-  resim pipeline run configs/pipeline/synthetic.yaml --out out/shards
-  resim shards stats out/shards                     # inspect what was written
+typical flow (from the repository root, in this order; small settings that run on a CPU in minutes):
+  resim synth --out data/synth --preset tiny --episodes 12     # a synthetic world in the three real layouts
+  resim pipeline run configs/pipeline/synthetic.yaml --set sources.synthetic.episodes=12 --out out/shards
+  resim shards stats out/shards                                # inspect what was written
+  resim shards ls out/shards --samples --limit 5               # sample keys: use one as KEY below
   resim train world --preset tiny --shards out/shards --out runs/wm
   resim train reward --preset tiny --shards out/shards --out runs/reward
-  resim sample --checkpoint runs/wm --shards out/shards --history KEY --command "Turning left" --out out/samples
-  resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --out out/plan
-  resim eval quality --checkpoint runs/wm --shards out/shards --heldout-from runs/idm --out out/eval
-  resim demo                                        # all of the above, small, on a CPU, with an HTML report
+  resim sample --checkpoint runs/wm --shards out/shards --history KEY --command "Turning left" --steps 4 --out out/samples
+  resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --steps 4 --out out/plan
+  resim eval idm --preset tiny --epochs 1 --shards out/shards --out runs/idm   # held-out split for eval
+  resim eval quality --checkpoint runs/wm --shards out/shards --heldout-from runs/idm --limit 2 --steps 4 \\
+      --allow-placeholder-networks --out out/eval              # random-init metric networks: plumbing only
+  resim demo                                                   # all of the above, small, with an HTML report
 
 Every subcommand has its own --help.
 """
@@ -59,12 +62,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
-    rc = args.func(args)
+    try:
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        rc = args.func(args)
+        sys.stdout.flush()   # a closed pipe shows here, not in the interpreter's final flush
+    except BrokenPipeError:
+        return _stdout_closed()
     return int(rc or 0)
+
+
+def _stdout_closed() -> int:
+    """``resim ... | head``: the reader left. Quiet exit, the usual Python way
+    (https://docs.python.org/3/library/signal.html#note-on-sigpipe): point stdout at devnull so the
+    interpreter's last flush does not raise again, and exit 141 (128 + SIGPIPE) like a C tool would."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):   # stdout without a file descriptor (captured in tests)
+        pass
+    return 141
 
 
 if __name__ == "__main__":

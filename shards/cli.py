@@ -4,18 +4,30 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import textwrap
 
 from resim.argtypes import positive_int as _positive_int
 
 DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
+KEY_HELP = "sample key (list them with `resim shards ls DIR --samples`)"
+
+LS_EPILOG = """\
+examples:
+  resim shards ls out/shards                              # shards: samples, MiB, committed or not
+  resim shards ls out/shards --samples --limit 5          # sample keys (the KEY of show/preview/sample/plan)
+  resim shards ls out/shards --samples --source navsim --json
+"""
 
 STATS_EPILOG = """\
 --json prints one JSON object with these keys:
   root, num_shards, num_samples, shard_bytes, uncommitted_shards, manifest_mismatch, schema_versions, config_hashes
   by_source, by_command, by_command_source, by_hazard ("true"/"false"/"null"), by_source_command
   turning_share            fraction of samples whose command is not "Moving forward"
-  quarantine               {num_items, by_source, by_stage, by_reason, items[:20]} from DIR/quarantine/*.parquet
+  quarantine               {num_items, by_source, by_stage, by_reason, items[:20]} from DIR/quarantine/*.parquet:
+                           the rows that kept an item out (status quarantined or dropped)
+  warnings                 the same keys for status "warning" rows (the unit was used; e.g. a NaN compass)
   bytes_per_sample         mean bytes per member (meta.json, latent.npy, traj.npy, frames.mp4, dino.npy),
                            tar_overhead, in_shards, prompt_table_amortised, total
   member_presence          samples carrying each member
@@ -23,6 +35,9 @@ STATS_EPILOG = """\
   prompt_table             {num_prompts, bytes, entries: [{id, role, command, text, shape, dtype, encoder_id,
                            placeholder, num_tokens, bytes}]}
 (see shards/stats.py and docs/data_format.md)
+
+example:
+  resim shards stats out/shards --json > stats.json
 """
 
 
@@ -33,10 +48,37 @@ def _cmd_schema(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ls_samples(args) -> int:
+    from shards.manifest import read_manifest
+
+    rows = [{k: r[k] for k in ("key", "source", "command", "shard")} for r in read_manifest(args.dir).to_pylist()
+            if args.source is None or r["source"] == args.source]
+    total = len(rows)
+    if args.limit is not None:
+        rows = rows[:args.limit]
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    if not rows:
+        print(f"no samples in {args.dir}" + (f" with source {args.source}" if args.source else ""))
+        return 0
+    w = max(len(r["key"]) for r in rows)
+    print(f"{'key':<{w}}  {'source':<9} {'command':<15} shard")
+    for r in rows:
+        print(f"{r['key']:<{w}}  {r['source']:<9} {r['command']:<15} {r['shard']}")
+    print(f"{len(rows)} of {total} samples" if len(rows) < total else f"{total} samples")
+    return 0
+
+
 def _cmd_ls(args) -> int:
     from shards import layout
     from shards.manifest import read_indexes
 
+    if args.samples:
+        return _cmd_ls_samples(args)
+    if args.source is not None or args.limit is not None:
+        print("resim shards ls: error: --source and --limit go with --samples", file=sys.stderr)
+        return 2
     indexes = read_indexes(args.dir)
     committed = {i["shard"] for i in indexes}
     rows = [{"shard": i["shard"], "num_samples": i["num_samples"], "bytes": i["bytes"],
@@ -136,7 +178,9 @@ def _cmd_preview(args) -> int:
         return 2
     if args.key:
         keys = [args.key]
-        outs = [Path(args.out or f"preview-{args.key}.png")]
+        out = Path(args.out or f"preview-{args.key}.png")
+        into_folder = out.is_dir() or (args.out or "").endswith(("/", os.sep))   # a folder: write KEY.png into it
+        outs = [out / f"{args.key}.png" if into_folder else out]
     else:
         all_keys = read_manifest(args.dir)["key"].to_pylist()
         if not all_keys:
@@ -166,15 +210,29 @@ def _on_dataset(cmd):
 
         from shards.reader import ShardReadError
 
+        from shards import layout
+
         if not Path(args.dir).is_dir():
             print(f"resim shards {args.shards_command}: error: {args.dir} is not a folder", file=sys.stderr)
             return 1
+        if args.shards_command != "verify" and not layout.shards_dir(args.dir).is_dir():
+            # verify says so itself (one problem line, exit 1); the others used to print empty tables
+            print(f"resim shards {args.shards_command}: error: {args.dir} has no shards/ folder (not a shard "
+                  "dataset; `resim pipeline run` writes one)", file=sys.stderr)
+            return 1
         try:
             return cmd(args)
+        except BrokenPipeError:   # `... | head`: the reader left; handled quietly by run_quietly_piped
+            raise
         except (ShardReadError, OSError) as e:
             print(f"resim shards {args.shards_command}: error: {e}", file=sys.stderr)
             return 1
     return run
+
+
+def _wrap(text: str) -> str:
+    """A description wrapped here, so a RawDescriptionHelpFormatter parser can keep its epilog's layout."""
+    return textwrap.fill(text, width=90)
 
 
 def register(subparsers) -> None:
@@ -186,10 +244,16 @@ def register(subparsers) -> None:
     )
     sub = p.add_subparsers(dest="shards_command", metavar="SUBCOMMAND")
 
-    s = sub.add_parser("ls", help="list shards with sample counts and sizes",
-                       description="List shards with sample counts and sizes (uncommitted shards are marked).")
+    s = sub.add_parser("ls", help="list shards with sample counts and sizes, or sample keys (--samples)",
+                       description=_wrap("List shards with sample counts and sizes (uncommitted shards are marked); "
+                       "with --samples, list the committed samples (key, source, command, shard) from the manifest."),
+                       epilog=LS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("dir", help=DATASET_HELP)
-    s.add_argument("--json", action="store_true", help="one JSON list of {shard, num_samples, bytes, committed, sha256}")
+    s.add_argument("--json", action="store_true", help="one JSON list of {shard, num_samples, bytes, committed, sha256} "
+                   "(with --samples: of {key, source, command, shard})")
+    s.add_argument("--samples", action="store_true", help="list sample keys instead of shards")
+    s.add_argument("--source", default=None, help="with --samples: only this source (e.g. opendv, navsim, carla)")
+    s.add_argument("--limit", type=_positive_int, default=None, metavar="N", help="with --samples: at most N rows")
     s.set_defaults(func=_on_dataset(_cmd_ls))
 
     s = sub.add_parser("stats", help="totals by source/command/hazard, bytes per sample, prompt table",
@@ -202,32 +266,46 @@ def register(subparsers) -> None:
     s.set_defaults(func=_on_dataset(_cmd_stats))
 
     s = sub.add_parser("show", help="one sample's metadata and field shapes",
-                       description="Print one sample's metadata and the shape/dtype/size of each member.")
+                       description=_wrap("Print one sample's metadata and the shape/dtype/size of each member."),
+                       epilog="example:\n  resim shards show out/shards KEY --json      "
+                       "# KEY from `resim shards ls out/shards --samples`",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("dir", help=DATASET_HELP)
-    s.add_argument("key", help="sample key (see `resim shards ls`/the manifest)")
+    s.add_argument("key", help=KEY_HELP)
     s.add_argument("--json", action="store_true", help="print {key, shard, meta, fields} as JSON")
     s.set_defaults(func=_on_dataset(_cmd_show))
 
     s = sub.add_parser("verify", help="check shards against indexes, samples against the schema; exit 1 on problems",
-                       description="Check every shard against its index (sha256, size, counts, keys), that every "
+                       description=_wrap("Check every shard against its index (sha256, size, counts, keys), that every "
                        "sample decodes and matches the schema, frames.mp4 decodes to the declared frames, every "
                        "prompt reference resolves, and no writer left temporary/uncommitted files. Prints one line "
-                       "per problem naming shard and key. Exit status 0 only when everything holds, else 1.")
+                       "per problem naming shard and key. Exit status 0 only when everything holds, else 1."),
+                       epilog="example:\n  resim shards verify out/shards --no-video -q",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("--no-video", action="store_true", help="skip decoding frames.mp4 (faster)")
     s.add_argument("-q", "--quiet", action="store_true", help="no per-shard progress on stderr")
     s.set_defaults(func=_on_dataset(_cmd_verify))
 
     s = sub.add_parser("preview", help="PNG contact sheet of a sample (frames, command, heading, trajectory)",
-                       description="Write a PNG contact sheet of a sample's frames with its command, heading change "
-                       "and trajectory (top-down inset). Needs matplotlib and OpenCV.")
+                       description=_wrap("Write a PNG contact sheet of a sample's frames with its command, heading change "
+                       "and trajectory (top-down inset). Needs matplotlib and OpenCV."),
+                       epilog="examples:\n  resim shards preview out/shards KEY --out previews/   "
+                       "# writes previews/KEY.png\n  resim shards preview out/shards --random 4 --out previews/",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("dir", help=DATASET_HELP)
-    s.add_argument("key", nargs="?", help="sample key (or use --random N)")
+    s.add_argument("key", nargs="?", help=KEY_HELP + "; or use --random N")
     s.add_argument("--random", type=_positive_int, metavar="N", help="preview N random samples instead of KEY")
     s.add_argument("--seed", type=int, default=0, help="seed for --random (default 0)")
-    s.add_argument("--out", help="PNG path for KEY (default preview-KEY.png); folder for --random (default previews/)")
+    s.add_argument("--out", help="PNG path for KEY (default preview-KEY.png; an existing folder: FOLDER/KEY.png); "
+                   "folder for --random (default previews/)")
     s.set_defaults(func=_on_dataset(_cmd_preview))
 
-    s = sub.add_parser("schema", help="print the sample schema (members, metadata fields) as JSON")
+    s = sub.add_parser("schema", help="print the sample schema (members, metadata fields) as JSON",
+                       description=_wrap("Print the shard sample schema as JSON: the members of a sample (meta.json, "
+                       "latent.npy, traj.npy, frames.mp4, dino.npy), the metadata fields with their types, and the "
+                       "manifest columns. Needs no dataset; see docs/data_format.md."),
+                       epilog="example:\n  resim shards schema > schema.json",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     s.set_defaults(func=_cmd_schema)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])

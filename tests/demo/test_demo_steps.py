@@ -20,8 +20,8 @@ def _run(steps):
 
 
 def test_a_redone_step_redoes_every_later_step(tmp_path, capsys):
-    (tmp_path / "x").mkdir()
-    (tmp_path / "y").mkdir()
+    for d in (tmp_path / "x", tmp_path / "y", tmp_path):   # the steps run `resim shards ls` on these: datasets
+        (d / "shards").mkdir(parents=True, exist_ok=True)
     assert _run(_steps(tmp_path, tmp_path / "x")) == [True, True, True]
     assert _run(_steps(tmp_path, tmp_path / "x")) == [False, False, False]   # nothing changed: all reused
     # the first step's arguments change: the later steps read its output, so they run again although their own
