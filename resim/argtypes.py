@@ -38,3 +38,51 @@ def height_width(text: str) -> tuple[int, int]:
     if h < 1 or w < 1:
         raise argparse.ArgumentTypeError(f"expected HxW with both >= 1, got {text!r}")
     return h, w
+
+
+def _float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if v != v or v in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (a duration, a speed)."""
+    v = _float(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return v
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0 (a guidance scale)."""
+    v = _float(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def torch_device(text: str) -> str:
+    """``cpu``, ``cuda``, ``cuda:N`` or ``mps`` (spelling only; whether it exists here is checked by the command,
+    which imports torch). A typo such as ``cudaa`` used to reach torch as a RuntimeError traceback."""
+    t = text.strip().lower()
+    kind, _, index = t.partition(":")
+    if kind in ("cpu", "mps") and not index or kind == "cuda" and (not _ or index.isdigit()):
+        return t
+    raise argparse.ArgumentTypeError(f"expected cpu, cuda, cuda:N or mps, got {text!r}")
+
+
+def local_dir(text: str) -> str:
+    """An existing local folder (model weights/configs): never a hub id, so nothing is downloaded by mistake."""
+    from pathlib import Path
+
+    p = Path(text).expanduser()
+    if not p.is_dir():
+        what = "a file, not a folder" if p.exists() else "no such folder"
+        raise argparse.ArgumentTypeError(f"{text}: {what} (a local model folder is required; nothing is "
+                                         "downloaded)")
+    return str(p)

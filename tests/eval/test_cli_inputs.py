@@ -133,3 +133,70 @@ def test_idm_configs_validate_without_dividing_by_zero():
     for bad in (float("nan"), float("inf"), 0.0):
         with pytest.raises(ConfigError, match="lr must be a finite number"):
             IDMTrainConfig(lr=bad)
+
+
+def test_device_and_model_folders_are_checked_first(ds, capsys):
+    """--device typos / a CUDA device this build lacks, and missing --vae / --text-encoder folders: one line,
+    exit 2, before anything is loaded (were a torch RuntimeError / AssertionError traceback, and an attempt to
+    download the folder name from huggingface.co)."""
+    idm = ["--idm", str(ds / "idm-fits")]
+    for sub, extra in (("quality", []), ("control", idm), ("planning", idm)):
+        argv = _world(ds, "--all-clips", *extra)
+        _usage_error(capsys, ["eval", sub, *argv, "--device", "cudaa"], "--device: expected cpu, cuda")
+        _usage_error(capsys, ["eval", sub, *argv, "--vae", str(ds / "nope")], "--vae: ")
+        _usage_error(capsys, ["eval", sub, *argv, "--text-encoder", str(ds / "nope")], "no such folder")
+        dev, needle = ("cuda:99", "CUDA device(s) here") if torch.cuda.is_available() else ("cuda", "has no CUDA")
+        assert main(["eval", sub, *argv, "--device", dev]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"resim eval {sub}: --device {dev}: ") and needle in err and "\n" not in err, err
+
+
+def test_cuda_message_names_the_way_out(ds, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("CUDA present: the CPU-build message cannot be shown")
+    assert main(["eval", "control", *_world(ds, "--all-clips"), "--idm", str(ds / "idm-fits"), "--device", "cuda"]) == 2
+    _error(capsys, "this torch build has no CUDA support; use --device cpu")
+
+
+def test_synth_into_an_existing_folder(tmp_path, capsys):
+    """Was a ShardExistsError traceback telling the user to pass overwrite=True (a Python argument the CLI
+    lacked), after the prompt table had already been replaced."""
+    out = tmp_path / "s"
+    small = ["--episodes", "1", "--frames-per-episode", "49"]
+    assert main(["eval", "synth", "--out", str(out), *small]) == 0
+    capsys.readouterr()
+    assert main(["eval", "synth", "--out", str(out), *small, "--seed", "1"]) == 2
+    _error(capsys, "exists and is not empty (use --overwrite to replace it)")
+    assert main(["eval", "synth", "--out", str(out), *small, "--seed", "1", "--overwrite"]) == 0
+    assert "wrote 1 clips" in capsys.readouterr().out
+    assert sorted(p.name for p in out.iterdir()) == ["index", "manifest", "prompts", "shards"]
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    assert main(["eval", "synth", "--out", str(other), *small, "--overwrite"]) == 2   # not a dataset: not removed
+    _error(capsys, "does not look like a shard dataset")
+    assert (other / "notes.txt").read_text() == "keep me"
+
+
+def _help(capsys, argv):
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--help"])
+    assert e.value.code == 0
+    return " ".join(capsys.readouterr().out.split())
+
+
+def test_help_describes_each_command(capsys):
+    from training.eval.idm import IDM_PRESETS
+
+    assert "issue 10" not in _help(capsys, ["eval"])
+    for sub in ("quality", "control", "planning"):
+        h = _help(capsys, ["eval", sub])
+        assert f"resim eval {sub} --checkpoint" in h and f"OUT/{sub}.json" in h and f"OUT/{sub}.png" in h, h
+    # the quality example runs without downloaded weights: placeholder networks and an IDM run made first
+    q = _help(capsys, ["eval", "quality"])
+    assert "--allow-placeholder-networks" in q and "resim eval idm --shards DATA --out runs/idm" in q
+    s = _help(capsys, ["eval", "synth"])
+    assert "resim eval synth --out" in s and "episodes to render (default 24)" in s and "--overwrite" in s
+    assert "OUT/shards" in s
+    i = _help(capsys, ["eval", "idm"])
+    assert all(name in i for name in IDM_PRESETS), i                      # was: "tiny, small (default)"

@@ -80,8 +80,8 @@ def test_sample_cli_errors(setup, capsys):
     assert main(base + ["--history", "nope", "--shards", str(setup["data"]), "--steps", "1"]) == 2
     assert "not found" in capsys.readouterr().err
     assert main(base + ["--history", setup["keys"][0], "--shards", str(setup["data"]), "--command", "Fly"]) == 2
-    with pytest.raises(SystemExit):
-        main(base + ["--history", "nope"])
+    assert main(base + ["--history", "nope"]) == 2          # a key without --shards: one line, exit 2
+    assert "resim sample: --history nope: not a file" in capsys.readouterr().err
 
 
 def test_plan_cli(setup, capsys):

@@ -1,4 +1,4 @@
-"""`resim eval ...`: video quality, controllability, planning, and the inverse dynamics model (issue 10).
+"""`resim eval ...`: video quality, controllability, planning, and the inverse dynamics model.
 
 Light module: torch and friends are imported in the handlers. Every command prints its protocol with the
 numbers and writes DIR/<name>.json + DIR/<name>.png. See docs/eval.md.
@@ -10,7 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from resim.argtypes import height_width as _hw, positive_int as _positive_int
+from resim.argtypes import height_width as _hw, local_dir as _local_dir, positive_int as _positive_int
+from resim.argtypes import torch_device as _torch_device
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
@@ -23,13 +24,67 @@ typical flow (held-out = the episodes the IDM did not train on):
   resim eval idm --shards DATA --out runs/vo --window history      # VO-style planner (history only)
   resim eval control  --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
   resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
-  resim eval quality  --checkpoint runs/wm --shards DATA --out out/quality \\
+  resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+      --allow-placeholder-networks                                 # plumbing check, random-init networks
+  resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --fid-weights W/pt_inception-2015-12-05-6726825d.pth --fvd-weights W/rgb_imagenet.pt \\
       --lpips-trunk W/vgg16-397923af.pth --lpips-head W/lpips_vgg_v0.1.pth
 
 Weights are never downloaded; docs/eval.md says where to get the standard ones. Without them quality runs
 only with --allow-placeholder-networks (random-init networks, marked as such everywhere).
 """
+
+
+QUALITY_EPILOG = """\
+examples:
+  resim eval synth --out DATA && resim eval idm --shards DATA --out runs/idm --preset tiny   # the held-out split
+  resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+      --allow-placeholder-networks                 # no weights needed: random-init networks (plumbing only)
+  resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+      --fid-weights W/pt_inception-2015-12-05-6726825d.pth --fvd-weights W/rgb_imagenet.pt \\
+      --lpips-trunk W/vgg16-397923af.pth --lpips-head W/lpips_vgg_v0.1.pth
+
+Weights are never downloaded (docs/eval.md says where to get them); without them, or without
+--allow-placeholder-networks, FID/FVD/LPIPS are refused before anything is loaded. Without --heldout-from the
+clips of --shards the IDM did not train on cannot be told apart: pass --all-clips to evaluate every clip.
+Writes OUT/quality.json (per-horizon metrics + the protocol: clips, world model, rollout, networks) and
+OUT/quality.png (metrics per horizon).
+"""
+
+CONTROL_EPILOG = """\
+example:
+  resim eval control --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
+
+--idm is a `resim eval idm` run; its held-out episodes are evaluated (--heldout-from another run, or
+--all-clips). Writes OUT/control.json (Trajectory Difference for expert / non-expert trajectories, the IDM on
+the recorded video as the floor, command accuracy, the protocol) and OUT/control.png (bar chart).
+"""
+
+PLANNING_EPILOG = """\
+example:
+  resim eval idm --shards DATA --out runs/vo --window history      # the VO-style planner baseline
+  resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
+
+Writes OUT/planning.json (ADE/FDE of the video-prediction policy, the VO planner, constant velocity and the
+IDM on the recorded future; the protocol) and OUT/planning.png (bar chart).
+"""
+
+SYNTH_EPILOG = """\
+example:
+  resim eval synth --out data/eval-synth --episodes 24
+
+Writes OUT/shards/*.tar, OUT/manifest/ and OUT/index/ (one clip every --clip-stride frames: 9 history + 40
+future frames with traj.npy) and OUT/prompts/ (a placeholder prompt table).
+"""
+
+# `resim eval idm --preset` (training.eval.idm.IDM_PRESETS; listed here so that --help needs no torch import).
+# Times measured on the 24-episode `resim eval synth` set (168 clips), default epochs, 2 CPU cores shared with
+# other jobs: tiny 166-452 s (tiny-queries 166 s), small about 10 min.
+IDM_PRESET_NAMES = ["tiny", "tiny-queries", "tiny-history", "small", "small-history"]
+IDM_PRESET_HELP = ("IDM preset: tiny (32x48 input, 48 k parameters, odometry head), tiny-queries (tiny with the "
+                   "query head), small (default; 48x80, 151 k parameters, odometry head), tiny-history / "
+                   "small-history (history-only VO planner twins; --window history picks them). On 2 CPU cores "
+                   "and the default 24-episode `resim eval synth` set: tiny about 3-7 min, small about 10 min")
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
@@ -46,20 +101,26 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=_positive_int, default=None, help="DDIM steps (default: the preset's 50)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--batch-size", type=_positive_int, default=4, help="clips rolled out together")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--vae", default=str(DEFAULT_VAE), help="CogVideoX VAE folder (default: tiny placeholder)")
-    p.add_argument("--text-encoder", default=str(DEFAULT_T5), help="T5 folder for prompts not in the table")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the rollouts' noise (default 0)")
+    p.add_argument("--vae", type=_local_dir, default=str(DEFAULT_VAE),
+                   help="local CogVideoX VAE folder (default: tiny placeholder; nothing is downloaded)")
+    p.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
+                   help="local T5 folder for prompts not in the table (default: tiny placeholder)")
+    p.add_argument("--device", type=_torch_device, default=None,
+                   help="cpu, cuda or cuda:N (default: cuda if available)")
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("eval", help="evaluate world models: quality, controllability, planning, IDM",
-                              description="Evaluation (issue 10). Each command prints its protocol next to "
-                                          "the numbers and writes a JSON + PNG report.",
+                              description="Evaluate world models. Each command prints its protocol next to "
+                                          "the numbers and writes a JSON + PNG report into --out.",
                               epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="eval_command", metavar="EVAL_COMMAND")
 
-    q = sub.add_parser("quality", help="PSNR/SSIM/LPIPS/FID/FVD/DreamSim of rollouts vs ground truth, per horizon")
+    q = sub.add_parser("quality", help="PSNR/SSIM/LPIPS/FID/FVD/DreamSim of rollouts vs ground truth, per horizon",
+                       description="Roll the world model out from each evaluation clip's history (its recorded "
+                                   "command) and compare the generated future with the recorded one, per horizon.",
+                       epilog=QUALITY_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _world_args(q)
     q.add_argument("--metrics", nargs="+", default=["psnr", "ssim", "lpips", "fid", "fvd", "dreamsim"])
     q.add_argument("--resolution", type=_hw, default=None, help="HxW to score at (default: the recorded frames' size)")
@@ -74,12 +135,20 @@ def register(subparsers) -> None:
                    help="use random-init networks where no weights are given (plumbing only; marked in the report)")
     q.set_defaults(func=_cmd_quality)
 
-    c = sub.add_parser("control", help="Trajectory Difference under expert / non-expert trajectories (+ command acc.)")
+    c = sub.add_parser("control", help="Trajectory Difference under expert / non-expert trajectories (+ command acc.)",
+                       description="Controllability: roll out each clip under its own (expert) trajectory and under "
+                                   "another episode's (non-expert), recover the driven path from the generated "
+                                   "video with the IDM, and report its L2 distance to the conditioning trajectory.",
+                       epilog=CONTROL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _world_args(c)
     c.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
     c.set_defaults(func=_cmd_control)
 
-    pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE")
+    pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE",
+                        description="Planning: imagine each clip's future with the world model, read the driven "
+                                    "path off it with the IDM, and compare it (ADE/FDE) with the recorded one, next "
+                                    "to a history-only VO planner and a constant-velocity baseline.",
+                        epilog=PLANNING_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _world_args(pl)
     pl.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
     pl.add_argument("--planner", default=None, help="VO-style planner run folder (resim eval idm --window history)")
@@ -91,7 +160,8 @@ def register(subparsers) -> None:
                                    "reports held-out ADE/FDE next to the constant-velocity baseline.")
     i.add_argument("--shards", required=True, help="dataset folder")
     i.add_argument("--out", required=True, help="run folder (final/ weights, idm_report.json/.png)")
-    i.add_argument("--preset", default="small", help="IDM preset: tiny, small (default)")
+    i.add_argument("--preset", default="small", choices=IDM_PRESET_NAMES, metavar="PRESET",
+                   help=IDM_PRESET_HELP)
     i.add_argument("--window", default="future", choices=["future", "history"],
                    help="future: the IDM; history: the VO-style planner baseline (same architecture)")
     i.add_argument("--epochs", type=_positive_int, default=None)
@@ -110,10 +180,15 @@ def register(subparsers) -> None:
                    help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
     i.set_defaults(func=_cmd_idm)
 
-    s = sub.add_parser("synth", help="render a small world with exact trajectories into shards (IDM data)")
-    s.add_argument("--out", required=True)
-    s.add_argument("--episodes", type=_positive_int, default=24)
-    s.add_argument("--seed", type=int, default=0)
+    s = sub.add_parser("synth", help="render a small world with exact trajectories into shards (IDM data)",
+                       description="Render a small synthetic driving world (32x48 px, 10 Hz) with exact ego "
+                                   "trajectories and write its clips as a shard dataset (tiny-model latents, a "
+                                   "placeholder prompt table): data for `resim eval idm` and the world-model evals.",
+                       epilog=SYNTH_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--out", required=True, help="dataset folder to create (must be empty or absent unless --overwrite)")
+    s.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    s.add_argument("--episodes", type=_positive_int, default=24, help="episodes to render (default 24)")
+    s.add_argument("--seed", type=int, default=0, help="world seed: the same seed writes the same dataset (default 0)")
     s.add_argument("--size", type=_hw, default=(32, 48), help="HxW of the frames (default 32x48)")
     s.add_argument("--clip-stride", type=_positive_int, default=10, help="frames between clip starts (default 10)")
     s.add_argument("--frames-per-episode", type=_positive_int, default=109, help="episode length in frames (default 109)")
@@ -122,6 +197,18 @@ def register(subparsers) -> None:
 
 
 # ------------------------------------------------------------------------------------------ helpers
+def _device(args, name: str) -> bool:
+    """Resolve --device in place (cuda on a CPU-only build, a missing cuda:N: one line, before any loading)."""
+    from training.sampling.cli import UsageError, resolve_device
+
+    try:
+        args.device = resolve_device(args.device)
+    except UsageError as e:
+        print(f"resim eval {name}: {e}", file=sys.stderr)
+        return False
+    return True
+
+
 def _heldout_items(path: str | None, all_clips: bool = False):
     import json
 
@@ -212,6 +299,8 @@ def _cmd_quality(args) -> int:
     from training.eval.worldeval import quality_eval
 
     # inputs first (clips, config, weight files), so a mistake costs no model load and no rollout
+    if not _device(args, "quality"):
+        return 2
     clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips))
     try:
         qcfg = QualityConfig(value_range="uint8", fps_hz=clips[0].fps_hz,
@@ -270,6 +359,8 @@ def _cmd_control(args) -> int:
     from pipelines.encoders import pick_device
 
     # inputs first: clips, their non-expert pairs and the IDM's window are checked before any rollout
+    if not _device(args, "control"):
+        return 2
     items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
     clips = _clips(args, items)
     idm, idm_info = _load_idm(args.idm, args.device or pick_device())
@@ -312,6 +403,8 @@ def _cmd_planning(args) -> int:
     from pipelines.encoders import pick_device
 
     # inputs first: clips and the IDM's / planner's windows are checked before any rollout
+    if not _device(args, "planning"):
+        return 2
     device = args.device or pick_device()
     idm, idm_info = _load_idm(args.idm, device)
     planner, planner_info = _load_idm(args.planner, device) if args.planner else (None, None)
@@ -399,6 +492,21 @@ def _cmd_synth(args) -> int:
     except ConfigError as e:
         print(f"resim eval synth: {e}", file=sys.stderr)
         return 2
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        print(f"resim eval synth: --out {out} is a file, not a folder", file=sys.stderr)
+        return 2
+    if out.is_dir() and any(out.iterdir()):
+        if not args.overwrite:   # was: ShardExistsError traceback ("Pass overwrite=True") after a partial write
+            print(f"resim eval synth: --out {out} exists and is not empty (use --overwrite to replace it)",
+                  file=sys.stderr)
+            return 2
+        if not ((out / "shards").is_dir() or (out / "manifest").is_dir()):
+            print(f"resim eval synth: --out {out} does not look like a shard dataset (no shards/ or manifest/); "
+                  "not removing it", file=sys.stderr)
+            return 2
+        import shutil
+        shutil.rmtree(out)
     n = write_synthetic_shards(args.out, cfg)
     assert n == per_episode * cfg.episodes, (n, per_episode)   # our bug if the two counts disagree
     print(f"wrote {n} clips of {args.episodes} episodes to {args.out}")

@@ -9,6 +9,9 @@ import sys
 import time
 from pathlib import Path
 
+from resim.argtypes import (height_width, local_dir, non_negative_float, non_negative_int, positive_float,
+                            positive_int, torch_device)
+
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
@@ -20,13 +23,18 @@ examples:
   resim sample ... --command "Moving forward" --command "Turning left" --seconds 8    # one command per 4-s round
   resim sample ... --preset vid2world --actions-from-trajectory                      # frame by frame + actions
 
-History: a video file (resampled to the model's training clip rate, 10 Hz for video sources; its last 9 frames
-are encoded with --vae; files below that rate are refused) or, with --shards, a sample key (its stored history
-latents, at the shard's rate: --seconds and the actions follow it, e.g. NAVSIM's 2 Hz). --command / --trajectory may be repeated: round r uses the r-th (the last one repeats).
-A trajectory is a candidate name (keep_lane, turn_left, turn_right, brake, swerve), an (8, 3) .npy file or
-JSON [[x_m, y_m, yaw_rad], ...] at 0.5 s steps in the ego frame (x forward, y left).
+History: a video file (resampled to the model's training clip rate, 10 Hz for video sources; its last
+1 + 4 (N - 1) frames, N = --history-frames (default 3: 9 frames), are encoded with --vae; files below that rate
+are refused) or, with --shards, a sample key (its stored history latents, at the shard's rate: --seconds and the
+actions follow it). A key's clip must hold N latent history frames: video sources (OpenDV, CARLA) keep 9 pixel
+frames = 3; a NAVSIM key keeps 1 (2 Hz), so sample it with --history-frames 1.
+--command / --trajectory may be repeated: round r uses the r-th (the last one repeats).
+A trajectory is a candidate name (keep_lane, turn_left, turn_right, brake, swerve), an (8, 3) .npy file, a .json
+file or inline JSON [[x_m, y_m, yaw_rad], ...] at 0.5 s steps in the ego frame (x forward, y left).
+--vae and --text-encoder are local folders (nothing is downloaded).
 Writes DIR/sample.mp4, .gif, _sheet.png, _latents.npy (exact float32 latents: compare runs bit for bit),
-_meta.json and rollout.yaml (the resolved sampling config).
+_meta.json, rollout.yaml (the resolved sampling config) and run.json (checkpoint, history, seed, device, dtype,
+VAE, prompt sources, timings).
 """
 
 PLAN_EPILOG = """\
@@ -34,8 +42,10 @@ example:
   resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --out out/plan
 
 Rolls out every candidate (default: keep_lane turn_left turn_right brake swerve) from the same history with
-the same noise, scores each imagined future with Video2Reward and writes DIR/ranking.md, ranking.json and
-plan_grid.png (one row per candidate, best first, with its reward).
+the same noise, scores each imagined future with Video2Reward and writes DIR/ranking.md, ranking.json,
+plan_grid.png (one row per candidate, best first, with its reward), plan_latents.npy, rollout.yaml and run.json.
+--reward is a `resim train reward` run folder (checked before the world model is loaded). History, --vae,
+--device etc. as for `resim sample` (see its --help).
 """
 
 
@@ -43,25 +53,37 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help="world-model run dir (or its final/ folder)")
     p.add_argument("--history", required=True, help="a video file, or a shard sample key (with --shards)")
     p.add_argument("--shards", default=None, help="dataset folder holding the history key (and prompt table)")
-    p.add_argument("--seconds", type=float, default=4.0, help="future to generate, seconds (default 4)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seconds", type=positive_float, default=4.0, help="future to generate, seconds > 0 (default 4)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the rollout's noise: the same seed, inputs and device give the same latents "
+                        "(default 0)")
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"],
                    help="resim: 10-frame chunks, CFG 7.5->1; vid2world: frame by frame, action guidance 2.5, "
                         "rescale 0.7 (default resim)")
-    p.add_argument("--steps", type=int, default=None, help="DDIM steps (default 50)")
-    p.add_argument("--chunk-frames", type=int, default=None, help="latent frames denoised together")
-    p.add_argument("--history-noise-level", type=int, default=None, help="noise level of history frames (0)")
-    p.add_argument("--guidance-scale", type=float, default=None, help="override the start guidance scale")
+    p.add_argument("--steps", type=positive_int, default=None, help="DDIM steps >= 1 (default 50)")
+    p.add_argument("--chunk-frames", type=positive_int, default=None,
+                   help="latent frames denoised together, 1..10 (default: the preset's, 10 resim / 1 vid2world)")
+    p.add_argument("--history-frames", type=positive_int, default=None,
+                   help="latent history frames the rollout keeps (default 3 = 9 video frames); 1 for a NAVSIM "
+                        "shard key, whose clips hold one")
+    p.add_argument("--history-noise-level", type=non_negative_int, default=None,
+                   help="noise level of history frames (default 0 = clean)")
+    p.add_argument("--guidance-scale", type=non_negative_float, default=None,
+                   help="override the start guidance scale, >= 0 (default: the preset's)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--no-kv-cache", action="store_true", help="recompute the history at every step")
     p.add_argument("--actions-from-trajectory", action="store_true",
                    help="also feed per-frame actions derived from the trajectory (action-conditioned models)")
-    p.add_argument("--vae", default=str(DEFAULT_VAE), help="CogVideoX VAE folder (default: tiny placeholder)")
-    p.add_argument("--text-encoder", default=str(DEFAULT_T5), help="T5 folder for prompts not in the table")
-    p.add_argument("--max-text-tokens", type=int, default=226, help="T5 padding length (CogVideoX: 226)")
-    p.add_argument("--size", default=None, help="HxW pixels for a video history (default: the model's sample size)")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
-    p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16", "float16"])
+    p.add_argument("--vae", type=local_dir, default=str(DEFAULT_VAE),
+                   help="local CogVideoX VAE folder (default: tiny placeholder)")
+    p.add_argument("--text-encoder", type=local_dir, default=str(DEFAULT_T5),
+                   help="local T5 folder for prompts not in the table (default: tiny placeholder)")
+    p.add_argument("--max-text-tokens", type=positive_int, default=226, help="T5 padding length (CogVideoX: 226)")
+    p.add_argument("--size", type=height_width, default=None,
+                   help="HxW pixels for a video history, e.g. 64x96 (default: the model's sample size)")
+    p.add_argument("--device", type=torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+    p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16", "float16"],
+                   help="world-model weights and compute dtype (default float32; bfloat16/float16 for GPUs)")
     p.add_argument("--attention", default=None, choices=["sdpa", "flex"],
                    help="kernel for the block-causal attention (default: the checkpoint's model config); flex is "
                         "1.29x faster per rollout on an H100 (docs/benchmarks.md) and slower than sdpa on a CPU")
@@ -84,29 +106,147 @@ def register(subparsers) -> None:
                                           "imagined future with Video2Reward, rank them.",
                               epilog=PLAN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _common(q)
-    q.add_argument("--reward", required=True, help="Video2Reward checkpoint folder")
+    q.add_argument("--reward", required=True, help="Video2Reward checkpoint folder (a `resim train reward` run)")
     q.add_argument("--candidates", nargs="+", default=None,
                    help="candidate names (default: keep_lane turn_left turn_right brake swerve)")
-    q.add_argument("--speed-mps", type=float, default=8.0, help="speed of the candidate paths")
+    q.add_argument("--speed-mps", type=positive_float, default=8.0,
+                   help="speed of the candidate paths, m/s > 0 (default 8)")
     q.set_defaults(func=_cmd_plan)
+
+
+# ----------------------------------------------------------------------------------------------- checks
+class UsageError(Exception):
+    """A mistake on the command line, found before (or instead of) loading a model: one line, exit 2."""
+
+
+def resolve_device(device: str | None) -> str:
+    """``--device`` (already spelt right, see ``resim.argtypes.torch_device``) → a device this torch build can use;
+    :class:`UsageError` naming it otherwise (was: torch's AssertionError "Torch not compiled with CUDA enabled")."""
+    import torch
+
+    from pipelines.encoders import pick_device
+
+    if device is None:
+        return pick_device()
+    kind, _, index = device.partition(":")
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise UsageError(f"--device {device}: {why}; use --device cpu (or leave --device out)")
+        n = torch.cuda.device_count()
+        if index and int(index) >= n:
+            raise UsageError(f"--device {device}: there are {n} CUDA device(s) here (cuda:0 .. cuda:{n - 1})")
+    elif kind == "mps" and not torch.backends.mps.is_available():
+        raise UsageError("--device mps: MPS is not available here; use --device cpu")
+    return device
+
+
+def _trajectories(specs: list[str] | None) -> list:
+    """``--trajectory`` values → (N, 3) arrays; a path that is not there is "no such file", not a JSON error."""
+    import numpy as np
+
+    from training.sampling.load import SamplingInputError, load_trajectory
+    from training.sampling.plan import CANDIDATE_NAMES
+
+    kinds = f"a candidate name ({', '.join(CANDIDATE_NAMES)}), an (8, 3) .npy file, a .json file or inline JSON"
+    out = []
+    for spec in specs or []:
+        p = Path(spec)
+        if spec not in CANDIDATE_NAMES and not spec.lstrip().startswith("["):
+            looks_like_path = p.suffix.lower() in (".npy", ".json") or "/" in spec or "\\" in spec
+            if looks_like_path and not p.is_file():
+                raise UsageError(f"--trajectory {spec}: no such file (give {kinds})")
+            if p.suffix.lower() == ".json" and p.is_file():
+                try:
+                    arr = np.asarray(json.loads(p.read_text()), dtype=np.float32)
+                except (ValueError, UnicodeDecodeError) as e:
+                    raise UsageError(f"--trajectory {spec}: not JSON waypoints [[x_m, y_m, yaw_rad], ...] ({e})") \
+                        from None
+                if arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all():
+                    raise UsageError(f"--trajectory {spec}: expected finite (num_waypoints, 3) [x m, y m, yaw rad], "
+                                     f"got shape {arr.shape}")
+                out.append(arr)
+                continue
+        try:
+            out.append(load_trajectory(spec))
+        except SamplingInputError as e:
+            raise UsageError(str(e)) from None
+        except (ValueError, OSError) as e:   # np.load of a file that is not a .npy array
+            raise UsageError(f"--trajectory {spec}: not a readable .npy array ({e})") from None
+    return out
+
+
+def _rollout_config(args):
+    """The resolved RolloutConfig from the preset and the overrides; checked before any model is loaded (the
+    bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded)."""
+    from resim.config import ConfigError, from_dict
+    from training.sampling.guidance import guidance_preset
+    from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
+
+    rc = dict(ROLLOUT_PRESETS[args.preset])
+    for k, v in (("num_steps", args.steps), ("chunk_frames", args.chunk_frames),
+                 ("history_frames", args.history_frames), ("history_noise_level", args.history_noise_level)):
+        if v is not None:
+            rc[k] = v
+    if rc["chunk_frames"] > rc["frames_per_round"]:
+        raise UsageError(f"--chunk-frames {rc['chunk_frames']}: at most the {rc['frames_per_round']} latent frames "
+                         "of a round")
+    rc["kv_cache"] = "off" if args.no_kv_cache else "auto"
+    g = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
+    if args.preset == "vid2world" and args.guidance_scale is not None:
+        g["scale_end"] = args.guidance_scale
+    try:
+        rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **g)
+        return from_dict(RolloutConfig, rc)
+    except ConfigError as e:
+        raise UsageError(str(e)) from None
+
+
+def _check_args(args, command: str):
+    """Everything about the command line that needs no model: returns (device, rollout config, trajectories)."""
+    trajectory = getattr(args, "trajectory", None)
+    if command == "sample" and args.actions_from_trajectory and not trajectory:
+        raise UsageError("--actions-from-trajectory derives the actions from a trajectory: add --trajectory")
+    if args.preset == "vid2world" and not args.no_guidance and not args.actions_from_trajectory:
+        raise UsageError("--preset vid2world guides on actions; add --actions-from-trajectory "
+                         "(and --trajectory) or --no-guidance")
+    if not Path(args.history).is_file():
+        if not args.shards:
+            raise UsageError(f"--history {args.history}: not a file; to use a shard sample key pass "
+                             "--shards DATASET_DIR")
+        if not Path(args.shards).is_dir():
+            raise UsageError(f"--shards {args.shards}: no such folder")
+    trajs = _trajectories(trajectory)
+    cfg = _rollout_config(args)
+    from training.sampling.load import _checkpoint_dir   # the world-model checkpoint's files exist
+    _checkpoint_dir(args.checkpoint)
+    return resolve_device(args.device), cfg, trajs
+
+
+def _shard_history_frames(root: str, key: str) -> tuple[int, int, float] | None:
+    """(latent history frames, pixel history frames, fps) of a shard sample, or None if it cannot be read."""
+    try:
+        from shards.reader import find_sample
+        meta = find_sample(root, key, decode_video=False, attach_prompts=False)["meta.json"]
+        px = int(meta["num_history_frames"])
+        return 1 + (px - 1) // 4, px, float(meta["fps_hz"])
+    except Exception:   # only for a better message; the original error is raised when this fails
+        return None
 
 
 # ----------------------------------------------------------------------------------------------- set-up
 class _Setup:
-    """Everything both commands build from the common arguments."""
+    """Everything both commands build from the common arguments (after :func:`_check_args`)."""
 
-    def __init__(self, args):
+    def __init__(self, args, device: str, cfg):
         import torch
 
-        from pipelines.encoders import VideoVAE, pick_device
-        from training.sampling.guidance import guidance_preset
-        from training.sampling.load import (PromptSource, history_from_shard, history_from_video, load_world_model,
-                                            video_clip_fps_hz)
-        from training.sampling.rollout import (ROLLOUT_PRESETS, RolloutConfig, model_ddim_schedule,
-                                               rollout_num_future_frames)
-        from resim.config import from_dict
+        from pipelines.encoders import VideoVAE
+        from training.sampling.load import (PromptSource, SamplingInputError, history_from_shard,
+                                            history_from_video, load_world_model, video_clip_fps_hz)
+        from training.sampling.rollout import model_ddim_schedule, rollout_num_future_frames
 
-        self.device = args.device or pick_device()
+        self.device = device
         dtype = getattr(torch, args.dtype)
         self.model, self.model_info = load_world_model(args.checkpoint, self.device, dtype)
         if args.attention is not None:
@@ -114,32 +254,33 @@ class _Setup:
         self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend}
         mcfg = self.model.cfg
         self.vae = VideoVAE(args.vae, device=self.device)
-        rc = dict(ROLLOUT_PRESETS[args.preset])
-        for k, v in (("num_steps", args.steps), ("chunk_frames", args.chunk_frames),
-                     ("history_noise_level", args.history_noise_level)):
-            if v is not None:
-                rc[k] = v
-        rc["kv_cache"] = "off" if args.no_kv_cache else "auto"
-        g = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
-        if args.preset == "vid2world" and args.guidance_scale is not None:
-            g["scale_end"] = args.guidance_scale
-        rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **g)
-        if args.preset == "vid2world" and not args.no_guidance and not args.actions_from_trajectory:
-            raise SystemExit("resim: --preset vid2world guides on actions; add --actions-from-trajectory "
-                             "(and --trajectory) or --no-guidance")
-        self.cfg = from_dict(RolloutConfig, rc)
+        self.cfg = cfg
         model_ddim_schedule(self.model, self.cfg)   # --steps / --history-noise-level vs the model's schedule, now
         if Path(args.history).is_file():
-            size = (tuple(int(s) for s in args.size.lower().split("x")) if args.size
+            size = (args.size if args.size
                     else (mcfg.sample_height * self.vae.info.spatial_compression,
                           mcfg.sample_width * self.vae.info.spatial_compression))
+            sc = self.vae.info.spatial_compression
+            mult = sc * int(getattr(mcfg, "patch_size", 1) or 1)
+            if size[0] % mult or size[1] % mult:
+                raise UsageError(f"--size {size[0]}x{size[1]}: both sides must be multiples of {mult} (the VAE's "
+                                 f"{sc}x downsampling times the model's patch size), e.g. the model's sample size "
+                                 f"{mcfg.sample_height * sc}x{mcfg.sample_width * sc}")
             self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size,
                                               video_clip_fps_hz(self.model, self.vae.info.temporal_compression))
-        elif args.shards:
-            self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)
         else:
-            raise SystemExit(f"resim: history {args.history!r} is not a file; to use a shard sample key pass "
-                             "--shards DATASET_DIR")
+            try:
+                self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)
+            except SamplingInputError:
+                have = _shard_history_frames(args.shards, args.history)
+                if have is None or have[0] >= self.cfg.history_frames:
+                    raise
+                h, px, fps = have
+                raise SamplingInputError(
+                    f"history {args.history!r}: its clip holds {h} latent history frame(s) ({px} pixel frames at "
+                    f"{fps:g} Hz), the rollout keeps {self.cfg.history_frames}: pass --history-frames {h}, or use "
+                    f"a clip with at least {1 + 4 * (self.cfg.history_frames - 1)} history frames (a video "
+                    "source)") from None
         self.prompts = PromptSource(self.history.prompt_root, args.text_encoder, device=self.device,
                                     max_tokens=args.max_text_tokens)
         self.num_future = rollout_num_future_frames(args.seconds, self.history.fps_hz, self.vae.info.temporal_compression)
@@ -201,8 +342,9 @@ def _save_config(setup: _Setup, out: Path, extra: dict) -> None:
 def _cmd_sample(args) -> int:
     import torch
 
+    from resim.config import ConfigError
     from shards.schema import COMMANDS
-    from training.sampling.load import SamplingInputError, load_trajectory
+    from training.sampling.load import SamplingInputError
     from training.sampling.outputs import decode_rollout, write_rollout
     from training.sampling.rollout import Condition, rollout, rollout_num_steps_total
 
@@ -211,9 +353,15 @@ def _cmd_sample(args) -> int:
             print(f"resim sample: --command {c!r} is not one of {list(COMMANDS)}", file=sys.stderr)
             return 2
     try:
-        s = _Setup(args)
-        trajs = [load_trajectory(t) for t in (args.trajectory or [])]
-    except SamplingInputError as e:
+        device, cfg, trajs = _check_args(args, "sample")   # no model is loaded for a command-line mistake
+        s = _Setup(args, device, cfg)
+        enc = getattr(s.model, "trajectory_encoder", None)
+        want = (enc.cfg.num_waypoints, enc.cfg.waypoint_dim) if enc is not None else None
+        for spec, t in zip(args.trajectory or [], trajs):
+            if want is not None and tuple(t.shape) != want:
+                raise UsageError(f"--trajectory {spec if len(spec) < 60 else spec[:57] + '...'}: the model takes "
+                                 f"{want[0]} waypoints of {want[1]} values, got shape {tuple(t.shape)}")
+    except (UsageError, SamplingInputError, ConfigError) as e:
         print(f"resim sample: {e}", file=sys.stderr)
         return 2
     out = Path(args.out)
@@ -260,7 +408,8 @@ def _cmd_sample(args) -> int:
 def _cmd_plan(args) -> int:
     import numpy as np
 
-    from training.reward.checkpoint import load_checkpoint
+    from resim.config import ConfigError
+    from training.reward.checkpoint import CheckpointError, load_checkpoint
     from training.sampling.load import SamplingInputError
     from training.sampling.outputs import grid_with_scores
     from training.sampling.plan import CANDIDATE_NAMES, default_candidates, plan
@@ -272,11 +421,15 @@ def _cmd_plan(args) -> int:
         print(f"resim plan: unknown candidate(s) {bad}; known: {', '.join(CANDIDATE_NAMES)}", file=sys.stderr)
         return 2
     try:
-        s = _Setup(args)
-    except SamplingInputError as e:
+        device, cfg, _ = _check_args(args, "plan")
+        try:   # the reward model first: it loads in a moment, the world model and VAE take longer
+            reward = load_checkpoint(args.reward, device=device)
+        except CheckpointError as e:
+            raise UsageError(f"--reward: {e}") from None
+        s = _Setup(args, device, cfg)
+    except (UsageError, SamplingInputError, ConfigError) as e:
         print(f"resim plan: {e}", file=sys.stderr)
         return 2
-    reward = load_checkpoint(args.reward, device=s.device)
     cands = default_candidates(args.speed_mps, names)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

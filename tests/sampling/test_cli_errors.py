@@ -1,0 +1,177 @@
+"""User mistakes in `resim sample` / `resim plan`: a one-line error `resim <sub>: ...` naming the item and the
+reason, exit 2, never a traceback; command-line mistakes are found before any model is loaded."""
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from resim.cli import main
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    """A tiny world-model run, a reward run, shards with a 10 Hz clip (9 history frames) and a 2 Hz NAVSIM-like
+    clip (1 history frame), and a 10 Hz video."""
+    torch.set_num_threads(1)
+    from safetensors.torch import save_file
+
+    from shards.schema import ClipSpec
+    from shards.testing import add_dummy_prompts, dummy_frames, make_dummy_sample
+    from shards.video import encode_mp4
+    from shards.writer import ShardWriter
+    from training.models.config import preset
+    from training.models.dit import WorldModel
+    from training.reward.checkpoint import save_checkpoint
+    from training.reward.config import RewardTrainConfig
+    from training.reward.model import Video2Reward
+
+    root = tmp_path_factory.mktemp("sampling_errors")
+    data = root / "shards"
+    add_dummy_prompts(data, seq_len=16, dim=64)
+    s10 = make_dummy_sample(item_id="ep0", seed=0, latent_channels=16, latent_hw=(4, 6), frames_hw=(32, 48))
+    s2 = make_dummy_sample(item_id="nav0", seed=1, latent_channels=16, latent_hw=(4, 6), frames_hw=(32, 48),
+                           spec=ClipSpec(fps_hz=2.0, num_history_frames=1, num_future_frames=8))
+    with ShardWriter(data, "d", max_samples_per_shard=4, config_hash="dummy") as w:
+        w.write(s10)
+        w.write(s2)
+    torch.manual_seed(0)
+    ck = root / "run" / "final"
+    ck.mkdir(parents=True)
+    (ck / "config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {"preset": "tiny"}}))
+    save_file({k: v.contiguous() for k, v in WorldModel(preset("tiny")).state_dict().items()},
+              str(ck / "model.safetensors"))
+    tc = RewardTrainConfig()
+    save_checkpoint(Video2Reward(tc.model), root / "reward", tc)
+    video = root / "clip.mp4"
+    video.write_bytes(encode_mp4(dummy_frames(12, 48, 64), 10.0))
+    return {"root": root, "data": data, "key": s10["__key__"], "nav": s2["__key__"], "run": root / "run",
+            "reward": root / "reward", "video": video}
+
+
+@pytest.fixture
+def no_model_load(monkeypatch):
+    """Fail loudly if a command gets as far as loading the world model."""
+    from training.sampling import load
+
+    def boom(*a, **k):
+        raise AssertionError("the world model was loaded before the command line was checked")
+    monkeypatch.setattr(load, "load_world_model", boom)
+
+
+def _base(env, sub="sample", *extra, out=None):
+    argv = [sub, "--checkpoint", str(env["run"]), "--shards", str(env["data"]), "--history", env["key"],
+            "--out", str(out or env["root"] / "out"), "--steps", "1", "--device", "cpu", *extra]
+    if sub == "plan" and "--reward" not in extra:
+        argv += ["--reward", str(env["reward"])]
+    return argv
+
+
+def _usage_error(capsys, argv, needle):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err, err
+
+
+def _one_line_error(capsys, argv, needle, sub="sample"):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"resim {sub}: ") and needle in err and len(err.splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("sub", ["sample", "plan"])
+@pytest.mark.parametrize("extra,needle", [
+    (["--seconds", "-1"], "--seconds: must be > 0"),                 # was ValueError traceback
+    (["--seconds", "nan"], "--seconds: expected a finite number"),
+    (["--steps", "0"], "--steps: must be >= 1"),                     # was ConfigError traceback
+    (["--steps", "-3"], "--steps: must be >= 1"),
+    (["--chunk-frames", "0"], "--chunk-frames: must be >= 1"),       # was ConfigError traceback
+    (["--history-frames", "0"], "--history-frames: must be >= 1"),
+    (["--history-noise-level", "-1"], "--history-noise-level: must be >= 0"),
+    (["--guidance-scale", "-3"], "--guidance-scale: must be >= 0"),  # was accepted
+    (["--device", "cudaa"], "--device: expected cpu, cuda"),         # was torch RuntimeError traceback
+    (["--vae", "/nope"], "--vae: /nope: no such folder"),            # was an attempt to reach huggingface.co
+    (["--text-encoder", "/nope"], "--text-encoder: /nope: no such folder"),
+    (["--size", "64x"], "--size: expected HxW"),                     # was ValueError traceback
+    (["--max-text-tokens", "0"], "--max-text-tokens: must be >= 1"),
+])
+def test_bad_values_are_usage_errors(env, capsys, no_model_load, sub, extra, needle):
+    _usage_error(capsys, _base(env, sub, *extra), needle)
+
+
+def test_plan_speed_must_be_positive(env, capsys, no_model_load):
+    _usage_error(capsys, _base(env, "plan", "--speed-mps", "-5"), "--speed-mps: must be > 0")   # was accepted
+    _usage_error(capsys, _base(env, "plan", "--speed-mps", "0"), "--speed-mps: must be > 0")
+
+
+def test_mistakes_found_before_the_model_is_loaded(env, capsys, no_model_load, tmp_path):
+    _one_line_error(capsys, _base(env, "sample", "--chunk-frames", "11"), "--chunk-frames 11: at most the 10")
+    # was "not a candidate name ...: Expecting value"
+    _one_line_error(capsys, _base(env, "sample", "--trajectory", str(tmp_path / "nope.npy")), "nope.npy: no such file")
+    _one_line_error(capsys, _base(env, "sample", "--trajectory", "nope.json"), "nope.json: no such file")
+    (tmp_path / "bad.npy").write_text("not numpy")
+    _one_line_error(capsys, _base(env, "sample", "--trajectory", str(tmp_path / "bad.npy")), "not a readable .npy")
+    # was found only after the model had been loaded and the rollout had started
+    _one_line_error(capsys, _base(env, "sample", "--actions-from-trajectory"), "add --trajectory")
+    _one_line_error(capsys, _base(env, "sample", "--preset", "vid2world"), "add --actions-from-trajectory")
+    if torch.cuda.is_available():
+        _one_line_error(capsys, _base(env, "sample", "--device", "cuda:99"), "CUDA device(s) here")
+    else:   # was AssertionError "Torch not compiled with CUDA enabled"
+        _one_line_error(capsys, _base(env, "sample", "--device", "cuda"), "--device cuda: this torch build has no")
+    _one_line_error(capsys, _base(env, "sample", "--shards", str(tmp_path / "nope")), "no such folder")
+    assert not (env["root"] / "out").exists()
+
+
+def test_plan_checks_the_reward_run_before_the_world_model(env, capsys, no_model_load, tmp_path):
+    # was a CheckpointError traceback, after the world model had been loaded
+    _one_line_error(capsys, _base(env, "plan", "--reward", str(tmp_path / "nope")),
+                    "--reward: " + str(tmp_path / "nope") + ": no such checkpoint folder", "plan")
+    _one_line_error(capsys, _base(env, "plan", "--reward", str(env["run"])),   # a world-model run
+                    "is not a reward checkpoint: config.yaml is missing", "plan")
+    _one_line_error(capsys, _base(env, "plan", "--reward", str(env["run"] / "final")),
+                    "is not a reward checkpoint: reward.safetensors is missing", "plan")
+
+
+def test_shard_history_shorter_than_the_rollouts_says_what_to_do(env, capsys):
+    """A NAVSIM-like key (1 latent history frame at 2 Hz): the error names --history-frames, which works."""
+    _one_line_error(capsys, _base(env, "sample", "--history", env["nav"]), "pass --history-frames 1")
+    out = env["root"] / "nav"
+    assert main(_base(env, "sample", "--history", env["nav"], "--history-frames", "1", "--seconds", "2", out=out)) == 0
+    assert np.load(out / "sample_latents.npy").shape[0] == 1 + 1        # 2 s at 2 Hz = 4 frames = 1 latent frame
+    assert json.loads((out / "run.json").read_text())["rollout"]["history_frames"] == 1
+
+
+def test_model_dependent_checks_are_one_line(env, capsys, tmp_path):
+    # a video history at a size the VAE + patching cannot take: was "latent size (3, 5) not divisible" traceback
+    _one_line_error(capsys, ["sample", "--checkpoint", str(env["run"]), "--history", str(env["video"]),
+                             "--size", "30x45", "--steps", "1", "--device", "cpu", "--out", str(tmp_path / "o")],
+                    "--size 30x45: both sides must be multiples of 16")
+    # a trajectory the model's encoder cannot take: was ValueError traceback from inside the rollout
+    _one_line_error(capsys, _base(env, "sample", "--trajectory", "[[1, 0, 0]]"), "the model takes 8 waypoints")
+    _one_line_error(capsys, _base(env, "sample", "--steps", "5000"), "num_train_timesteps=1000")
+
+
+def test_trajectory_json_file(env, tmp_path):
+    from training.sampling.plan import make_candidate
+
+    p = tmp_path / "traj.json"
+    p.write_text(json.dumps(make_candidate("turn_left").trajectory.tolist()))
+    out = tmp_path / "o"
+    assert main(_base(env, "sample", "--trajectory", str(p), "--seconds", "0.4", out=out)) == 0
+    assert json.loads((out / "sample_meta.json").read_text())["num_frames"] > 0
+
+
+def test_help_says_what_works_and_what_is_written(capsys):
+    with pytest.raises(SystemExit):
+        main(["sample", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "NAVSIM's 2 Hz" not in out and "--history-frames 1" in out
+    assert "run.json" in out and "nothing is downloaded" in out
+    assert "seed of the rollout's noise" in out and "compute dtype" in out     # --seed, --dtype had no help
+    with pytest.raises(SystemExit):
+        main(["plan", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "run.json" in out and "m/s > 0" in out
