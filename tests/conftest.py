@@ -27,6 +27,37 @@ def shared_dir() -> Path:
     return SHARED
 
 
+def _udta_before_tracks(src, dst):
+    """Copy an MP4 with its ``moov/udta`` box (iTunes metadata, the ``covr`` cover) moved in front of the tracks, as
+    some taggers write it: FFmpeg's demuxer then makes the cover stream 0 (its own muxer writes udta last). moov
+    keeps its size, so the chunk offsets into mdat stay valid."""
+    import struct
+
+    b = bytearray(src.read_bytes())
+
+    def boxes(i, end):
+        while i < end:
+            size, kind = struct.unpack(">I4s", b[i:i + 8])
+            yield i, size, kind
+            i += size
+
+    moov = next((i, n) for i, n, k in boxes(0, len(b)) if k == b"moov")
+    kids = list(boxes(moov[0] + 8, sum(moov)))
+    u = next(k for k in kids if k[2] == b"udta")
+    t = next(k for k in kids if k[2] == b"trak")
+    box = bytes(b[u[0]:u[0] + u[1]])
+    del b[u[0]:u[0] + u[1]]
+    b[t[0]:t[0]] = box
+    dst.write_bytes(bytes(b))
+    return dst
+
+
+@pytest.fixture
+def udta_before_tracks():
+    """The function above (tests/labeling/test_video.py and tests/sources/test_opendv.py build cover-first MP4s)."""
+    return _udta_before_tracks
+
+
 def pytest_collection_modifyitems(config, items):
     """``@pytest.mark.gpu`` tests skip where no CUDA GPU is visible (the marker alone skips nothing).
 

@@ -271,31 +271,6 @@ def test_the_labeler_and_the_cli_report_the_switch(refs_thin_out_after_3s, capsy
     assert "non-reference frames not decoded until 3.04 s" in capsys.readouterr().err
 
 
-def _udta_before_tracks(src, dst):
-    """Copy an MP4 with its ``moov/udta`` box (iTunes metadata, the ``covr`` cover) moved in front of the tracks, as
-    some taggers write it: FFmpeg's demuxer then makes the cover stream 0 (its own muxer writes udta last). moov
-    keeps its size, so the chunk offsets into mdat stay valid."""
-    import struct
-
-    b = bytearray(src.read_bytes())
-
-    def boxes(i, end):
-        while i < end:
-            size, kind = struct.unpack(">I4s", b[i:i + 8])
-            yield i, size, kind
-            i += size
-
-    moov = next((i, n) for i, n, k in boxes(0, len(b)) if k == b"moov")
-    kids = list(boxes(moov[0] + 8, sum(moov)))
-    u = next(k for k in kids if k[2] == b"udta")
-    t = next(k for k in kids if k[2] == b"trak")
-    box = bytes(b[u[0]:u[0] + u[1]])
-    del b[u[0]:u[0] + u[1]]
-    b[t[0]:t[0]] = box
-    dst.write_bytes(bytes(b))
-    return dst
-
-
 def _ffmpeg(*args):
     p = subprocess.run(["ffmpeg", "-v", "error", "-y", *map(str, args)], capture_output=True)
     if p.returncode != 0:
@@ -314,6 +289,7 @@ def cover_png(tmp_path):
 
 @pytest.mark.parametrize("kind", ["mp4_attached_pic_first", "mkv_png_track_first"])
 def test_a_cover_picture_stored_before_the_video_is_not_what_gets_labelled(tmp_path, left_turn_25fps, cover_png,
+                                                                          udta_before_tracks,
                                                                           kind, monkeypatch):
     """A cover picture as the first video stream: an MP4 whose ``covr`` comes before the tracks (flagged attached
     picture), or Matroska as FFmpeg 5.1 writes a cover (an ordinary one-frame PNG track, unflagged). Both readers
@@ -327,7 +303,7 @@ def test_a_cover_picture_stored_before_the_video_is_not_what_gets_labelled(tmp_p
     if kind == "mp4_attached_pic_first":
         _ffmpeg("-i", video, "-i", cover_png, "-map", "0", "-map", "1", "-c", "copy", "-disposition:v:1",
                 "attached_pic", tmp_path / "tagged.mp4")
-        path = _udta_before_tracks(tmp_path / "tagged.mp4", tmp_path / "cover_first.mp4")
+        path = udta_before_tracks(tmp_path / "tagged.mp4", tmp_path / "cover_first.mp4")
     else:
         path = tmp_path / "cover_first.mkv"
         _ffmpeg("-i", cover_png, "-i", video, "-map", "0", "-map", "1", "-c", "copy", path)

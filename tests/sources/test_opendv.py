@@ -77,32 +77,8 @@ def _ffmpeg(*args):
         pytest.skip(f"ffmpeg cannot write the test file: {p.stderr.decode()[-200:]}")
 
 
-def _udta_before_tracks(src, dst):
-    """An MP4 with its ``moov/udta`` box (the ``covr`` cover) moved in front of the tracks, as some taggers write
-    it: FFmpeg's demuxer then makes the cover stream 0 (as tests/labeling/test_video.py does)."""
-    import struct
-
-    b = bytearray(src.read_bytes())
-
-    def boxes(i, end):
-        while i < end:
-            size, kind = struct.unpack(">I4s", b[i:i + 8])
-            yield i, size, kind
-            i += size
-
-    moov = next((i, n) for i, n, k in boxes(0, len(b)) if k == b"moov")
-    kids = list(boxes(moov[0] + 8, sum(moov)))
-    u = next(k for k in kids if k[2] == b"udta")
-    t = next(k for k in kids if k[2] == b"trak")
-    box = bytes(b[u[0]:u[0] + u[1]])
-    del b[u[0]:u[0] + u[1]]
-    b[t[0]:t[0]] = box
-    dst.write_bytes(bytes(b))
-    return dst
-
-
 @pytest.mark.parametrize("kind", ["mp4_attached_pic_first", "mkv_png_track_first"])
-def test_a_cover_picture_stored_before_the_video_is_quarantined_with_the_reason(tmp_path, kind):
+def test_a_cover_picture_stored_before_the_video_is_quarantined_with_the_reason(tmp_path, kind, udta_before_tracks):
     """OpenCV decodes the first video stream; where that is a cover picture stored before the video, the reader
     used to cut clips of (or fail on) the picture. Now the file is quarantined, naming it and why."""
     import shutil
@@ -123,7 +99,7 @@ def test_a_cover_picture_stored_before_the_video_is_quarantined_with_the_reason(
         _ffmpeg("-i", tmp_path / "v.mp4", "-i", tmp_path / "cover.png", "-map", "0", "-map", "1", "-c", "copy",
                 "-disposition:v:1", "attached_pic", tmp_path / "tagged.mp4")
         item = "cover_first.mp4"
-        _udta_before_tracks(tmp_path / "tagged.mp4", root / item)
+        udta_before_tracks(tmp_path / "tagged.mp4", root / item)
     else:
         item = "cover_first.mkv"
         _ffmpeg("-i", tmp_path / "cover.png", "-i", tmp_path / "v.mp4", "-map", "0", "-map", "1", "-c", "copy",
