@@ -8,7 +8,8 @@
   parallel layout for N x G ranks and prints parameters, global batch size and an estimate of memory
   per GPU (parameters, gradients, optimizer states, EMA, gathered FSDP units, activations).
   ``-- reward ...``: the config is resolved and checked and the launch command printed, without a memory
-  estimate (Video2Reward is not a presets.py model and trains on one process).
+  estimate (Video2Reward is not a presets.py model and trains on one process: a launch or ``--slurm`` script
+  of reward with more than one rank is refused).
 """
 from __future__ import annotations
 
@@ -199,6 +200,14 @@ def main_launch(args: argparse.Namespace) -> int:
     train = _train_args(args)
     if args.nnodes < 1 or args.nproc_per_node < 1:
         raise SystemExit("resim train launch: --nnodes and --nproc-per-node must be >= 1")
+    world = args.nnodes * args.nproc_per_node
+    if train and train[0] == "reward" and world > 1 and not args.dry_run:
+        # Video2Reward trains on one process (no sharding, no data split): N ranks would be N whole trainings
+        # writing the same --out over each other
+        print(f"resim train launch: reward training runs on one process; --nnodes {args.nnodes} x --nproc-per-node "
+              f"{args.nproc_per_node} would start {world} independent trainings into the same --out. Use "
+              "--nnodes 1 --nproc-per-node 1 (or `resim train reward` directly)", file=sys.stderr)
+        return 2
     if args.dry_run:
         from resim.config import ConfigError
         try:

@@ -62,3 +62,14 @@ def test_dry_run_accepts_reward(capsys, tmp_path):
                "--set", "lr=-1"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "config error" in err and "lr" in err
+
+
+def test_reward_launch_with_more_than_one_rank_is_refused(capsys, tmp_path):
+    """Video2Reward trains on one process: torchrun with N ranks (or a SLURM script for them) would start N whole
+    trainings writing the same --out; refused before anything starts, with the way out."""
+    for extra in ([], ["--slurm"]):
+        rc = main(["train", "launch", "--nproc-per-node", "2", *extra, "--", "reward", "--preset", "tiny",
+                   "--shards", str(tmp_path), "--out", str(tmp_path / "r")])
+        cap = capsys.readouterr()
+        assert rc == 2 and "--nproc-per-node 1" in cap.err and "#SBATCH" not in cap.out, cap
+    assert not (tmp_path / "r").exists()
