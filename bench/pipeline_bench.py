@@ -30,7 +30,11 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 SYNTH = REPO / "configs/pipeline/synthetic.yaml"
-DASHCAM = REPO.parent.parent / "shared" / "data" / "dashcam"   # /work/shared/data/dashcam beside /work/wt/<x>
+# $RESIM_SHARED_DIR, else shared/ beside the checkout (main clone), else one level up (worktree wt/<x>)
+_SHARED = [Path(os.environ["RESIM_SHARED_DIR"])] if os.environ.get("RESIM_SHARED_DIR") else \
+    [REPO.parent / "shared", REPO.parent.parent / "shared"]
+DASHCAM = next((s / "data" / "dashcam" for s in _SHARED if (s / "data" / "dashcam").is_dir()),
+               _SHARED[0] / "data" / "dashcam")
 
 
 def _world(tmp: Path, episodes: int = 6) -> Path:
@@ -121,7 +125,7 @@ def rss(tmp: Path) -> dict:
 def real(tmp: Path) -> dict:
     """Per-stage CPU costs on real dashcam footage (540p/576p, 25 fps) at ReSim's 256x448."""
     if not DASHCAM.is_dir():
-        print("[real] no /work/shared/data/dashcam here: skipped")
+        print(f"[real] no {DASHCAM} here: skipped")
         return {}
     src = tmp / "dashcam"
     src.mkdir(exist_ok=True)
@@ -140,15 +144,23 @@ def real(tmp: Path) -> dict:
     return {"clips": n, "per_clip_s": per_clip, "quarantine": st["quarantine"]["rows"]}
 
 
+PARTS = ["throughput", "scaling", "rss", "real"]
+
 if __name__ == "__main__":
-    if sys.argv[1] == "_rss_child":
+    if len(sys.argv) > 1 and sys.argv[1] == "_rss_child":
         _rss_child(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         sys.exit(0)
+    what = sys.argv[1:] or ["all"]
+    if any(w in ("-h", "--help") for w in what):
+        print(__doc__)
+        sys.exit(0)
+    bad = [w for w in what if w not in (*PARTS, "all")]
+    if bad:
+        sys.exit(f"usage: pipeline_bench.py [{'|'.join(PARTS)}|all ...]; unknown: {' '.join(bad)}")
     import torch
 
     torch.set_num_threads(1)
-    what = sys.argv[1:] or ["all"]
-    parts = ["throughput", "scaling", "rss", "real"] if "all" in what else what
+    parts = PARTS if "all" in what else what
     with tempfile.TemporaryDirectory(prefix="resim-bench-") as tmp:
         results = {p: globals()[p](Path(tmp)) for p in parts}
     print("device: 2-core CPU (shared), torch threads 1 per process")
