@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 EPILOG = """\
@@ -36,7 +35,7 @@ examples:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from resim.config import ConfigError, apply_overrides, from_dict, to_dict
+    from resim.config import ConfigError, apply_overrides, check_positive, from_dict, to_dict
     from labeling.config import LabelerConfig, PRESETS
     from labeling.video import VideoError
     from labeling.windows import label_video
@@ -47,17 +46,16 @@ def _run(args: argparse.Namespace) -> int:
         raw = to_dict(from_dict(LabelerConfig, PRESETS[args.preset]))
         if args.hfov_deg is not None:
             raw["flow"]["hfov_deg"] = args.hfov_deg
-        cfg = from_dict(LabelerConfig, apply_overrides(raw, args.set))
+        raw = apply_overrides(raw, args.set)
         if args.window_s is not None:
-            cfg.command.window_s = args.window_s   # --window-s wins over --set command.window_s
-        for name, v in (("--window-s", cfg.command.window_s), ("--stride-s", args.stride_s)):
-            if not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"{name} must be finite and > 0, got {v}")
+            raw["command"]["window_s"] = args.window_s   # --window-s wins over --set command.window_s
+        cfg = from_dict(LabelerConfig, raw)                # validates window_s with the rest
+        check_positive("--stride-s", args.stride_s)
     except ConfigError as e:
         print(f"resim label: bad configuration: {e}", file=sys.stderr)
         return 2
     try:
-        res = label_video(args.video, cfg, window_s=cfg.command.window_s, stride_s=args.stride_s,
+        res = label_video(args.video, cfg, stride_s=args.stride_s,
                           progress=not args.quiet and sys.stderr.isatty())
     except VideoError as e:
         print(f"resim label: cannot label {e.path}: {e.reason}", file=sys.stderr)

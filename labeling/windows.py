@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import itertools
-import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,6 +11,7 @@ from tqdm import tqdm
 
 from labeling.commands import command_from_yaw
 from labeling.config import LabelerConfig
+from resim.config import check_positive
 from labeling.flow import FlowLabeler, window_quality
 from labeling.video import VideoError, VideoInfo, iter_grey_samples, probe
 
@@ -74,9 +74,8 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
     """
     cfg = cfg or LabelerConfig()
     window_s = cfg.command.window_s if window_s is None else window_s
-    for name, v in (("window_s", window_s), ("stride_s", stride_s)):
-        if not (math.isfinite(v) and v > 0):   # NaN passes a `<= 0` check and gave zero windows
-            raise ValueError(f"{name} must be finite and > 0, got {v}")
+    check_positive("window_s", window_s)   # ConfigError (a ValueError); NaN passed `<= 0` and gave zero windows
+    check_positive("stride_s", stride_s)
     info = probe(path)
     fc = cfg.flow
     times: list[float] = []

@@ -20,14 +20,13 @@ workers and hashes names the data it read wherever it is read from.
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal, Optional
 
 from labeling.config import LabelerConfig
-from resim.config import ConfigError, from_dict, load, to_dict
+from resim.config import ConfigError, check_positive, from_dict, load, to_dict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,14 +42,6 @@ def placeholder_dir(name: str) -> Path:
 
 PLACEHOLDER_VAE = placeholder_dir("placeholder-cogvideox-vae-tiny")
 PLACEHOLDER_T5 = placeholder_dir("placeholder-t5-tiny")
-
-
-def _positive(name: str, value: float, allow_zero: bool = False) -> None:
-    # Written as `not (value > 0)` and with isfinite: NaN compares False both ways, so `value <= 0` let
-    # `.nan` through (and `.inf` then failed somewhere else with an unrelated message).
-    ok = (value >= 0) if allow_zero else (value > 0)
-    if not (ok and math.isfinite(value)):
-        raise ConfigError(f"{name} must be a finite number {'>= 0' if allow_zero else '> 0'}, got {value}")
 
 
 def _max_items(value: Optional[int]) -> None:
@@ -72,10 +63,10 @@ class ClipConfig:
     waypoint_dt_s: float = 0.5
 
     def __post_init__(self):
-        _positive("fps_hz", self.fps_hz)
-        _positive("stride_frames", self.stride_frames)
-        _positive("num_waypoints", self.num_waypoints)
-        _positive("waypoint_dt_s", self.waypoint_dt_s)
+        check_positive("fps_hz", self.fps_hz)
+        check_positive("stride_frames", self.stride_frames)
+        check_positive("num_waypoints", self.num_waypoints)
+        check_positive("waypoint_dt_s", self.waypoint_dt_s)
         if self.num_history_frames < 1 or self.num_future_frames < 1:
             raise ConfigError("num_history_frames and num_future_frames must be >= 1")
         if (self.num_frames - 1) % 4:
@@ -115,9 +106,9 @@ class OpenDVSource:
     clip: Optional[ClipConfig] = None         # per-source clip geometry (null: the top-level `clip`)
 
     def __post_init__(self):
-        _positive("start_discard_s", self.start_discard_s, allow_zero=True)
-        _positive("end_discard_s", self.end_discard_s, allow_zero=True)
-        _positive("min_height_px", self.min_height_px)
+        check_positive("start_discard_s", self.start_discard_s, allow_zero=True)
+        check_positive("end_discard_s", self.end_discard_s, allow_zero=True)
+        check_positive("min_height_px", self.min_height_px)
         _max_items(self.max_items)
 
 
@@ -163,7 +154,7 @@ class SyntheticSource:
     preset: str = "demo"                      # resim synth preset (demo: 128x224, 16 s episodes)
 
     def __post_init__(self):
-        _positive("episodes", self.episodes)
+        check_positive("episodes", self.episodes)
         bad = [x for x in list(self.layouts) + list(self.clip) if x not in ("opendv", "navsim", "carla")]
         if bad:
             raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")
@@ -208,7 +199,7 @@ class BalanceConfig:
     turn_factor: int = 5
 
     def __post_init__(self):
-        _positive("turn_factor", self.turn_factor)
+        check_positive("turn_factor", self.turn_factor)
 
 
 # -------------------------------------------------------------------------------------------- encode
@@ -236,9 +227,9 @@ class EncodeConfig:
             v = getattr(self, k)
             if v <= 0 or v % 8:
                 raise ConfigError(f"{k} must be a positive multiple of 8 (VAE downsamples 8x), got {v}")
-        _positive("batch_size", self.batch_size)
-        _positive("max_text_tokens", self.max_text_tokens)
-        _positive("torch_threads", self.torch_threads)
+        check_positive("batch_size", self.batch_size)
+        check_positive("max_text_tokens", self.max_text_tokens)
+        check_positive("torch_threads", self.torch_threads)
 
     @property
     def vae_path(self) -> Path:
@@ -270,7 +261,7 @@ class QuarantineConfig:
     retry_quarantined: bool = False           # on rerun, try quarantined units again (attempts += 1)
 
     def __post_init__(self):
-        _positive("max_attempts", self.max_attempts)
+        check_positive("max_attempts", self.max_attempts)
 
 
 # ----------------------------------------------------------------------------------------------- ray
@@ -283,10 +274,10 @@ class StageResources:
     num_gpus: float | Literal["auto"] = 0.0   # "auto": 1 per actor when the cluster has GPUs, else 0
 
     def __post_init__(self):
-        _positive("actors", self.actors)
-        _positive("num_cpus", self.num_cpus, allow_zero=True)
+        check_positive("actors", self.actors)
+        check_positive("num_cpus", self.num_cpus, allow_zero=True)
         if self.num_gpus != "auto":
-            _positive("num_gpus", float(self.num_gpus), allow_zero=True)
+            check_positive("num_gpus", float(self.num_gpus), allow_zero=True)
 
 
 def _res(actors=1, num_cpus=1.0, num_gpus=0.0):

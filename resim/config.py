@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import re
 import types
 import typing
@@ -32,6 +33,15 @@ T = TypeVar("T")
 
 class ConfigError(ValueError):
     """A config value is missing, unknown, of the wrong type or out of range."""
+
+
+def check_positive(name: str, value: float, allow_zero: bool = False) -> None:
+    """ConfigError unless ``value`` is a finite number > 0 (>= 0 with ``allow_zero``)."""
+    # Written as `not (value > 0)` and with isfinite: NaN compares False both ways, so `value <= 0` let
+    # `.nan` through (and `.inf` then failed somewhere else with an unrelated message).
+    ok = (value >= 0) if allow_zero else (value > 0)
+    if not (ok and math.isfinite(value)):
+        raise ConfigError(f"{name} must be a finite number {'>= 0' if allow_zero else '> 0'}, got {value}")
 
 
 def _type_name(tp: Any) -> str:

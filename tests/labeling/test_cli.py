@@ -85,8 +85,8 @@ def test_cli_draws_no_progress_bar_when_stderr_is_not_a_terminal(left_turn_video
 
 
 @pytest.mark.parametrize("args,msg", [
-    (["--window-s", "nan"], "--window-s must be finite and > 0"),
-    (["--stride-s", "inf"], "--stride-s must be finite and > 0"),
+    (["--window-s", "nan"], "window_s must be finite"),
+    (["--stride-s", "inf"], "--stride-s must be a finite number > 0"),
     (["--set", "flow.sample_hz=.nan"], "sample_hz must be finite"),
     (["--set", "command.confidence_scale_deg=.nan"], "confidence_scale_deg must be finite"),
     (["--set", "flow.max_flow_frac=0"], "max_flow_frac must be in (0, 1]"),

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from resim.config import ConfigError
+from resim.config import ConfigError, check_positive
 from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
 
 
@@ -60,11 +59,9 @@ class IDMTrainConfig:
     def __post_init__(self):
         if self.epochs < 1 or self.batch_size_per_gpu < 1:
             raise ConfigError("epochs and batch_size_per_gpu must be >= 1")
-        # math.isfinite: nan passes `<= 0` tests and would train to nan weights without a word
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
-        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
-            raise ConfigError(f"weight_decay must be a finite number >= 0, got {self.weight_decay}")
+        # finite: nan passes `<= 0` tests and would train to nan weights without a word
+        check_positive("lr", self.lr)
+        check_positive("weight_decay", self.weight_decay, allow_zero=True)
         if self.warmup_steps < 0:
             raise ConfigError(f"warmup_steps must be >= 0, got {self.warmup_steps}")
         if self.seed < 0:  # numpy's epoch RNG (seed * 1000 + epoch) refuses negative seeds

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from resim.config import ConfigError
+from resim.config import ConfigError, check_positive
 from shards.schema import ClipSpec
 
 
@@ -52,8 +52,7 @@ class SynthConfig:
         if min(self.frames_hw) < 2:
             raise ConfigError(f"frames_hw must be at least 2x2, got {self.frames_hw}")
         # math.isfinite: nan passes `<= 0` tests
-        if not (math.isfinite(self.fps_hz) and self.fps_hz > 0):
-            raise ConfigError(f"fps_hz must be a finite number > 0, got {self.fps_hz}")
+        check_positive("fps_hz", self.fps_hz)
         if not (math.isfinite(self.hfov_deg) and 0 < self.hfov_deg < 180):
             raise ConfigError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
         if not (math.isfinite(self.camera_height_m) and self.camera_height_m > 0):

@@ -8,11 +8,10 @@ and demo), ``synthetic`` (tiny + whole-episode window for `resim synth` worlds) 
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from resim.config import ConfigError
+from resim.config import ConfigError, check_positive
 
 PLACEHOLDER_BACKBONE_DIR = "configs/models/placeholder-dinov2-tiny"
 
@@ -100,13 +99,10 @@ class RewardTrainConfig:
     use_stored_features: bool = True  # use dino.npy when every sample has it and the id matches
 
     def __post_init__(self):
-        # math.isfinite: nan passes `<= 0` / `< 0` tests and inf is no learning rate; both would train to nan
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise ConfigError(f"lr must be a finite number > 0, got {self.lr}")
-        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
-            raise ConfigError(f"weight_decay must be a finite number >= 0, got {self.weight_decay}")
-        if not (math.isfinite(self.grad_clip_norm) and self.grad_clip_norm >= 0):
-            raise ConfigError(f"grad_clip_norm must be a finite number >= 0 (0: no clipping), got {self.grad_clip_norm}")
+        # finite: nan passes `<= 0` / `< 0` tests and inf is no learning rate; both would train to nan
+        check_positive("lr", self.lr)
+        check_positive("weight_decay", self.weight_decay, allow_zero=True)
+        check_positive("grad_clip_norm", self.grad_clip_norm, allow_zero=True)   # 0: no clipping
         if self.epochs < 1 or self.batch_size_per_gpu < 1:
             raise ConfigError(f"epochs and batch_size_per_gpu must be >= 1, got {self.epochs} and "
                               f"{self.batch_size_per_gpu}")
