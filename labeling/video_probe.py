@@ -139,6 +139,15 @@ def _pyav_video(path: str) -> _AvVideo | None:
         return None
 
 
+def first_stream_not_video(path: str | Path) -> tuple[int | None, str] | None:
+    """Where the first video stream of ``path`` (the one OpenCV decodes) is not the video to label: ``(index of the
+    video stream or None where there is none, what the first stream is)``; None where it is the video, or PyAV is
+    missing or cannot open the file. One PyAV open and no decode (for readers that open the file with OpenCV
+    anyway, e.g. the OpenDV source; ``probe`` does this and more)."""
+    v = _pyav_video(str(path))
+    return None if v is None or not v.first_video else (v.index, v.first_video)
+
+
 def _have_pyav() -> bool:
     try:
         import av  # noqa: F401

@@ -207,20 +207,19 @@ def _refuse_cover_first(path: Path, item_id: str) -> None:
     """``SourceError`` where OpenCV would decode a cover picture instead of the video: the first video stream is
     an attached or still picture stored before the video (``labeling.video_probe``; needs PyAV, without it nothing
     is checked here). Every other problem is left to ``open``'s own checks, which name it as before."""
-    from labeling.video_probe import VideoError, probe
+    from labeling.video_probe import first_stream_not_video
 
-    try:
-        info = probe(path)
-    except VideoError as e:
-        if e.reason.startswith("no video stream, only a still picture"):   # e.g. an audio file with cover art
-            raise SourceError(item_id, f"video file {path}: {e.reason}; OpenCV would read the picture as a "
-                                       "one-frame video") from None
+    found = first_stream_not_video(path)
+    if found is None:
         return
-    if info.opencv_problem:
-        raise SourceError(item_id, f"video file {path}: its first video stream is a cover picture stored before "
-                                   f"the video (the video is stream {info.stream_index}); OpenCV, which this reader decodes "
-                                   f"with, would read the cover picture instead of the video. Keep only the "
-                                   f"video: ffmpeg -i IN -map 0:{info.stream_index} -c copy OUT")
+    index, what = found
+    if index is None:   # e.g. an audio file with cover art
+        raise SourceError(item_id, f"video file {path}: no video stream, only a still picture ({what}); OpenCV "
+                                   "would read the picture as a one-frame video")
+    raise SourceError(item_id, f"video file {path}: its first video stream is a cover picture stored before the "
+                               f"video ({what}; the video is stream {index}); OpenCV, which this reader decodes with, "
+                               f"would read the cover picture instead of the video. Keep only the video: "
+                               f"ffmpeg -i IN -map 0:{index} -c copy OUT")
 
 
 def _opt_float(v) -> float | None:

@@ -234,7 +234,7 @@ def _heldout_items(path: str | None, all_clips: bool = False):
 def _runner(args):
     import torch
 
-    from pipelines.encoders import VideoVAE, pick_device
+    from pipelines.encoders import VideoVAE
     from resim.config import from_dict
     from training.sampling.guidance import guidance_preset
     from training.sampling.load import PromptSource, load_world_model
@@ -243,7 +243,7 @@ def _runner(args):
 
     from training.sampling.load import SamplingInputError
 
-    device = args.device or pick_device()
+    device = args.device
     try:
         model, info = load_world_model(args.checkpoint, device, torch.float32)
     except SamplingInputError as e:
@@ -292,7 +292,6 @@ def _finish(out: Path, name: str, report: dict, text: str, png_fn) -> None:
 
 # ------------------------------------------------------------------------------------------ commands
 def _cmd_quality(args) -> int:
-    from pipelines.encoders import pick_device
     from resim.config import ConfigError
     from training.eval.quality import QualityConfig, build_networks
     from training.eval.report import format_quality, plot_quality
@@ -311,7 +310,7 @@ def _cmd_quality(args) -> int:
                              lpips_head_weights=args.lpips_head, fid_weights=args.fid_weights,
                              fvd_weights=args.fvd_weights, dreamsim_dir=args.dreamsim_dir,
                              allow_placeholder_networks=args.allow_placeholder_networks,
-                             device=args.device or pick_device())
+                             device=args.device)
         nets = build_networks(qcfg, qcfg.device)
     except ConfigError as e:
         print(f"resim eval quality: {e}", file=sys.stderr)
@@ -356,14 +355,13 @@ def _cmd_control(args) -> int:
     from training.eval.report import format_protocol, plot_bars
     from training.eval.worldeval import check_idm_window, control_eval, non_expert_pairs
 
-    from pipelines.encoders import pick_device
 
     # inputs first: clips, their non-expert pairs and the IDM's window are checked before any rollout
     if not _device(args, "control"):
         return 2
     items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
     clips = _clips(args, items)
-    idm, idm_info = _load_idm(args.idm, args.device or pick_device())
+    idm, idm_info = _load_idm(args.idm, args.device)
     try:
         non_expert_pairs(clips, args.seed)
         check_idm_window(idm, clips)
@@ -400,12 +398,11 @@ def _cmd_planning(args) -> int:
     from training.eval.report import format_protocol, plot_bars
     from training.eval.worldeval import check_idm_window, planning_eval
 
-    from pipelines.encoders import pick_device
 
     # inputs first: clips and the IDM's / planner's windows are checked before any rollout
     if not _device(args, "planning"):
         return 2
-    device = args.device or pick_device()
+    device = args.device
     idm, idm_info = _load_idm(args.idm, device)
     planner, planner_info = _load_idm(args.planner, device) if args.planner else (None, None)
     if planner is not None and planner.cfg.window != "history":

@@ -143,8 +143,6 @@ def resolve_device(device: str | None) -> str:
 
 def _trajectories(specs: list[str] | None) -> list:
     """``--trajectory`` values → (N, 3) arrays; a path that is not there is "no such file", not a JSON error."""
-    import numpy as np
-
     from training.sampling.load import SamplingInputError, load_trajectory
     from training.sampling.plan import CANDIDATE_NAMES
 
@@ -156,17 +154,6 @@ def _trajectories(specs: list[str] | None) -> list:
             looks_like_path = p.suffix.lower() in (".npy", ".json") or "/" in spec or "\\" in spec
             if looks_like_path and not p.is_file():
                 raise UsageError(f"--trajectory {spec}: no such file (give {kinds})")
-            if p.suffix.lower() == ".json" and p.is_file():
-                try:
-                    arr = np.asarray(json.loads(p.read_text()), dtype=np.float32)
-                except (ValueError, UnicodeDecodeError) as e:
-                    raise UsageError(f"--trajectory {spec}: not JSON waypoints [[x_m, y_m, yaw_rad], ...] ({e})") \
-                        from None
-                if arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all():
-                    raise UsageError(f"--trajectory {spec}: expected finite (num_waypoints, 3) [x m, y m, yaw rad], "
-                                     f"got shape {arr.shape}")
-                out.append(arr)
-                continue
         try:
             out.append(load_trajectory(spec))
         except SamplingInputError as e:

@@ -193,7 +193,8 @@ class PromptSource:
 
 
 def load_trajectory(spec: str | None) -> np.ndarray | None:
-    """``--trajectory``: a candidate name (keep_lane, turn_left, …), a .npy file (8, 3), or JSON [[x, y, yaw], …]."""
+    """``--trajectory``: a candidate name (keep_lane, turn_left, …), a .npy file (8, 3), or JSON [[x, y, yaw], …]
+    inline or in a .json file."""
     import json
 
     if spec is None:
@@ -202,11 +203,12 @@ def load_trajectory(spec: str | None) -> np.ndarray | None:
     if spec in CANDIDATE_NAMES:
         return make_candidate(spec).trajectory
     p = Path(spec)
-    if p.suffix == ".npy" and p.is_file():
+    if p.suffix.lower() == ".npy" and p.is_file():
         arr = np.load(p, allow_pickle=False)
     else:
+        text = p.read_text() if p.suffix.lower() == ".json" and p.is_file() else spec   # a .json file or inline
         try:
-            arr = np.asarray(json.loads(spec), dtype=np.float32)
+            arr = np.asarray(json.loads(text), dtype=np.float32)
         except (json.JSONDecodeError, ValueError) as e:
             raise SamplingInputError(f"--trajectory {spec!r}: not a candidate name ({', '.join(CANDIDATE_NAMES)}), "
                                      f"a .npy file or JSON waypoints: {e}") from e
