@@ -60,15 +60,14 @@ RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "pro
                     "config.yaml", "config_hash.txt", "stats.json", "report.png"}
 
 
-def foreign_out(out) -> list[str]:
-    """The entries that make ``out`` a non-empty folder that is not a pipeline output ([] when it is absent, empty,
-    or written by `resim pipeline run`: config_hash.txt is stamped before any other output)."""
+def foreign_out(out) -> str | None:
+    """What makes ``out`` a non-empty folder that is not a pipeline output ("a, b, ..."; None when it is absent,
+    empty, or written by `resim pipeline run`: config_hash.txt is stamped before any other output)."""
     from pathlib import Path
 
-    out = Path(out)
-    if not out.is_dir() or (out / "config_hash.txt").is_file():
-        return []
-    return sorted(p.name for p in out.iterdir() if p.name not in RUN_OUTPUT_NAMES)
+    from shards.layout import foreign_entries
+
+    return None if (Path(out) / "config_hash.txt").is_file() else foreign_entries(out, RUN_OUTPUT_NAMES)
 
 
 def _job_error(cmd: str, address: str, e: Exception) -> int:
@@ -93,9 +92,8 @@ def _cmd_run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="[pipeline] %(message)s")
     try:
         cfg = _load(args)
-        foreign = foreign_out(cfg.out)
-        if foreign and not args.force:
-            shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+        shown = foreign_out(cfg.out)
+        if shown and not args.force:
             raise ConfigError(f"out: {cfg.out} is not empty and is not a pipeline output (it holds {shown}); "
                               "give an empty or new folder (or --force to write into it anyway)")
         if args.no_progress:

@@ -329,7 +329,6 @@ def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
     """
     from pipelines.stages.encode import data_config_hash
 
-    cfg = absolute_paths(cfg)   # config.yaml says which data was read, wherever it is read from later
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     stamp = out / "config_hash.txt"

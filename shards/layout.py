@@ -90,3 +90,12 @@ def committed_shards(root) -> list[Path]:
 def read_index(root, shard: str) -> dict:
     with open(index_path(root, shard)) as fh:
         return json.load(fh)
+
+
+def foreign_entries(out, allowed: set[str]) -> str | None:
+    """A short listing ("a, b, c, ...") of what makes ``out`` a non-empty folder holding entries other than
+    ``allowed`` (a command's own outputs), or None where it is absent, empty or holds only those. Commands that
+    write a dataset into OUT refuse such a folder rather than mix their output into it."""
+    out = Path(out)
+    foreign = sorted(p.name for p in out.iterdir() if p.name not in allowed) if out.is_dir() else []
+    return (", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")) if foreign else None

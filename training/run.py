@@ -156,15 +156,12 @@ def remove_run(out: str | Path, names: Iterable[str] = TRAINER_RUN_FILES) -> lis
 
 
 def finished_step(out: str | Path) -> int | None:
-    """The step of the newest complete checkpoint in ``out`` (None: no checkpoint)."""
-    import json
-
+    """The step of the newest complete checkpoint in ``out`` (None: no checkpoint), from its name (step_XXXXXXXX,
+    as ``training.checkpoint.list_complete`` reads it; that module imports torch, this one must not)."""
     done = _checkpoints(Path(out))
-    if not done:
-        return None
     try:
-        return int(json.loads((done[-1] / "meta.json").read_text())["step"])
-    except (OSError, ValueError, KeyError, TypeError):
+        return int(done[-1].name[len("step_"):]) if done else None
+    except ValueError:
         return None
 
 

@@ -73,8 +73,6 @@ def run(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         return error(f"--out {out}: exists and is not a folder", 2)
-    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
-        return error(f"--out {out}: exists and is not empty (use --overwrite to replace it)", 2)
     from .synth.generate import generate
 
     t0 = time.perf_counter()
@@ -83,6 +81,8 @@ def run(args) -> int:
                            progress=not args.quiet, workers=args.workers)
     except ConfigError as e:        # a value only the generator checks
         return error(str(e), 2)
+    except FileExistsError as e:    # a non-empty OUT without --overwrite (checked by the generator, before writing)
+        return error(f"--out {e}", 2)
     except OSError as e:            # cannot create/write OUT (e.g. a parent that is a file, no permission)
         return error(f"--out {out}: cannot write there ({e.strerror or e})", 1)
     summary["seconds"] = round(time.perf_counter() - t0, 2)

@@ -48,14 +48,14 @@ def test_a_pipeline_output_or_an_empty_folder_is_not_foreign(tmp_path):
     """Rerunning into OUT resumes: an earlier run's OUT (even an unfinished one) is not refused."""
     from pipelines.cli import foreign_out
 
-    assert foreign_out(tmp_path / "absent") == [] and foreign_out(tmp_path) == []
+    assert foreign_out(tmp_path / "absent") is None and foreign_out(tmp_path) is None
     (tmp_path / "shards").mkdir()
     (tmp_path / "config.yaml").write_text("out: x\n")
-    assert foreign_out(tmp_path) == []                 # only what a run writes
+    assert foreign_out(tmp_path) is None                 # only what a run writes
     (tmp_path / "notes.txt").write_text("x")
-    assert foreign_out(tmp_path) == ["notes.txt"]
+    assert foreign_out(tmp_path) == "notes.txt"
     (tmp_path / "config_hash.txt").write_text("abc\n")  # stamped by `resim pipeline run` before anything else
-    assert foreign_out(tmp_path) == []
+    assert foreign_out(tmp_path) is None
 
 
 @pytest.mark.parametrize("cmd", ["run", "check", "submit", "status", "logs"])

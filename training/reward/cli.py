@@ -84,12 +84,13 @@ def _check_features_out(out) -> None:
     """ValueError when OUT is a non-empty folder that is not a shard dataset (the copy would mix into it)."""
     from pathlib import Path
 
+    from shards.layout import foreign_entries
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"output folder {out} exists and is not a folder")
-    foreign = sorted(p.name for p in out.iterdir() if p.name not in FEATURES_OUT_NAMES) if out.is_dir() else []
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+    shown = foreign_entries(out, FEATURES_OUT_NAMES)
+    if shown:
         raise ValueError(f"output folder {out} is not empty and is not a shard dataset (it holds {shown}); "
                          "give an empty or new folder")
 
