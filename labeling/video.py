@@ -241,6 +241,15 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
     skipping = skip_nonref
     stats.update(decode_error=None, nonref_skipped_until_s=None, nonref_gap_s=None, frames_redecoded=0, decoded_s=0.0)
     frames = _frames(c, s, stats)
+
+    def reopen():
+        # every frame from the start of the file; ``resume`` drops the frames handled already
+        nonlocal c, s
+        c.close()
+        c, s = _av_open(info.path, False, info.stream_index)
+        stats["decode_error"] = None
+        return _frames(c, s, stats)
+
     try:
         while frames is not None:
             it, frames = frames, None
@@ -260,10 +269,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                     if first_after_seek and t > resume + eps and not reopened:
                         # the seek landed after the frame we need: decode from the start instead
                         it.close()
-                        c.close()
-                        c, s = _av_open(info.path, False, info.stream_index)
-                        stats["decode_error"] = None
-                        frames, reopened = _frames(c, s, stats), True
+                        frames, reopened = reopen(), True
                         break
                     first_after_seek = False
                     if t <= resume + eps:                # handled before the seek
@@ -285,11 +291,9 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                     s.codec_context.skip_frame = "DEFAULT"
                     try:
                         c.seek(prev_pts, stream=s, backward=True)
+                        frames = _frames(c, s, stats)
                     except av.error.FFmpegError:
-                        c.close()
-                        c, s = _av_open(info.path, False, info.stream_index)
-                        reopened = True
-                    frames = _frames(c, s, stats)
+                        frames, reopened = reopen(), True
                     break
                 prev, prev_pts = t, fr.pts
                 stats["decoded_s"] = t + 1.0 / info.fps_hz
@@ -303,10 +307,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                 if resume is not None and not reopened:
                     # the seek found no decodable frame (it landed past the last key frame: TS seeks by bytes):
                     # decode from the start instead
-                    c.close()
-                    c, s = _av_open(info.path, False, info.stream_index)
-                    stats["decode_error"] = None
-                    frames, reopened = _frames(c, s, stats), True
+                    frames, reopened = reopen(), True
     except av.error.FFmpegError as e:
         raise VideoError(info.path, f"decoding failed after {n} frames ({e})") from None
     finally:
