@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-import textwrap
+
+from resim.argtypes import wrap as _wrap
 
 RUN_EPILOG = """\
 examples:
@@ -22,10 +23,6 @@ Output: OUT/{shards,index,manifest,prompts,quarantine,commits}/, config.yaml, st
 
 
 _Formatter = argparse.RawDescriptionHelpFormatter   # keeps the epilogs' example lines; descriptions go through _wrap
-
-
-def _wrap(text: str) -> str:
-    return textwrap.fill(text, width=90)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -184,7 +181,7 @@ def register(subparsers) -> None:
                                          "sources' units, cut 10 Hz clips, label commands, balance turns, encode "
                                          "VAE latents and prompts, write shards. OUT must be new, empty or an "
                                          "earlier output of this command (which the run resumes)."),
-                       epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+                       epilog=RUN_EPILOG, formatter_class=_Formatter)
     _common(r)
     r.add_argument("--force", action="store_true",
                    help="write into OUT even if it holds data made with a different config, or other files")

@@ -1,4 +1,5 @@
 """argparse types shared by the subcommands: a bad value is a one-line usage error (exit 2), not a traceback.
+Also :func:`wrap`, for descriptions of parsers that keep their epilog's layout.
 
 Why typed and not ``if args.x:``: a 0 used to mean "the default" or "all" by accident (``--stride 0``,
 ``--limit 0``, ``--steps 0``), and a negative count reached ``random.sample`` as a traceback.
@@ -6,6 +7,7 @@ Why typed and not ``if args.x:``: a 0 used to mean "the default" or "all" by acc
 from __future__ import annotations
 
 import argparse
+import textwrap
 
 
 def _int_at_least(text: str, low: int) -> int:
@@ -86,3 +88,8 @@ def local_dir(text: str) -> str:
         raise argparse.ArgumentTypeError(f"{text}: {what} (a local model folder is required; nothing is "
                                          "downloaded)")
     return str(p)
+
+
+def wrap(text: str) -> str:
+    """A description wrapped here, so a RawDescriptionHelpFormatter parser can keep its epilog's layout."""
+    return textwrap.fill(text, width=90)

@@ -6,9 +6,8 @@ import argparse
 import json
 import os
 import sys
-import textwrap
 
-from resim.argtypes import positive_int as _positive_int
+from resim.argtypes import positive_int as _positive_int, wrap as _wrap
 
 DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
 KEY_HELP = "sample key (list them with `resim shards ls DIR --samples`)"
@@ -228,11 +227,6 @@ def _on_dataset(cmd):
             print(f"resim shards {args.shards_command}: error: {e}", file=sys.stderr)
             return 1
     return run
-
-
-def _wrap(text: str) -> str:
-    """A description wrapped here, so a RawDescriptionHelpFormatter parser can keep its epilog's layout."""
-    return textwrap.fill(text, width=90)
 
 
 def register(subparsers) -> None:
