@@ -13,33 +13,37 @@ from typing import Any
 import numpy as np
 
 
-def _plain(o: Any) -> Any:
+def _plain(o: Any, null_nonfinite: bool = False) -> Any:
+    """``o`` with tensors, arrays, numpy scalars and paths made plain JSON values. JSON has no inf/nan: they are
+    written as strings ("nan"), or as null with ``null_nonfinite`` (the reward's metrics: null = undefined)."""
     import torch
 
     if isinstance(o, dict):
-        return {str(k): _plain(v) for k, v in o.items()}
+        return {str(k): _plain(v, null_nonfinite) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
-        return [_plain(v) for v in o]
+        return [_plain(v, null_nonfinite) for v in o]
     if isinstance(o, Path):
         return str(o)
     if isinstance(o, torch.Tensor):
-        return _plain(o.detach().cpu().numpy())
+        return _plain(o.detach().cpu().numpy(), null_nonfinite)
     if isinstance(o, np.ndarray):
-        return _plain(o.tolist())
+        return _plain(o.tolist(), null_nonfinite)
+    if isinstance(o, (bool, np.bool_)):
+        return bool(o)
     if isinstance(o, (np.floating, float)):
         f = float(o)
-        return f if math.isfinite(f) else str(f)   # JSON has no inf/nan
+        return f if math.isfinite(f) else (None if null_nonfinite else str(f))
     if isinstance(o, np.integer):
         return int(o)
     return o
 
 
-def write_json(obj: Any, path: str | Path) -> Path:
-    """Write atomically (tmp + rename) so a killed run never leaves half a report."""
+def write_json(obj: Any, path: str | Path, null_nonfinite: bool = False, indent: int = 2) -> Path:
+    """Write strict JSON atomically (tmp + rename) so a killed run never leaves half a report."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_suffix(p.suffix + ".tmp")
-    tmp.write_text(json.dumps(_plain(obj), indent=2, sort_keys=False))
+    tmp.write_text(json.dumps(_plain(obj, null_nonfinite), indent=indent, sort_keys=False, allow_nan=False))
     tmp.replace(p)
     return p
 

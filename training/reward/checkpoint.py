@@ -9,11 +9,8 @@ Layout of a checkpoint folder::
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from resim import config as rconfig
 from training.reward.config import RewardTrainConfig
@@ -25,32 +22,21 @@ class CheckpointError(ValueError):
 
 
 def json_safe(o: Any) -> Any:
-    """``o`` with numpy scalars/arrays made plain and non-finite floats made ``None``.
+    """``o`` as plain JSON values with non-finite floats made ``None``.
 
     Metrics are nan when undefined (Spearman of one clip, AUC of one class); ``json.dumps`` would write a
     bare ``NaN``, which strict JSON parsers (and most non-Python readers) reject. ``None`` (null) says
-    "undefined" in valid JSON. (``training.eval.report._plain`` writes such values as strings, which
-    readers of meta.json would then have to special-case.)"""
-    if isinstance(o, dict):
-        return {str(k): json_safe(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [json_safe(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return json_safe(o.tolist())
-    if isinstance(o, (bool, np.bool_)):
-        return bool(o)
-    if isinstance(o, (np.integer, int)):
-        return int(o)
-    if isinstance(o, (np.floating, float)):
-        return float(o) if math.isfinite(float(o)) else None
-    return o
+    "undefined" in valid JSON (``training.eval.report`` writes them as strings unless asked otherwise)."""
+    from training.eval.report import _plain
+
+    return _plain(o, null_nonfinite=True)
 
 
 def write_json(obj: Any, path: str | Path, indent: int = 2) -> Path:
-    """Strict JSON (nan/inf -> null, see :func:`json_safe`); ``allow_nan=False`` catches what slips through."""
-    p = Path(path)
-    p.write_text(json.dumps(json_safe(obj), indent=indent, allow_nan=False))
-    return p
+    """Strict JSON, nan/inf as null (:func:`json_safe`), written atomically (``training.eval.report.write_json``)."""
+    from training.eval.report import write_json as _write
+
+    return _write(obj, path, null_nonfinite=True, indent=indent)
 
 
 def save_checkpoint(model: Video2Reward, out_dir: str | Path, train_cfg: RewardTrainConfig,
