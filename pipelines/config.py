@@ -27,21 +27,13 @@ from typing import Literal, Optional
 
 from labeling.config import LabelerConfig
 from resim.config import ConfigError, check_positive, from_dict, load, to_dict
+from resim.models import shipped_dir, shipped_model
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-def placeholder_dir(name: str) -> Path:
-    """``configs/models/<name>`` of this checkout, else of the working dir (Ray jobs ship it there)."""
-    for base in (REPO_ROOT, Path.cwd()):
-        p = base / "configs" / "models" / name
-        if p.is_dir():
-            return p
-    return REPO_ROOT / "configs" / "models" / name   # check_paths reports it missing
-
-
-PLACEHOLDER_VAE = placeholder_dir("placeholder-cogvideox-vae-tiny")
-PLACEHOLDER_T5 = placeholder_dir("placeholder-t5-tiny")
+PLACEHOLDER_VAE = shipped_dir("placeholder-cogvideox-vae-tiny")
+PLACEHOLDER_T5 = shipped_dir("placeholder-t5-tiny")
 
 
 def _max_items(value: Optional[int]) -> None:
@@ -233,11 +225,11 @@ class EncodeConfig:
 
     @property
     def vae_path(self) -> Path:
-        return Path(self.vae) if self.vae is not None else placeholder_dir(PLACEHOLDER_VAE.name)
+        return Path(self.vae) if self.vae is not None else shipped_dir(PLACEHOLDER_VAE.name)
 
     @property
     def text_encoder_path(self) -> Path:
-        return Path(self.text_encoder) if self.text_encoder is not None else placeholder_dir(PLACEHOLDER_T5.name)
+        return Path(self.text_encoder) if self.text_encoder is not None else shipped_dir(PLACEHOLDER_T5.name)
 
 
 # -------------------------------------------------------------------------------------------- shards
@@ -379,7 +371,8 @@ def absolute_paths(cfg: PipelineConfig) -> PipelineConfig:
                       navsim=replace(s.navsim, root=_absolute(s.navsim.root)),
                       carla=replace(s.carla, root=_absolute(s.carla.root)),
                       synthetic=replace(s.synthetic, root=_absolute(s.synthetic.root)))
-    enc = replace(cfg.encode, vae=_absolute(cfg.encode.vae), text_encoder=_absolute(cfg.encode.text_encoder))
+    enc = replace(cfg.encode, vae=_absolute(shipped_model(cfg.encode.vae)),
+                  text_encoder=_absolute(shipped_model(cfg.encode.text_encoder)))
     return replace(cfg, out=_absolute(cfg.out), sources=sources, encode=enc)
 
 

@@ -52,6 +52,22 @@ WORLD_PRESETS: dict[str, dict] = {
         "optim": {"lr": 1e-3, "warmup_steps": 2},
         "trainer": {"steps": 20, "checkpoint_every_steps": 10, "precision": "fp32", "tensorboard": True},
     },
+    # the synthetic world on a CPU (configs/models/synth-world, docs/models/synth-world.md): shards of
+    # configs/pipeline/synthetic.yaml encoded by configs/models/synth-vae. History noise up to t = 200 (not the
+    # whole range as ReSim at scale: a 4.6 M model in an hour learns little from near-pure-noise histories).
+    # Every source may drop its trajectory (ReSim keeps CARLA's, whose hazards the history cannot show; the
+    # synthetic explorer's commands come from its trajectory, so the command still says where it goes): the
+    # command alone must steer, which is what `resim eval control` measures.
+    "synth": {
+        "model_name": "world", "preset": "synth",
+        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12],
+                  "objective": {**_OBJECTIVE, "cond_aug_max_t": 200, "text_drop_prob": 0.3,
+                                "trajectory_keep_sources": []}},
+        "data": {"batch_size_per_gpu": 8, "num_workers": 1},
+        "optim": {"lr": 5e-4, "warmup_steps": 100, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
+        "trainer": {"steps": 2000, "checkpoint_every_steps": 200, "precision": "fp32", "ema_decay": 0.999,
+                    "log_every_steps": 20},
+    },
     "stage1": _stage(1, trainable="dit", lora=0, hw=(512, 896), bs=2, gbs=80, lr=1e-5, steps=20_000,
                      weights={"opendv": 1.0},
                      paper={"dit": "trainable", "lora": "-", "traj_enc": "-", "data": "OpenDV",
@@ -68,8 +84,28 @@ WORLD_PRESETS: dict[str, dict] = {
                             "steps": 50_000}),
 }
 
+VAE_PRESETS: dict[str, dict] = {
+    # the synthetic world's VAE (configs/models/synth-vae, docs/models/synth-vae.md): 64x96 clips of
+    # configs/pipeline/synthetic.yaml, 17-frame crops; wider at the low-resolution levels, where width is cheap
+    "synth": {
+        "model_name": "vae", "preset": "synth",
+        "model": {"block_out_channels": [16, 32, 64, 64], "norm_num_groups": 8, "clip_frames": 17},
+        "data": {"batch_size_per_gpu": 2, "num_workers": 0, "load_frames": True},
+        "optim": {"lr": 5e-4, "warmup_steps": 100, "schedule": "cosine", "min_lr_ratio": 0.1},
+        "trainer": {"steps": 2000, "checkpoint_every_steps": 200, "precision": "fp32", "log_every_steps": 20},
+    },
+    # seconds on a CPU (tests)
+    "tiny": {
+        "model_name": "vae", "preset": "tiny",
+        "model": {"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "clip_frames": 9},
+        "data": {"batch_size_per_gpu": 1, "num_workers": 0, "load_frames": True},
+        "optim": {"lr": 1e-3, "warmup_steps": 1},
+        "trainer": {"steps": 4, "checkpoint_every_steps": 2, "precision": "fp32"},
+    },
+}
+
 # model name -> its presets; `resim train NAME` exists for every name here (the reward model adds "reward")
-PRESETS: dict[str, dict[str, dict]] = {"world": WORLD_PRESETS}
+PRESETS: dict[str, dict[str, dict]] = {"world": WORLD_PRESETS, "vae": VAE_PRESETS}
 
 
 def get_preset(model_name: str, preset: str) -> dict:

@@ -18,6 +18,7 @@ from typing import Any, Callable
 BUILDERS: dict[str, str] = {
     "toy": "training.toy:build_toy",
     "world": "training.world:build_world",
+    "vae": "training.vae:build_vae",
     "reward": "training.reward.train:build_reward",
     "idm": "training.eval.idm:build_idm",
 }

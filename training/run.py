@@ -165,6 +165,31 @@ def finished_step(out: str | Path) -> int | None:
         return None
 
 
+def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
+    """``RUN/final/data_encode.yaml``: the ``encode`` section (VAE, text encoder, sizes) of the training data's
+    pipeline config, so a sampler decodes with the VAE the model learnt the latents of, at their size."""
+    import yaml
+
+    if cfg.data.shards is None or not (Path(cfg.data.shards) / "config.yaml").is_file():
+        return None
+    try:
+        enc = (yaml.safe_load((Path(cfg.data.shards) / "config.yaml").read_text()) or {}).get("encode")
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    if not isinstance(enc, dict):
+        return None
+    from resim.models import REPO_ROOT
+
+    models = (REPO_ROOT / "configs" / "models").resolve()
+    for k in ("vae", "text_encoder"):   # a shipped model by its name: the file stays valid in another checkout
+        if isinstance(enc.get(k), str) and Path(enc[k]).resolve().parent == models:
+            enc[k] = Path(enc[k]).name
+    path = Path(out) / "final" / "data_encode.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump({"shards": str(cfg.data.shards), "encode": enc}, sort_keys=False))
+    return path
+
+
 def run_training(cfg: RunConfig, out: str | Path, *, resume: bool = False) -> dict:
     """Every rank: join the process group, build the model and the data stream, train, clean up."""
     import torch
@@ -182,6 +207,11 @@ def run_training(cfg: RunConfig, out: str | Path, *, resume: bool = False) -> di
         data = StreamLoader(cfg.data, rank=env.rank, world_size=env.world_size,
                             pin_memory=env.device.type == "cuda", verbose=env.is_main)
         summary = Trainer(model, cfg, out, resume=resume, env=env).fit(data)
+        if env.is_main:
+            save_data_encoding(cfg, out)
+        if env.is_main and hasattr(model, "export_run"):   # e.g. the VAE's diffusers folder, final/vae/
+            exported = model.export_run(out, StreamLoader(cfg.data, rank=0, world_size=1, verbose=False))
+            print(f"[resim] exported {exported}", file=sys.stderr)
         if env.is_main:
             loss = summary.get("last_loss")
             print(f"[resim] done: steps {summary['start_step']} -> {summary['final_step']}, last loss "

@@ -14,7 +14,6 @@ from resim.argtypes import height_width as _hw, local_dir as _local_dir, positiv
 from resim.argtypes import torch_device as _torch_device
 
 REPO = Path(__file__).resolve().parents[2]
-DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
 
 EPILOG = """\
@@ -60,6 +59,21 @@ example:
 the recorded video as the floor, command accuracy, the protocol) and OUT/control.png (bar chart).
 """
 
+COMMANDS_EPILOG = """\
+example (the shipped synthetic-world model on a world of seeds it never saw):
+  resim pipeline run configs/pipeline/synthetic.yaml --out data/heldout --set sources.synthetic.seed=1000 \
+      --set sources.synthetic.root=data/heldout-world --set sources.synthetic.preset=demo
+  resim eval commands --checkpoint configs/models/synth-world --shards data/heldout --all-clips --limit 20 \
+      --out out/commands
+
+Each clip's history is rolled out under "Turning left", "Moving forward" and "Turning right" (no trajectory)
+and under the null prompt; the optical-flow labeler (and --idm, if given) reads which way each generated
+future turns. Writes OUT/commands.json (confusion matrices, accuracy, per-clip labels, fidelity per horizon
+beside copy-last-frame, the protocol), OUT/commands.png, OUT/commands_strip.png and OUT/commands.gif (one
+history under the three commands beside the recorded future). Clips are picked with the recorded commands
+in turn, so straight-road histories are asked to turn too.
+"""
+
 PLANNING_EPILOG = """\
 example:
   resim eval idm --shards DATA --out runs/vo --window history      # the VO-style planner baseline
@@ -102,8 +116,9 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--batch-size", type=_positive_int, default=4, help="clips rolled out together")
     p.add_argument("--seed", type=int, default=0, help="seed of the rollouts' noise (default 0)")
-    p.add_argument("--vae", type=_local_dir, default=str(DEFAULT_VAE),
-                   help="local CogVideoX VAE folder (default: tiny placeholder; nothing is downloaded)")
+    p.add_argument("--vae", type=_local_dir, default=None,
+                   help="local CogVideoX VAE folder (default: the one that encoded --shards, from its config.yaml; "
+                        "nothing is downloaded)")
     p.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     p.add_argument("--device", type=_torch_device, default=None,
@@ -143,6 +158,18 @@ def register(subparsers) -> None:
     _world_args(c)
     c.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
     c.set_defaults(func=_cmd_control)
+
+    cm = sub.add_parser("commands", help="command accuracy: one history under left / forward / right (+ null prompt)",
+                        description="Controllability of the command: roll each clip's history out under each of "
+                                    "the three commands and the null prompt, classify each generated future with "
+                                    "the optical-flow labeler (and the IDM), report confusion matrices, accuracy "
+                                    "and fidelity per horizon against copy-last-frame.",
+                        epilog=COMMANDS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _world_args(cm)
+    cm.add_argument("--idm", default=None, help="IDM run folder: also classify by the IDM's trajectory")
+    cm.add_argument("--horizons", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0],
+                    help="fidelity horizons in s after the last history frame (default 0.5 1 2 4)")
+    cm.set_defaults(func=_cmd_commands)
 
     pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE",
                         description="Planning: imagine each clip's future with the world model, read the driven "
@@ -237,7 +264,7 @@ def _runner(args):
     from pipelines.encoders import VideoVAE
     from resim.config import from_dict
     from training.sampling.guidance import guidance_preset
-    from training.sampling.load import PromptSource, load_world_model
+    from training.sampling.load import PromptSource, encoded_with, load_world_model
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, model_ddim_schedule
     from training.eval.worldeval import WorldRollouts
 
@@ -248,7 +275,10 @@ def _runner(args):
         model, info = load_world_model(args.checkpoint, device, torch.float32)
     except SamplingInputError as e:
         raise SystemExit(f"resim eval: --checkpoint: {e}") from None
-    vae = VideoVAE(args.vae, device=device)
+    try:
+        vae = VideoVAE(args.vae or encoded_with(args.checkpoint, args.shards), device=device)
+    except SamplingInputError as e:
+        raise SystemExit(f"resim eval: --vae: {e}") from None
     rc = dict(ROLLOUT_PRESETS[args.preset])
     if args.steps is not None:   # not `if args.steps`: 0 must not quietly mean the preset's 50
         rc["num_steps"] = args.steps
@@ -391,6 +421,60 @@ def _cmd_control(args) -> int:
               "L2 at 4 s": {k: rep[k]["trajectory_difference_final_m"]
                             for k in ("expert", "non_expert", "idm_on_recorded_video")}}
     _finish(out, "control", rep, text, lambda p: plot_bars(groups, p, title=f"Trajectory Difference, {len(clips)} clips"))
+    return 0
+
+
+def _cmd_commands(args) -> int:
+    from training.eval.commands import balanced_clips, commands_eval
+    from training.eval.commands_report import command_gif, command_strip, format_commands, plot_commands
+    from training.eval.report import format_protocol
+    from training.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
+
+    from shards.reader import ShardReadError
+
+    if not _device(args, "commands"):
+        return 2
+    items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
+    try:
+        clips = eval_clips_from_dataset(args.shards, items=items, need_trajectory=False)
+    except (FileNotFoundError, ShardReadError) as e:
+        raise SystemExit(f"resim eval commands: --shards: {e}") from None
+    clips = [c for c in clips if c.command is not None]
+    if args.limit is not None:
+        clips = balanced_clips(clips, args.limit)
+    if not clips:
+        raise SystemExit(f"resim eval commands: no clips with a command in {args.shards}")
+    labeler, reason = flow_labeler_status()
+    if labeler is None:
+        raise SystemExit(f"resim eval commands: {reason}")
+    idm, idm_info = (_load_idm(args.idm, args.device) if args.idm else (None, None))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
+    print(f"[resim eval commands] {len(clips)} clips x 4 prompts = {4 * len(clips)} rollouts of "
+          f"{clips[0].latents.shape[0]} latent frames, {runner.cfg.num_steps} DDIM steps ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons)
+    nh, fps = clips[0].num_history_frames, clips[0].fps_hz
+    recorded = [c.command for c in clips]
+    rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
+                       "recorded_commands": {c: recorded.count(c) for c in sorted(set(recorded))},
+                       "shards": str(args.shards),
+                       "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else
+                                       args.heldout_from or args.idm,
+                       "world_model": meta, "idm": idm_info,
+                       "conditions": "each history x {left, forward, right} (no trajectory) + the null prompt",
+                       "labeler": "labeling.flow.FlowLabeler preset default on the last history frame + the "
+                                  "generated future",
+                       "seconds": round(time.perf_counter() - t0, 2)}
+    vids = rep["_videos"]
+    # the strip/GIF show the first clip whose history was recorded going straight: the turns are counterfactual
+    idx = next((i for i, c in enumerate(clips) if c.command == "Moving forward"), 0)
+    command_strip(vids, idx, nh, fps, out / "commands_strip.png")
+    command_gif(vids, idx, fps, out / "commands.gif")
+    rep["figure_clip"] = clips[idx].key
+    _finish(out, "commands", rep, "\n".join([format_protocol(rep["protocol"]), format_commands(rep)]),
+            lambda p: plot_commands(rep, p, title=f"{len(clips)} held-out histories x 3 commands"))
     return 0
 
 

@@ -13,7 +13,6 @@ from resim.argtypes import (height_width, local_dir, non_negative_float, non_neg
                             positive_int, torch_device)
 
 REPO = Path(__file__).resolve().parents[2]
-DEFAULT_VAE = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
 
 SAMPLE_EPILOG = """\
@@ -74,8 +73,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-kv-cache", action="store_true", help="recompute the history at every step")
     p.add_argument("--actions-from-trajectory", action="store_true",
                    help="also feed per-frame actions derived from the trajectory (action-conditioned models)")
-    p.add_argument("--vae", type=local_dir, default=str(DEFAULT_VAE),
-                   help="local CogVideoX VAE folder (default: tiny placeholder)")
+    p.add_argument("--vae", type=local_dir, default=None,
+                   help="local CogVideoX VAE folder (default: the VAE that encoded the model's training data, "
+                        "from --shards or the checkpoint's final/data_encode.yaml; else the tiny placeholder)")
     p.add_argument("--text-encoder", type=local_dir, default=str(DEFAULT_T5),
                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     p.add_argument("--max-text-tokens", type=positive_int, default=226, help="T5 padding length (CogVideoX: 226)")
@@ -229,7 +229,7 @@ class _Setup:
         import torch
 
         from pipelines.encoders import VideoVAE
-        from training.sampling.load import (PromptSource, SamplingInputError, history_from_shard,
+        from training.sampling.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
                                             history_from_video, load_world_model, video_clip_fps_hz)
         from training.sampling.rollout import model_ddim_schedule, rollout_num_future_frames
 
@@ -240,7 +240,7 @@ class _Setup:
             self.model.set_attention_backend(args.attention)
         self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend}
         mcfg = self.model.cfg
-        self.vae = VideoVAE(args.vae, device=self.device)
+        self.vae = VideoVAE(args.vae or encoded_with(args.checkpoint, args.shards), device=self.device)
         self.cfg = cfg
         model_ddim_schedule(self.model, self.cfg)   # --steps / --history-noise-level vs the model's schedule, now
         if Path(args.history).is_file():

@@ -217,3 +217,43 @@ def load_trajectory(spec: str | None) -> np.ndarray | None:
         raise SamplingInputError(f"--trajectory {spec!r}: expected finite (num_waypoints, 3) [x m, y m, yaw rad], "
                                  f"got shape {arr.shape}")
     return arr
+
+
+ENCODE_FILE = "data_encode.yaml"   # RUN/final/: the ``encode`` section of the training data's pipeline config
+
+
+def _encode_section(path: Path) -> dict | None:
+    """The ``encode`` mapping of a pipeline config (``path`` = DATASET/config.yaml) or of ``RUN/final/`` +
+    :data:`ENCODE_FILE`; None when the file is absent."""
+    if not path.is_file():
+        return None
+    try:
+        d = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
+        raise SamplingInputError(f"{path}: unreadable ({e}); pass --vae") from None
+    enc = d.get("encode", d) if isinstance(d, dict) else None
+    if not isinstance(enc, dict):
+        raise SamplingInputError(f"{path}: no encode section; pass --vae")
+    return enc
+
+
+def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> Path:
+    """The VAE folder the latents were encoded with: that of ``shards`` (its pipeline ``config.yaml``), else
+    that of the world model's training data (``RUN/final/data_encode.yaml``, written at the end of training),
+    else the shipped placeholder. Rollouts must be decoded by the VAE whose latents the model learnt."""
+    from resim.models import PLACEHOLDER_VAE, shipped_dir, shipped_model
+
+    enc = None
+    if shards is not None:
+        enc = _encode_section(Path(shards) / "config.yaml")
+    if enc is None and checkpoint is not None:
+        for d in (Path(checkpoint), Path(checkpoint) / "final"):
+            enc = _encode_section(d / ENCODE_FILE)
+            if enc is not None:
+                break
+    vae = (enc or {}).get("vae")
+    path = shipped_model(vae) if vae else shipped_dir(PLACEHOLDER_VAE)
+    if not Path(path).is_dir():
+        raise SamplingInputError(f"the latents were encoded with the VAE {vae}, which is not on this machine; "
+                                 "pass --vae with its folder")
+    return Path(path)

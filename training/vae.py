@@ -1,0 +1,166 @@
+"""CogVideoX's causal 3D VAE as a trainable unit (registry name ``vae``): ``resim train vae``.
+
+The model *is* diffusers' ``AutoencoderKLCogVideoX`` (a subclass adding ``loss``), so its state dict, its
+``final/model.safetensors`` and the exported folder are exactly what ``AutoencoderKLCogVideoX.from_pretrained``
+reads: the pipeline's ``VideoVAE`` loads a trained synthetic-world VAE with the same code as CogVideoX-2B's.
+
+Objective: reconstruction MSE in [-1, 1] pixels + ``kl_weight`` x the posterior's KL to N(0, I) per latent
+value. CogVideoX trained its VAE with L1 + LPIPS + KL + a GAN loss (Yang et al. 2024, Sec. 2.1); we keep
+MSE + KL: our target is reconstruction PSNR, which MSE optimises directly, and LPIPS/GAN need networks we do
+not ship. The small KL weight keeps the latent close to a unit Gaussian scale without limiting detail (as
+Stable Diffusion's 1e-6).
+
+Each step crops ``clip_frames`` (1 + 8k) consecutive frames of every clip: 17 frames run the encoder's first
+9-frame chunk and one cached 8-frame chunk, i.e. the same causal-cache path as a 49-frame clip at inference.
+
+After training, :func:`export_vae` writes ``final/vae/`` (``save_pretrained``: config.json +
+diffusion_pytorch_model.safetensors) with ``scaling_factor`` = 1 / std of the training latents, the
+convention of Stable Diffusion and CogVideoX: the world model then sees latents of unit variance.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Optional
+
+import torch
+import torch.nn.functional as F
+from diffusers import AutoencoderKLCogVideoX
+
+from resim.config import ConfigError, from_dict
+
+
+@dataclass
+class VaeTrainConfig:
+    """The ``model:`` section of ``resim train vae``: the VAE's widths and the objective."""
+
+    block_out_channels: tuple[int, ...] = (32, 64, 64, 64)  # 4 levels: 8x spatial compression
+    layers_per_block: int = 1
+    latent_channels: int = 16
+    norm_num_groups: int = 8
+    temporal_compression_ratio: int = 4
+    clip_frames: int = 17                 # frames per training crop (1 + 8k)
+    kl_weight: float = 1e-6
+    init_weights: Optional[Path] = None   # a run's final/model.safetensors to start from
+
+    def __post_init__(self):
+        if len(self.block_out_channels) != 4:
+            raise ConfigError("model.block_out_channels needs 4 widths (8x spatial compression, as CogVideoX)")
+        if any(c % self.norm_num_groups for c in self.block_out_channels):
+            raise ConfigError(f"model.block_out_channels {self.block_out_channels} must be multiples of "
+                              f"norm_num_groups={self.norm_num_groups}")
+        if self.clip_frames < 9 or (self.clip_frames - 1) % 8:
+            raise ConfigError(f"model.clip_frames must be 1 + 8k with k >= 1 (the encoder's frame chunks), "
+                              f"got {self.clip_frames}")
+        if self.kl_weight < 0 or self.latent_channels < 1 or self.layers_per_block < 1:
+            raise ConfigError("model.kl_weight must be >= 0, latent_channels and layers_per_block >= 1")
+
+
+def diffusers_config(cfg: VaeTrainConfig) -> dict[str, Any]:
+    n = len(cfg.block_out_channels)
+    return dict(in_channels=3, out_channels=3, block_out_channels=tuple(cfg.block_out_channels),
+                layers_per_block=cfg.layers_per_block, latent_channels=cfg.latent_channels,
+                norm_num_groups=cfg.norm_num_groups, temporal_compression_ratio=cfg.temporal_compression_ratio,
+                down_block_types=("CogVideoXDownBlock3D",) * n, up_block_types=("CogVideoXUpBlock3D",) * n,
+                use_quant_conv=False, use_post_quant_conv=False, scaling_factor=1.0)
+
+
+def frames_to_input(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 ``(B, T, 3, H, W)`` 0..255 → float ``(B, 3, T, H, W)`` in [-1, 1] (diffusers' VAE layout)."""
+    return frames.permute(0, 2, 1, 3, 4).float() / 127.5 - 1.0
+
+
+def psnr_db(mse: torch.Tensor) -> torch.Tensor:
+    """PSNR of images in [0, 1] from an MSE measured in [-1, 1] (the range is twice as wide: 4 / mse)."""
+    return 10.0 * torch.log10(4.0 / mse.clamp_min(1e-12))
+
+
+class TrainableVAE(AutoencoderKLCogVideoX):
+    """``AutoencoderKLCogVideoX`` + ``loss(batch)``; same parameters and names as the diffusers class."""
+
+    train_cfg: VaeTrainConfig
+
+    def loss(self, batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``batch.frames`` uint8 ``(B, T, 3, H, W)`` (``data.load_frames``) → (MSE + kl_weight * KL, logs)."""
+        frames = batch.frames if not isinstance(batch, dict) else batch["frames"]
+        if frames is None:
+            raise ConfigError("resim train vae needs the clips' frames: set data.load_frames=true")
+        n = self.train_cfg.clip_frames
+        t = frames.shape[1]
+        if t < n:
+            raise ConfigError(f"clips have {t} frames, fewer than model.clip_frames={n}")
+        start = int(torch.randint(0, t - n + 1, ()).item())          # global RNG: checkpointed, exact resume
+        x = frames_to_input(frames[:, start:start + n])
+        post = self.encode(x).latent_dist
+        z = post.mean + post.std * torch.randn_like(post.mean)
+        rec = self.decode(z).sample
+        mse = F.mse_loss(rec, x)
+        kl = 0.5 * (post.mean.pow(2) + post.var - 1.0 - post.logvar).mean()
+        loss = mse + self.train_cfg.kl_weight * kl
+        return loss, {"mse": mse.detach(), "psnr_db": psnr_db(mse.detach()), "kl": kl.detach(),
+                      "latent_std": post.mean.detach().std()}
+
+    def export_run(self, run_dir: str | Path, data: Iterable) -> Path:
+        """After training (rank 0): the diffusers folder ``RUN/final/vae`` (:func:`export_vae`)."""
+        return export_vae(run_dir, data)
+
+    def fsdp_units(self):
+        return [*self.encoder.down_blocks, *self.decoder.up_blocks]
+
+    def set_activation_checkpointing(self, on: bool = True) -> None:
+        if on:
+            self.enable_gradient_checkpointing()
+        else:
+            self.disable_gradient_checkpointing()
+
+
+def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> TrainableVAE:
+    cfg = from_dict(VaeTrainConfig, model_cfg, prefix="model")
+    with torch.device(device):
+        model = TrainableVAE.from_config(diffusers_config(cfg))
+    model.train_cfg = cfg
+    if cfg.init_weights is not None:
+        from safetensors.torch import load_file
+
+        if not Path(cfg.init_weights).is_file():
+            raise ConfigError(f"model.init_weights={cfg.init_weights} does not exist")
+        model.load_state_dict(load_file(str(cfg.init_weights)))
+    return model
+
+
+@torch.inference_mode()
+def latent_std(vae: AutoencoderKLCogVideoX, batches: Iterable, max_batches: int = 8) -> float:
+    """Std of posterior samples over a few batches (the scaling factor is its inverse)."""
+    vals = []
+    for i, b in enumerate(batches):
+        if i >= max_batches:
+            break
+        post = vae.encode(frames_to_input(b.frames)).latent_dist
+        vals.append((post.mean + post.std * torch.randn_like(post.mean)).flatten())
+    if not vals:
+        raise ConfigError("no batches to measure the latent scale on")
+    return float(torch.cat(vals).std())
+
+
+def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = None) -> Path:
+    """``RUN/final/model.safetensors`` → a diffusers folder (default ``RUN/final/vae``) with the measured
+    ``scaling_factor``; loads with ``AutoencoderKLCogVideoX.from_pretrained`` / ``pipelines.encoders.VideoVAE``."""
+    from safetensors.torch import load_file
+
+    run_dir = Path(run_dir)
+    out = Path(out) if out is not None else run_dir / "final" / "vae"
+    import yaml
+
+    cfg = from_dict(VaeTrainConfig, yaml.safe_load((run_dir / "config.yaml").read_text())["model"], prefix="model")
+    vae = AutoencoderKLCogVideoX.from_config(diffusers_config(cfg))
+    weights = run_dir / "final" / ("ema.safetensors" if (run_dir / "final" / "ema.safetensors").is_file()
+                                   else "model.safetensors")
+    vae.load_state_dict(load_file(str(weights)))
+    vae.eval()
+    std = latent_std(vae, batches)
+    vae.register_to_config(scaling_factor=round(1.0 / std, 6))
+    vae.save_pretrained(out, safe_serialization=True)
+    (out / "export.json").write_text(json.dumps({"weights": str(weights.name), "latent_std": std,
+                                                 "scaling_factor": 1.0 / std}, indent=2) + "\n")
+    return out
