@@ -225,11 +225,12 @@ class EncodeConfig:
 
     @property
     def vae_path(self) -> Path:
-        return Path(self.vae) if self.vae is not None else shipped_dir(PLACEHOLDER_VAE.name)
+        return shipped_model(self.vae) if self.vae is not None else shipped_dir(PLACEHOLDER_VAE.name)
 
     @property
     def text_encoder_path(self) -> Path:
-        return Path(self.text_encoder) if self.text_encoder is not None else shipped_dir(PLACEHOLDER_T5.name)
+        return (shipped_model(self.text_encoder) if self.text_encoder is not None
+                else shipped_dir(PLACEHOLDER_T5.name))
 
 
 # -------------------------------------------------------------------------------------------- shards
@@ -358,6 +359,14 @@ def _absolute(p: Optional[Path]) -> Optional[Path]:
     return None if p is None else Path(os.path.abspath(os.path.expanduser(str(p))))
 
 
+def _model_path(p: Optional[Path]) -> Optional[Path]:
+    """A model folder made absolute, except a shipped model's bare name (``synth-vae``): a name is the same
+    model in every checkout, so the saved config and the data hash stay valid where the repository moves."""
+    if p is not None and shipped_model(p) != Path(p):
+        return Path(p)
+    return _absolute(p)
+
+
 def absolute_paths(cfg: PipelineConfig) -> PipelineConfig:
     """``cfg`` with every path (``out``, each ``sources.*.root``, ``encode.vae`` / ``text_encoder``) made
     absolute against the working directory; idempotent, null stays null (placeholder models, disabled sources).
@@ -371,8 +380,7 @@ def absolute_paths(cfg: PipelineConfig) -> PipelineConfig:
                       navsim=replace(s.navsim, root=_absolute(s.navsim.root)),
                       carla=replace(s.carla, root=_absolute(s.carla.root)),
                       synthetic=replace(s.synthetic, root=_absolute(s.synthetic.root)))
-    enc = replace(cfg.encode, vae=_absolute(shipped_model(cfg.encode.vae)),
-                  text_encoder=_absolute(shipped_model(cfg.encode.text_encoder)))
+    enc = replace(cfg.encode, vae=_model_path(cfg.encode.vae), text_encoder=_model_path(cfg.encode.text_encoder))
     return replace(cfg, out=_absolute(cfg.out), sources=sources, encode=enc)
 
 

@@ -50,8 +50,16 @@ class CheckpointError(RuntimeError):
 
 
 # ---------------------------------------------------------------- safe unpickling of DCP metadata
-_ALLOWED_MODULE_PREFIXES = ("torch.distributed.checkpoint.",)
+# Checkpoints travel between people and clusters, so their pickled DCP ``.metadata`` is untrusted: only these
+# exact (module, name) globals are resolved. A dotted name (``os.system`` under an allowed module, which
+# ``find_class`` would walk) is never one of them.
+_DCP_METADATA = "torch.distributed.checkpoint.metadata"
 _ALLOWED_GLOBALS = {
+    (_DCP_METADATA, n) for n in ("Metadata", "MetadataIndex", "StorageMeta", "TensorProperties",
+                                 "TensorStorageMetadata", "BytesStorageMetadata", "ChunkStorageMetadata",
+                                 "_MEM_FORMAT_ENCODING")
+} | {
+    ("torch.distributed.checkpoint.filesystem", "_StorageInfo"),
     ("torch", "Size"), ("torch", "device"), ("collections", "OrderedDict"), ("builtins", "set"),
     ("builtins", "frozenset"), ("builtins", "slice"), ("torch._utils", "_rebuild_tensor_v2"),
     ("torch.serialization", "_get_layout"), ("pathlib", "PosixPath"), ("pathlib", "PurePosixPath"),
@@ -59,11 +67,28 @@ _ALLOWED_GLOBALS = {
 }
 
 
+def _enum_member(cls: Any, name: Any):
+    """What ``builtins.getattr`` may do in DCP metadata: name an allowed enum's member. Python 3.11.0-3.11.4
+    pickle an enum member as ``getattr(EnumClass, 'NAME')`` (3.11.5+ as ``EnumClass(value)``), so the
+    memory-format enum of ``TensorProperties`` arrives in that form from those interpreters."""
+    import enum
+
+    if not (isinstance(cls, type) and issubclass(cls, enum.Enum)
+            and (cls.__module__, cls.__qualname__) in _ALLOWED_GLOBALS and isinstance(name, str)
+            and name in cls.__members__):
+        raise CheckpointError(f"checkpoint metadata calls getattr({cls!r}, {name!r}); only members of the "
+                              "allowed DCP enums may be named")
+    return cls.__members__[name]
+
+
 class _MetadataUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str):
-        ok = (module, name) in _ALLOWED_GLOBALS or module.startswith(_ALLOWED_MODULE_PREFIXES)
+        if (module, name) == ("builtins", "getattr"):
+            return _enum_member
+        ok = (module, name) in _ALLOWED_GLOBALS
         # torch dtypes / layouts / memory formats pickle as ``torch.<name>`` attributes
-        if module == "torch" and isinstance(getattr(torch, name, None), (torch.dtype, torch.layout, torch.memory_format)):
+        if (module == "torch" and "." not in name
+                and isinstance(getattr(torch, name, None), (torch.dtype, torch.layout, torch.memory_format))):
             ok = True
         if not ok:
             raise CheckpointError(f"checkpoint metadata refers to {module}.{name}, which is not allowed "

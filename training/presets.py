@@ -54,10 +54,10 @@ WORLD_PRESETS: dict[str, dict] = {
     },
     # the synthetic world on a CPU (configs/models/synth-world, docs/models/synth-world.md): shards of
     # configs/pipeline/synthetic.yaml encoded by configs/models/synth-vae. History noise up to t = 200 (not the
-    # whole range as ReSim at scale: a 4.6 M model in an hour learns little from near-pure-noise histories).
+    # whole range as ReSim at scale: a 5 M model in half an hour learns little from near-pure-noise histories).
     # Every source may drop its trajectory (ReSim keeps CARLA's, whose hazards the history cannot show; the
     # synthetic explorer's commands come from its trajectory, so the command still says where it goes): the
-    # command alone must steer, which is what `resim eval control` measures.
+    # command alone must steer, which is what `resim eval commands` measures.
     "synth": {
         "model_name": "world", "preset": "synth",
         "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12],
@@ -65,7 +65,7 @@ WORLD_PRESETS: dict[str, dict] = {
                                 "trajectory_keep_sources": []}},
         "data": {"batch_size_per_gpu": 8, "num_workers": 1},
         "optim": {"lr": 5e-4, "warmup_steps": 100, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
-        "trainer": {"steps": 2000, "checkpoint_every_steps": 200, "precision": "fp32", "ema_decay": 0.999,
+        "trainer": {"steps": 4000, "checkpoint_every_steps": 500, "precision": "fp32", "ema_decay": 0.999,
                     "log_every_steps": 20},
     },
     "stage1": _stage(1, trainable="dit", lora=0, hw=(512, 896), bs=2, gbs=80, lr=1e-5, steps=20_000,

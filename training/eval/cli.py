@@ -63,7 +63,7 @@ COMMANDS_EPILOG = """\
 example (the shipped synthetic-world model on a world of seeds it never saw):
   resim pipeline run configs/pipeline/synthetic.yaml --out data/heldout --set sources.synthetic.seed=1000 \
       --set sources.synthetic.root=data/heldout-world --set sources.synthetic.preset=demo
-  resim eval commands --checkpoint configs/models/synth-world --shards data/heldout --all-clips --limit 20 \
+  resim eval commands --checkpoint synth-world --shards data/heldout --all-clips --limit 20 \
       --out out/commands
 
 Each clip's history is rolled out under "Turning left", "Moving forward" and "Turning right" (no trajectory)
@@ -102,7 +102,8 @@ IDM_PRESET_HELP = ("IDM preset: tiny (32x48 input, 48 k parameters, odometry hea
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="world-model run folder (or its final/)")
+    p.add_argument("--checkpoint", required=True,
+                   help="world-model run folder (or its final/), or a shipped model name (synth-world)")
     p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--heldout-from", default=None,
@@ -114,6 +115,8 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
     p.add_argument("--steps", type=_positive_int, default=None, help="DDIM steps (default: the preset's 50)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
+    p.add_argument("--guidance-scale", type=float, default=None,
+                   help="start guidance scale (default: the preset's, 7.5 for resim, decreasing linearly to 1)")
     p.add_argument("--batch-size", type=_positive_int, default=4, help="clips rolled out together")
     p.add_argument("--seed", type=int, default=0, help="seed of the rollouts' noise (default 0)")
     p.add_argument("--vae", type=_local_dir, default=None,
@@ -170,6 +173,20 @@ def register(subparsers) -> None:
     cm.add_argument("--horizons", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0],
                     help="fidelity horizons in s after the last history frame (default 0.5 1 2 4)")
     cm.set_defaults(func=_cmd_commands)
+
+    v = sub.add_parser("vae", help="VAE reconstruction PSNR/SSIM per frame on held-out clips, with a picture",
+                       description="Encode each clip's recorded frames with the VAE as the pipeline does and decode "
+                                   "them as the sampler does; report PSNR/SSIM per frame of the clip and show "
+                                   "originals beside reconstructions.",
+                       epilog="example:\n  resim eval vae --vae synth-vae --shards data/heldout --out out/vae\n\n"
+                              "--vae: a folder or a shipped model name (configs/models/NAME). Writes OUT/vae.json "
+                              "and OUT/vae.png.", formatter_class=argparse.RawDescriptionHelpFormatter)
+    v.add_argument("--vae", required=True, help="VAE folder or shipped model name (e.g. synth-vae)")
+    v.add_argument("--shards", required=True, help="dataset folder with the held-out clips (frames.mp4)")
+    v.add_argument("--out", required=True, help="output folder")
+    v.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, round-robin over episodes")
+    v.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+    v.set_defaults(func=_cmd_vae)
 
     pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE",
                         description="Planning: imagine each clip's future with the world model, read the driven "
@@ -282,7 +299,8 @@ def _runner(args):
     rc = dict(ROLLOUT_PRESETS[args.preset])
     if args.steps is not None:   # not `if args.steps`: 0 must not quietly mean the preset's 50
         rc["num_steps"] = args.steps
-    rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset)
+    overrides = {} if args.guidance_scale is None or args.no_guidance else {"scale_start": args.guidance_scale}
+    rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **overrides)
     cfg = from_dict(RolloutConfig, rc)
     model_ddim_schedule(model, cfg)   # --steps vs the model's schedule (num_train_timesteps), before any rollout
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
@@ -291,7 +309,8 @@ def _runner(args):
                            batch_size=args.batch_size)
     meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
             "rollout": {k: v for k, v in rc.items() if k != "guidance"},
-            "guidance": "none" if args.no_guidance else args.preset, "seed": args.seed}
+            "guidance": "none" if args.no_guidance else args.preset, "guidance_scale_start": args.guidance_scale,
+            "seed": args.seed}
     return runner, meta
 
 
@@ -475,6 +494,46 @@ def _cmd_commands(args) -> int:
     rep["figure_clip"] = clips[idx].key
     _finish(out, "commands", rep, "\n".join([format_protocol(rep["protocol"]), format_commands(rep)]),
             lambda p: plot_commands(rep, p, title=f"{len(clips)} held-out histories x 3 commands"))
+    return 0
+
+
+def _cmd_vae(args) -> int:
+    from pipelines.encoders import VideoVAE
+    from resim.models import shipped_model
+    from shards.reader import ShardReadError
+    from training.eval.report import write_json
+    from training.eval.vae_eval import plot_vae_eval, vae_eval
+    from training.eval.worldeval import eval_clips_from_dataset
+
+    if not _device(args, "vae"):
+        return 2
+    folder = shipped_model(args.vae)
+    if not Path(folder).is_dir():
+        print(f"resim eval vae: --vae {args.vae}: no such folder or shipped model", file=sys.stderr)
+        return 2
+    try:
+        clips = eval_clips_from_dataset(args.shards, limit=args.limit, need_trajectory=False)
+    except (FileNotFoundError, ShardReadError) as e:
+        raise SystemExit(f"resim eval vae: --shards: {e}") from None
+    if not clips:
+        raise SystemExit(f"resim eval vae: no clips in {args.shards}")
+    vae = VideoVAE(folder, device=args.device)
+    print(f"[resim eval vae] {len(clips)} clips of {len(clips[0].frames)} frames through {vae.info.vae_id} ...",
+          file=sys.stderr)
+    t0 = time.perf_counter()
+    rep = vae_eval(vae, clips)
+    rep["protocol"] = {"vae": str(folder), "vae_placeholder": vae.info.placeholder, "shards": str(args.shards),
+                       "episodes": len({c.item_id for c in clips}), "resolution_hw": list(clips[0].frames.shape[1:3]),
+                       "round_trip": "VideoVAE.encode (posterior sample x scaling factor, seed = clip index) -> "
+                                     "decode_latents", "seconds": round(time.perf_counter() - t0, 2)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    plot_vae_eval(rep, out / "vae.png", clips[0].fps_hz)
+    rep.pop("_examples")
+    write_json(rep, out / "vae.json")
+    print(f"PSNR {rep['psnr_db']['mean']:.2f} dB (worst clip {rep['psnr_db']['per_clip_min']:.2f}), "
+          f"SSIM {rep['ssim']['mean']:.4f} over {rep['clips']} clips x {rep['frames_per_clip']} frames")
+    print(f"wrote {out / 'vae.json'} and {out / 'vae.png'}")
     return 0
 
 

@@ -49,7 +49,8 @@ plan_grid.png (one row per candidate, best first, with its reward), plan_latents
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="world-model run dir (or its final/ folder)")
+    p.add_argument("--checkpoint", required=True,
+                   help="world-model run dir (or its final/ folder), or a shipped model name (synth-world)")
     p.add_argument("--history", required=True, help="a video file, or a shard sample key (with --shards)")
     p.add_argument("--shards", default=None, help="dataset folder holding the history key (and prompt table)")
     p.add_argument("--seconds", type=positive_float, default=4.0, help="future to generate, seconds > 0 (default 4)")

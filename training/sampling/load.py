@@ -42,7 +42,9 @@ def video_clip_fps_hz(model: Any, temporal_compression: int = 4) -> float:
 
 
 def _checkpoint_dir(ckpt: str | Path) -> Path:
-    p = Path(ckpt)
+    from resim.models import shipped_model
+
+    p = Path(shipped_model(ckpt))   # a run folder, its final/, or a shipped model's name (synth-world)
     for cand in (p, p / "final"):
         if (cand / "model.safetensors").is_file() and (cand / "config.yaml").is_file():
             return cand
@@ -247,7 +249,7 @@ def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None
     if shards is not None:
         enc = _encode_section(Path(shards) / "config.yaml")
     if enc is None and checkpoint is not None:
-        for d in (Path(checkpoint), Path(checkpoint) / "final"):
+        for d in (Path(shipped_model(checkpoint)), Path(shipped_model(checkpoint)) / "final"):
             enc = _encode_section(d / ENCODE_FILE)
             if enc is not None:
                 break

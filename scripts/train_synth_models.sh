@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# Reproduce the shipped synthetic-world models (configs/models/synth-vae, configs/models/synth-world) from a
+# fresh clone, on a CPU, with the commands a user runs; then evaluate them on a world of seeds neither saw.
+# Model cards: docs/models/synth-vae.md, docs/models/synth-world.md (steps, wall time, device, metrics).
+#
+#   bash scripts/setup.sh && bash scripts/train_synth_models.sh [WORK_DIR]     (default WORK_DIR: runs/synth)
+#
+# Each step is skipped when its output exists (rerun after an interruption; training steps resume from their
+# last checkpoint). Seeds: VAE data 100, world-model data 7, held-out evaluation 1000; the demo's world is 0.
+# About 2.5 hours on 2 cores. INSTALL=1 copies the exported weights over configs/models/synth-{vae,world}.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+W=${1:-runs/synth}
+R=".venv/bin/resim"
+mkdir -p "$W"
+synth=(configs/pipeline/synthetic.yaml --set sources.synthetic.preset=demo --set 'sources.synthetic.layouts=[opendv,carla]')
+
+step() { echo "[train_synth_models] $(date +%H:%M:%S) $*"; }
+
+# 1. VAE: clips of 24 episodes (seed 100) -> 2,000 steps on 17-frame crops
+if [ ! -f "$W/vae_data/stats.json" ]; then
+  step "pipeline: VAE training clips (seed 100)"
+  $R pipeline run "${synth[@]}" --out "$W/vae_data" --set sources.synthetic.root="$W/world_vae" \
+     --set sources.synthetic.episodes=24 --set sources.synthetic.seed=100 --set encode.vae=null
+fi
+if [ ! -f "$W/vae/final/vae/config.json" ]; then
+  step "train vae"
+  $R train vae --preset synth --shards "$W/vae_data" --out "$W/vae" --set trainer.progress_bar=false \
+     $( [ -d "$W/vae/checkpoints" ] && echo --resume )
+fi
+VAE="$W/vae/final/vae"
+
+# 2. World model: clips of 72 episodes (seed 7) encoded by that VAE -> train world --preset synth
+if [ ! -f "$W/wm_data/stats.json" ]; then
+  step "pipeline: world-model clips (seed 7)"
+  $R pipeline run "${synth[@]}" --out "$W/wm_data" --set sources.synthetic.root="$W/world_train" \
+     --set sources.synthetic.episodes=72 --set sources.synthetic.seed=7 --set encode.vae="$VAE"
+fi
+if [ ! -f "$W/world/final/model.safetensors" ]; then
+  step "train world"
+  $R train world --preset synth --shards "$W/wm_data" --out "$W/world" --set trainer.progress_bar=false \
+     $( [ -d "$W/world/checkpoints" ] && echo --resume )
+fi
+
+# 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
+if [ ! -f "$W/heldout/stats.json" ]; then
+  step "pipeline: held-out clips (seed 1000)"
+  $R pipeline run "${synth[@]}" --out "$W/heldout" --set sources.synthetic.root="$W/world_heldout" \
+     --set sources.synthetic.episodes=24 --set sources.synthetic.seed=1000 --set encode.vae="$VAE"
+fi
+step "eval vae"
+$R eval vae --vae "$VAE" --shards "$W/heldout" --out "$W/eval/vae"
+step "eval commands"
+$R eval commands --checkpoint "$W/world" --shards "$W/heldout" --all-clips --limit 24 --steps 25 \
+   --out "$W/eval/commands"
+
+if [ "${INSTALL:-0}" = 1 ]; then
+  step "installing into configs/models"
+  .venv/bin/python -m training.export_synth --vae "$VAE" --world "$W/world" --out configs/models
+fi
+step "done: $W/eval/vae/vae.json, $W/eval/commands/commands.json"
