@@ -7,7 +7,7 @@
 #
 # Each step is skipped when its output exists (rerun after an interruption; training steps resume from their
 # last checkpoint). Seeds: VAE data 100, world-model data 7, held-out evaluation 1000; the demo's world is 0.
-# About 2.5 hours on 2 cores. INSTALL=1 copies the exported weights over configs/models/synth-{vae,world}.
+# About 2 hours on 2 cores. INSTALL=1 copies the exported weights over configs/models/synth-{vae,world}.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -36,10 +36,15 @@ if [ ! -f "$W/wm_data/stats.json" ]; then
   $R pipeline run "${synth[@]}" --out "$W/wm_data" --set sources.synthetic.root="$W/world_train" \
      --set sources.synthetic.episodes=72 --set sources.synthetic.seed=7 --set encode.vae="$VAE"
 fi
+if [ ! -f "$W/world1/final/model.safetensors" ]; then
+  step "train world, stage 1 (history noise up to t = 200)"
+  $R train world --preset synth --shards "$W/wm_data" --out "$W/world1" --set trainer.progress_bar=false \
+     $( [ -d "$W/world1/checkpoints" ] && echo --resume )
+fi
 if [ ! -f "$W/world/final/model.safetensors" ]; then
-  step "train world"
-  $R train world --preset synth --shards "$W/wm_data" --out "$W/world" --set trainer.progress_bar=false \
-     $( [ -d "$W/world/checkpoints" ] && echo --resume )
+  step "train world, stage 2 (full-range history noise: the command must steer)"
+  $R train world --preset synth-control --shards "$W/wm_data" --out "$W/world" --set trainer.progress_bar=false \
+     --set model.init_weights="$W/world1/final/ema.safetensors" $( [ -d "$W/world/checkpoints" ] && echo --resume )
 fi
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)

@@ -38,6 +38,9 @@ def install_world(run: Path, out: Path) -> Path:
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     cfg.setdefault("reference", {})["weights"] = f"{weights.name} of the run (see docs/models/synth-world.md)"
     cfg["data"]["shards"] = None   # a path on the training machine; data_encode.yaml keeps what sampling needs
+    if cfg["model"].get("init_weights"):   # the earlier stage's weights are in model.safetensors already
+        cfg["reference"]["initialised_from"] = Path(cfg["model"]["init_weights"]).name + " of the earlier stage"
+        cfg["model"]["init_weights"] = None
     (dst / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     enc = yaml.safe_load((final / "data_encode.yaml").read_text())["encode"]
     enc.update({"vae": SYNTH_VAE, "text_encoder": enc.get("text_encoder") or PLACEHOLDER_T5})
