@@ -3,7 +3,8 @@
 What travels with the job (its runtime env):
 
 * ``working_dir``: a small folder made here holding ``job_config.yaml`` (the resolved, validated config,
-  with relative paths made absolute) and the placeholder model configs (``configs/models/placeholder-*``),
+  with relative paths made absolute), the placeholder model configs (``configs/models/placeholder-*``) and the
+  shipped models the config names (``encode.vae: synth-vae``),
   so the job runs exactly what was checked on the submitting machine;
 * ``py_modules``: resim's packages (``resim``, ``shards``, ``labeling``, ``pipelines``) from this checkout or
   install — the cluster needs only the third-party dependencies (``pip install 'resim[pipeline]'``).
@@ -22,6 +23,7 @@ from pathlib import Path
 
 from pipelines.config import PLACEHOLDER_T5, PLACEHOLDER_VAE, PipelineConfig, absolute_paths
 from resim.config import save
+from resim.models import shipped_dir, shipped_model
 
 PACKAGES = ("resim", "shards", "labeling", "pipelines")
 JOB_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0", "HF_HUB_OFFLINE": "1",
@@ -47,7 +49,10 @@ def package_dirs() -> list[str]:
 def build_working_dir(cfg: PipelineConfig, dest: Path) -> Path:
     dest.mkdir(parents=True, exist_ok=True)
     save(absolutize(cfg), dest / "job_config.yaml")
-    for src in (PLACEHOLDER_VAE, PLACEHOLDER_T5):
+    # the placeholders, and any shipped model the config names by its bare name (e.g. ``vae: synth-vae``)
+    named = [shipped_dir(str(p)) for p in (cfg.encode.vae, cfg.encode.text_encoder)
+             if p is not None and shipped_model(p) != Path(p)]
+    for src in (PLACEHOLDER_VAE, PLACEHOLDER_T5, *named):
         shutil.copytree(src, dest / "configs" / "models" / src.name, dirs_exist_ok=True)
     return dest
 
