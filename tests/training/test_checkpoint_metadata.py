@@ -59,7 +59,7 @@ def test_checked_in_metadata_loads(name):
 def test_both_enum_forms_of_fresh_metadata(tmp_path):
     raw = _real_metadata(tmp_path)
     by_name = _by_name(raw)
-    assert b"getattr" in by_name and b"getattr" not in raw
+    assert b"getattr" in by_name   # (raw is in this interpreter's own form: by name on 3.11.0-3.11.4)
     a, b = _load(raw), _load(by_name)
     assert a.state_dict_metadata["w"].properties == b.state_dict_metadata["w"].properties
 
