@@ -5,7 +5,7 @@
 
 Builds ``AutoencoderKLCogVideoX`` with CogVideoX-2b's real architecture (block_out_channels
 128/256/256/512, 3 layers per block, 16 latent channels; ~215M params, of which the encoder runs here)
-and times ``pipelines.encoders.VideoVAE.encode`` — the exact call the encode stage makes (posterior
+and times ``media.encoders.VideoVAE.encode`` — the exact call the encode stage makes (posterior
 sample x scaling factor) — on 49-frame clips at 256x448 and 512x896, fp16/bf16, with and without
 slicing/tiling. Prints clips/s per GPU and the ratio against the first case measured in this process,
 plus the published anchor (ReSim/CogVideoX-class encode: ~0.6-1.6 clips/s per A800 at 49x288x512).
@@ -49,7 +49,7 @@ def main() -> int:
     import torch
     from diffusers import AutoencoderKLCogVideoX
 
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
 
     if not torch.cuda.is_available():
         print("no CUDA GPU: this benchmark needs one (nothing measured)")

@@ -6,7 +6,7 @@ What travels with the job (its runtime env):
   with relative paths made absolute), the placeholder model configs (``configs/models/placeholder-*``) and the
   shipped models the config names (``encode.vae: synth-vae``),
   so the job runs exactly what was checked on the submitting machine;
-* ``py_modules``: resim's packages (``resim``, ``shards``, ``labeling``, ``pipelines``) from this checkout or
+* ``py_modules``: resim's packages (``resim``, ``media``, ``shards``, ``labeling``, ``pipelines``) from this checkout or
   install — the cluster needs only the third-party dependencies (``pip install 'resim[pipeline]'``).
 
 The job's entrypoint is ``python -m resim pipeline run job_config.yaml --no-progress``; inside a job
@@ -25,7 +25,7 @@ from pipelines.config import PLACEHOLDER_T5, PLACEHOLDER_VAE, PipelineConfig, ab
 from resim.config import save
 from resim.models import shipped_dir, shipped_model
 
-PACKAGES = ("resim", "shards", "labeling", "pipelines")
+PACKAGES = ("resim", "media", "shards", "labeling", "pipelines")
 JOB_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0", "HF_HUB_OFFLINE": "1",
            "TRANSFORMERS_OFFLINE": "1", "HF_HUB_DISABLE_PROGRESS_BARS": "1", "TOKENIZERS_PARALLELISM": "false"}
 TERMINAL = ("SUCCEEDED", "FAILED", "STOPPED")

@@ -3,7 +3,7 @@
     python -m training.export_synth --vae RUN_VAE/final/vae --world RUN_WORLD --out configs/models
 
 * ``synth-vae/``: the VAE run's exported diffusers folder (``config.json`` + ``diffusion_pytorch_model.safetensors``),
-  loaded by ``AutoencoderKLCogVideoX.from_pretrained`` / ``pipelines.encoders.VideoVAE`` as CogVideoX-2B's is.
+  loaded by ``AutoencoderKLCogVideoX.from_pretrained`` / ``media.encoders.VideoVAE`` as CogVideoX-2B's is.
 * ``synth-world/``: ``config.yaml`` (the run's resolved config), ``model.safetensors`` (the run's EMA weights when
   it kept an EMA, else its final weights: one file, to keep the repository small) and ``data_encode.yaml`` (the
   training data's encode section, naming the VAE ``synth-vae`` and the text encoder by their shipped names), so

@@ -145,7 +145,7 @@ def latent_std(vae: AutoencoderKLCogVideoX, batches: Iterable, max_batches: int 
 
 def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = None) -> Path:
     """``RUN/final/model.safetensors`` → a diffusers folder (default ``RUN/final/vae``) with the measured
-    ``scaling_factor``; loads with ``AutoencoderKLCogVideoX.from_pretrained`` / ``pipelines.encoders.VideoVAE``."""
+    ``scaling_factor``; loads with ``AutoencoderKLCogVideoX.from_pretrained`` / ``media.encoders.VideoVAE``."""
     from safetensors.torch import load_file
 
     run_dir = Path(run_dir)

@@ -54,7 +54,7 @@ class EncodeStage(CutStage):
         super().__init__(cfg, progress)
         import torch
 
-        from pipelines.encoders import VideoVAE
+        from media.encoders import VideoVAE
 
         e = self.cfg.encode
         torch.set_num_threads(e.torch_threads)
@@ -69,7 +69,7 @@ class EncodeStage(CutStage):
         from shards.schema import SCHEMA_VERSION, make_key, prompt_id, prompt_text
         from shards.video import encode_mp4
 
-        from pipelines.encoders import to_storage
+        from media.encoders import to_storage
 
         cfg, e, enc, clip = self.cfg, state["episode"], self.cfg.encode, clip_of(state)
         N, H = clip.num_frames, clip.num_history_frames

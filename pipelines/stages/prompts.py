@@ -26,7 +26,7 @@ class PromptStage:
 
     def __init__(self, cfg, device: str | None = None):
         from pipelines.config import PipelineConfig, config_from_dict
-        from pipelines.encoders import TextEncoder
+        from media.encoders import TextEncoder
 
         self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
         e = self.cfg.encode

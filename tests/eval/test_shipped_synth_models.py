@@ -38,7 +38,7 @@ def _clips():
 
 
 def test_vae_reconstructs_heldout_clips():
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
     from training.eval.fidelity import psnr
     from training.sampling.outputs import decode_latents
 
@@ -54,7 +54,7 @@ def test_vae_reconstructs_heldout_clips():
 
 
 def _runner():
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
     from resim.config import from_dict
     from training.eval.worldeval import WorldRollouts
     from training.sampling.guidance import guidance_preset

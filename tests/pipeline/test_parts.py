@@ -49,7 +49,7 @@ def test_balance_is_denser_in_turns_never_copies():
 def test_placeholder_encoders_are_deterministic_and_flagged():
     import torch
 
-    from pipelines.encoders import TextEncoder, VideoVAE
+    from media.encoders import TextEncoder, VideoVAE
 
     torch.set_num_threads(1)
     vae_dir = REPO / "configs/models/placeholder-cogvideox-vae-tiny"

@@ -13,7 +13,7 @@ VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogv
 @pytest.fixture(scope="module")
 def vae():
     torch.set_num_threads(1)
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
     return VideoVAE(VAE_DIR, device="cpu")
 
 

@@ -12,7 +12,7 @@ VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogv
 
 
 def _vae(tiled: bool):
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
     vae = VideoVAE(VAE_DIR, device="cpu")
     if tiled:  # 2x2-latent tiles: the decode goes through diffusers' tiled_decode (a decoder run per tile)
         vae.model.enable_tiling(tile_sample_min_height=16, tile_sample_min_width=16)

@@ -65,7 +65,7 @@ def test_psnr_of_mse_in_minus_one_one():
 
 
 def test_train_export_load_and_exact_resume(tmp_path):
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
 
     ds = write_world_dataset(tmp_path / "ds", num_samples=4, per_shard=2)
     full, part = tmp_path / "full", tmp_path / "part"

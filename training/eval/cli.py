@@ -278,7 +278,7 @@ def _heldout_items(path: str | None, all_clips: bool = False):
 def _runner(args):
     import torch
 
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
     from resim.config import from_dict
     from training.sampling.guidance import guidance_preset
     from training.sampling.load import PromptSource, encoded_with, load_world_model
@@ -498,7 +498,7 @@ def _cmd_commands(args) -> int:
 
 
 def _cmd_vae(args) -> int:
-    from pipelines.encoders import VideoVAE
+    from media.encoders import VideoVAE
     from resim.models import shipped_model
     from shards.reader import ShardReadError
     from training.eval.report import write_json

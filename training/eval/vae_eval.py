@@ -2,7 +2,7 @@
 and a picture of originals beside reconstructions.
 
 Each clip's recorded frames (``frames.mp4``, at the resolution the pipeline encoded) go through the VAE as the
-pipeline runs it (``pipelines.encoders.VideoVAE.encode``: one posterior sample x scaling factor) and back
+pipeline runs it (``media.encoders.VideoVAE.encode``: one posterior sample x scaling factor) and back
 through the sampler's decode (``training.sampling.outputs.decode_latents``), i.e. exactly the round trip a
 world-model rollout's frames take. Frame ``k``'s metrics average over clips, so the causal VAE's first
 frame (encoded alone) and the frames at its 4-frame chunk boundaries show up separately.

@@ -125,7 +125,7 @@ def resolve_device(device: str | None) -> str:
     :class:`UsageError` naming it otherwise (was: torch's AssertionError "Torch not compiled with CUDA enabled")."""
     import torch
 
-    from pipelines.encoders import pick_device
+    from media.encoders import pick_device
 
     if device is None:
         return pick_device()
@@ -229,7 +229,7 @@ class _Setup:
     def __init__(self, args, device: str, cfg):
         import torch
 
-        from pipelines.encoders import VideoVAE
+        from media.encoders import VideoVAE
         from training.sampling.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
                                             history_from_video, load_world_model, video_clip_fps_hz)
         from training.sampling.rollout import model_ddim_schedule, rollout_num_future_frames

@@ -188,7 +188,7 @@ class PromptSource:
             raise SamplingInputError(f"prompt {text!r} is not in the dataset's prompt table and no --text-encoder "
                                      "was given to encode it")
         if self._encoder is None:
-            from pipelines.encoders import TextEncoder
+            from media.encoders import TextEncoder
             self._encoder = TextEncoder(self.encoder_dir, device=self.device, max_tokens=self.max_tokens)
         self.used[text] = f"t5:{self._encoder.info.encoder_id}"
         return torch.from_numpy(self._encoder.encode([text]))

@@ -27,7 +27,7 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     """Latents ``(B, T, C, h, w)`` (torch or numpy, VAE latent × scaling factor) → uint8 ``(B, F, H, W, 3)``,
     ``F = 1 + 4 (T - 1)`` (frame 0 alone, then 4 pixel frames per latent frame, as the encoder made them).
 
-    ``vae``: a ``pipelines.encoders.VideoVAE`` (uses its ``.model`` and ``.info.scaling_factor``) or a diffusers
+    ``vae``: a ``media.encoders.VideoVAE`` (uses its ``.model`` and ``.info.scaling_factor``) or a diffusers
     ``AutoencoderKLCogVideoX``. diffusers decodes in batches of 2 latent frames (the first batch takes 3 when ``T``
     is odd, so frame 0 is upsampled alone) and each batch's GroupNorms normalise over (group channels, time, H, W)
     of that batch; an even ``T`` would give ``4 T`` frames with no "first frame". For an even ``T`` we append a
