@@ -43,6 +43,10 @@ def _stage(n: int, *, trainable: str, lora: int, hw: tuple[int, int], bs: int, g
     return d
 
 
+# the synthetic world's model reads the command also through a pooled text vector in AdaLN
+# (training/models/config.py: TextPoolConfig): through joint attention alone it learnt to ignore it
+_SYNTH_TEXT_POOL = {"text_pool": {"enabled": True}}
+
 WORLD_PRESETS: dict[str, dict] = {
     # seconds on a laptop CPU: the tiny DiT (2 layers, width 32) on dummy/synthetic shards
     "tiny": {
@@ -60,7 +64,7 @@ WORLD_PRESETS: dict[str, dict] = {
     # command alone must steer, which is what `resim eval commands` measures.
     "synth": {
         "model_name": "world", "preset": "synth",
-        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12],
+        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
                   "objective": {**_OBJECTIVE, "cond_aug_max_t": 200, "text_drop_prob": 0.3,
                                 "trajectory_keep_sources": []}},
         "data": {"batch_size_per_gpu": 8, "num_workers": 1},
@@ -75,7 +79,7 @@ WORLD_PRESETS: dict[str, dict] = {
     # --set model.init_weights=RUN_SYNTH/final/ema.safetensors
     "synth-control": {
         "model_name": "world", "preset": "synth-control",
-        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12],
+        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
                   "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.3,
                                 "trajectory_keep_sources": []}},
         "data": {"batch_size_per_gpu": 8, "num_workers": 1},

@@ -133,14 +133,16 @@ def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> Train
 
 
 def _load_init(model: torch.nn.Module, path: Path) -> None:
-    """Load the previous stage's weights; only LoRA tensors may be missing, nothing may be unexpected."""
+    """Load the previous stage's weights; only LoRA tensors and new conditioning modules (which start at zero
+    output, so the loaded model computes what the previous stage did) may be missing; nothing may be unexpected."""
     from safetensors.torch import load_file
 
     if not path.is_file():
         raise ConfigError(f"model.init_weights={path} does not exist (expected RUN_DIR/final/model.safetensors)")
     sd = load_file(str(path))
     own = model.state_dict()
-    missing = [k for k in own if k not in sd and not k.endswith((".lora_A", ".lora_B"))]
+    missing = [k for k in own if k not in sd and not k.endswith((".lora_A", ".lora_B"))
+               and not k.startswith(NEW_MODULE_PREFIXES)]
     unexpected = [k for k in sd if k not in own]
     bad = [k for k in sd if k in own and tuple(sd[k].shape) != tuple(own[k].shape)]
     if missing or unexpected or bad:

@@ -193,3 +193,49 @@ def test_blocks_return_no_views(tiny_model):
     v, e, kv = blk(video, text, temb, temb_text, None, None, True)
     assert all(t._base is None and t.is_contiguous() for t in (v, e, *kv))
     assert kv[0].shape == kv[1].shape == (2, blk.attn1.heads, 5 + 12, blk.attn1.head_dim)
+
+
+def _pooled_model(seed=0):
+    """tiny + the pooled-text path, its zero-initialised head given weights (as after training)."""
+    torch.manual_seed(seed)
+    model = WorldModel(preset("tiny", text_pool=dict(enabled=True, hidden_dim=32, num_heads=2))).eval()
+    with torch.no_grad():
+        model.text_pooler.head.weight.normal_(std=0.3)
+    return model
+
+
+def test_text_pool_starts_neutral_and_loads_older_weights():
+    """Enabled but untrained, the pooled path changes nothing: weights without it give the same outputs."""
+    torch.manual_seed(0)
+    pooled = WorldModel(preset("tiny", text_pool=dict(enabled=True, hidden_dim=32, num_heads=2))).eval()
+    plain = WorldModel(preset("tiny")).eval()
+    plain.load_state_dict({k: v for k, v in pooled.state_dict().items() if not k.startswith("text_pooler.")})
+    x, t, text, a, traj = _inputs()
+    with torch.no_grad():
+        assert torch.equal(pooled(x, t, text, traj, a), plain(x, t, text, traj, a))
+    assert {p for p in pooled.new_parameters()} >= set(pooled.text_pooler.parameters())
+
+
+def test_text_pool_steers_every_frame_and_keeps_cache_exact():
+    """Trained (non-zero head): the prompt changes every frame's output through the modulation, and the KV
+    cache carries the pooled vector so cached rollouts equal uncached ones."""
+    model = _pooled_model()
+    x, t, text, a, traj = _inputs(t=5)
+    with torch.no_grad():
+        full = model(x, t, text, traj, a)
+        assert torch.allclose(model(x, t, text.flip(1), traj, a), full, atol=1e-5)   # text tokens are a set
+        other_text = torch.randn(text.shape, generator=torch.Generator().manual_seed(5))
+        assert (model.text_pooler(other_text) - model.text_pooler(text)).abs().max() > 1e-2
+        with torch.no_grad():
+            no_pool = _pooled_model()
+            no_pool.text_pooler.head.weight.zero_()
+        moved = (model(x, t, other_text, traj, a) - full).flatten(2).norm(dim=-1)
+        moved_joint_only = (no_pool(x, t, other_text, traj, a) - no_pool(x, t, text, traj, a)).flatten(2).norm(dim=-1)
+        assert (moved > 1.5 * moved_joint_only).all()          # every frame, beyond what joint attention does
+        _, cache = model(x[:, :2], t[:, :2], text, traj, a[:, :2], return_kv_cache=True)
+        assert cache.text_cond is not None and cache.crop(1).text_cond is cache.text_cond
+        out = model(x[:, 2:], t[:, 2:], None, traj, a[:, 2:], kv_cache=cache)
+        assert (out - full[:, 2:]).abs().max().item() <= 1e-5
+        plain_cache = WorldModel(preset("tiny"))(x[:, :2], t[:, :2], text, return_kv_cache=True)[1]
+        with pytest.raises(ValueError, match="pooled text"):
+            model(x[:, 2:], t[:, 2:], None, traj, a[:, 2:], kv_cache=plain_cache)

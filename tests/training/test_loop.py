@@ -177,6 +177,15 @@ def test_partial_training_ema_export_samples_and_inits(world_dataset, tmp_path):
         torch.testing.assert_close(t, e[n].to(t.dtype), rtol=0, atol=0)
     nxt = build_world({"preset": "tiny", "init_weights": str(run / "final" / "ema.safetensors")})
     torch.testing.assert_close(nxt.state_dict()["patch_embed.proj.weight"], e["patch_embed.proj.weight"])
+    # a next stage may add a new conditioning module (it starts at zero output); a missing DiT tensor still fails
+    pooled = build_world({"preset": "tiny", "init_weights": str(run / "final" / "ema.safetensors"),
+                          "overrides": {"text_pool": {"enabled": True}}})
+    assert torch.count_nonzero(pooled.text_pooler.head.weight) == 0
+    from resim.config import ConfigError
+    from safetensors.torch import save_file
+    save_file({k: v for k, v in e.items() if k != "proj_out.weight"}, str(tmp_path / "partial.safetensors"))
+    with pytest.raises(ConfigError, match="proj_out.weight"):
+        build_world({"preset": "tiny", "init_weights": str(tmp_path / "partial.safetensors")})
 
 
 def _loader(workers):

@@ -111,6 +111,8 @@ class KVCache:
     text_len: int = 0
     tokens_per_frame: int = 0
     num_frames: int = 0
+    # the pooled text vector (B, D_t) of the prompt the cache was built with (models with text_pool enabled)
+    text_cond: torch.Tensor | None = None
 
     def crop(self, num_frames: int) -> "KVCache":
         """The cache of the first ``num_frames`` frames (e.g. a sliding window start or a rollback)."""
@@ -118,7 +120,7 @@ class KVCache:
             raise ValueError(f"cannot crop a {self.num_frames}-frame cache to {num_frames} frames")
         s = self.text_len + num_frames * self.tokens_per_frame
         return KVCache([k[:, :, :s] for k in self.keys], [v[:, :, :s] for v in self.values],
-                       self.text_len, self.tokens_per_frame, num_frames)
+                       self.text_len, self.tokens_per_frame, num_frames, self.text_cond)
 
 
 class Attention(nn.Module):

@@ -8,6 +8,9 @@ training moves them away from zero (ControlNet-style zero init).
   → mean pool → linear head → one ``(B, D)`` vector that the DiT adds to every video token at its input.
 * :class:`ActionEncoder` (Vid2World Sec. 4.2): an action per latent frame → small MLP → ``(B, T, D_t)`` added
   to that frame's noise-level embedding (so it modulates only that frame's tokens through AdaLN).
+* :class:`TextPooler`: the prompt's T5 tokens ``(B, L, D_text)`` → attention pooling with learned queries →
+  ``(B, D_t)`` added to every frame's noise-level embedding (a direct path for the command, see
+  ``TextPoolConfig``). Its null is the pooled null prompt, so text dropout and guidance need nothing new.
 * :func:`actions_from_trajectory`: per-latent-frame ego motion read off a trajectory, which turns ReSim's
   trajectory into Vid2World-style step-by-step actions for interactive rollouts.
 """
@@ -19,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from training.models.config import ActionConfig, TrajectoryEncoderConfig
+from training.models.config import ActionConfig, TextPoolConfig, TrajectoryEncoderConfig
 
 
 class _EncoderBlock(nn.Module):
@@ -118,6 +121,36 @@ class ActionEncoder(nn.Module):
         if keep is not None:
             out = torch.where(keep.to(out.device)[..., None], out, self.null.to(out.dtype))
         return out
+
+
+class TextPooler(nn.Module):
+    """``(B, L, text_dim)`` prompt embedding → ``(B, out_dim)``; zero output at initialisation.
+
+    One learned query per head attends over the text tokens (no mask: the model's text input carries none,
+    and the placeholder/T5 padding positions are the same for every prompt), then SiLU → zero-initialised
+    linear, as the trajectory and action encoders end.
+    """
+
+    def __init__(self, cfg: TextPoolConfig, text_dim: int, out_dim: int):
+        super().__init__()
+        self.cfg = cfg
+        h = cfg.hidden_dim
+        self.norm = nn.LayerNorm(text_dim)
+        self.to_kv = nn.Linear(text_dim, 2 * h)
+        self.query = nn.Parameter(torch.randn(cfg.num_heads, h // cfg.num_heads) * 0.02)
+        self.proj = nn.Linear(h, h)
+        self.act = nn.SiLU()
+        self.head = nn.Linear(h, out_dim)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, text: torch.Tensor) -> torch.Tensor:
+        b, n, _ = text.shape
+        heads = self.cfg.num_heads
+        k, v = self.to_kv(self.norm(text)).view(b, n, 2, heads, -1).permute(2, 0, 3, 1, 4)   # (B, H, L, d)
+        q = self.query.to(k.dtype)[None, :, None].expand(b, -1, -1, -1)                     # (B, H, 1, d)
+        pooled = F.scaled_dot_product_attention(q, k, v).reshape(b, -1)
+        return self.head(self.act(self.proj(pooled)))
 
 
 def _interp(times: torch.Tensor, knots_t: torch.Tensor, knots_v: torch.Tensor) -> torch.Tensor:

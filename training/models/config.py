@@ -76,6 +76,24 @@ class ActionConfig:
 
 
 @dataclass
+class TextPoolConfig:
+    """A pooled prompt vector added to every frame's noise-level embedding (AdaLN), beside joint attention.
+
+    CogVideoX-2B reads the prompt only through joint attention over the T5 tokens. A small model trained briefly
+    learns to ignore that path when the history already predicts the future (docs/models/synth-world.md); a
+    pooled text vector in the modulation, as SD3's pooled projection or DiT's class embedding, is a direct path.
+    Disabled by default: CogVideoX checkpoints have no such module (it starts at zero output when enabled).
+    """
+    enabled: bool = False
+    hidden_dim: int = 128
+    num_heads: int = 4                 # heads of the learned-query attention pooling over the text tokens
+
+    def __post_init__(self) -> None:
+        if self.hidden_dim % self.num_heads:
+            raise ConfigError(f"text_pool.hidden_dim={self.hidden_dim} must be divisible by num_heads={self.num_heads}")
+
+
+@dataclass
 class WorldModelConfig:
     """The causal, action-conditioned DiT. Shapes: latents (B, T_lat, in_channels, h, w)."""
     # --- CogVideoX layout (names as in diffusers) ---
@@ -111,6 +129,7 @@ class WorldModelConfig:
     text_timestep_value: int = 0
     trajectory: TrajectoryEncoderConfig = field(default_factory=TrajectoryEncoderConfig)
     actions: ActionConfig = field(default_factory=ActionConfig)
+    text_pool: TextPoolConfig = field(default_factory=TextPoolConfig)
     gradient_checkpointing: bool = False
     # kernel for the block-causal mask (attention.py, flex.py): "sdpa" = F.scaled_dot_product_attention with a
     # boolean (S, S) mask (cuDNN attention on an H100, every tile computed); "flex" = flex_attention with a

@@ -32,12 +32,12 @@ from torch.utils.checkpoint import checkpoint
 
 from training.models.attention import KVCache, block_causal_block_mask, block_causal_mask
 from training.models.blocks import DiTBlock
-from training.models.conditioning import ActionEncoder, TrajectoryEncoder
+from training.models.conditioning import ActionEncoder, TextPooler, TrajectoryEncoder
 from training.models.config import (WorldModelConfig, check_attention_backend, check_noise_levels,
                                      check_pretrained_noise_levels)
 from training.models.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
 
-NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.")
+NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.", "text_pooler.")
 
 
 class AdaNormOut(nn.Module):
@@ -74,6 +74,7 @@ class WorldModel(nn.Module):
         self.proj_out = nn.Linear(d, cfg.patch_size * cfg.patch_size * cfg.out_channels)
         self.trajectory_encoder = TrajectoryEncoder(cfg.trajectory, d) if cfg.trajectory.enabled else None
         self.action_encoder = ActionEncoder(cfg.actions, dt) if cfg.actions.kind != "none" else None
+        self.text_pooler = TextPooler(cfg.text_pool, cfg.text_embed_dim, dt) if cfg.text_pool.enabled else None
         if objective is None:
             from training.diffusion.config import ObjectiveConfig  # light, torch-free dataclass
             objective = ObjectiveConfig()
@@ -184,6 +185,18 @@ class WorldModel(nn.Module):
                 temb = temb + self.action_encoder(actions, action_keep).to(dtype)
         elif actions is not None:
             raise ValueError("actions given but this model has actions.kind='none'")
+        text_cond = None
+        if self.text_pooler is not None:
+            if kv_cache is None:
+                if text is None or text.dim() != 3 or text.shape[0] != b:
+                    raise ValueError(f"text must be (B={b}, L, {cfg.text_embed_dim})")
+                text_cond = self.text_pooler(text.to(dtype)).to(dtype)
+            elif kv_cache.text_cond is None:
+                raise ValueError("this model pools the text but the kv_cache holds no pooled text (built by "
+                                 "another model?)")
+            else:
+                text_cond = kv_cache.text_cond
+            temb = temb + text_cond[:, None]
 
         # --- tokens
         prefix = kv_cache.num_frames if kv_cache is not None else 0
@@ -205,6 +218,8 @@ class WorldModel(nn.Module):
             rule = cfg.resolved_text_timestep
             t_text = t.max(dim=1).values if rule == "max" else torch.full((b,), cfg.text_timestep_value, device=x.device)
             temb_text = self._embed_levels(t_text, dtype)
+            if text_cond is not None:
+                temb_text = temb_text + text_cond
             text_len = txt.shape[1]
         else:
             if kv_cache.tokens_per_frame != n:
@@ -234,7 +249,7 @@ class WorldModel(nn.Module):
         out = self.proj_out(video)                                              # (B, T*n, p*p*C)
         out = out.reshape(b, nf, h // p, w // p, -1, p, p).permute(0, 1, 4, 2, 5, 3, 6).flatten(5, 6).flatten(3, 4)
         if return_kv_cache:
-            return out, KVCache(keys, values, text_len, n, prefix + nf)
+            return out, KVCache(keys, values, text_len, n, prefix + nf, text_cond)
         return out
 
     # ------------------------------------------------------------------ training
