@@ -222,3 +222,15 @@ def test_action_input_scale_must_be_positive(scale):
         preset("tiny", actions=dict(input_scale=scale))
     with pytest.raises(ConfigError, match="actions.input_scale"):   # the training entry point (--set overrides)
         build_world({"preset": "tiny", "overrides": {"actions": {"input_scale": list(scale)}}})
+
+
+def test_shuffle_commands_control_permutes_prompts():
+    """The shuffled-command control: the model sees the batch's prompts, each moved to another sample."""
+    b = _batch(64, 4)
+    b["text"] = torch.arange(64.0)[:, None, None].expand(64, 3, 5).clone()
+    spy = _Spy()
+    training_losses(spy, b, ObjectiveConfig(text_drop_prob=0.0), torch.Generator().manual_seed(0))
+    assert torch.equal(spy.calls[-1]["text"][:, 0, 0], torch.arange(64.0))           # off: as given
+    training_losses(spy, b, ObjectiveConfig(text_drop_prob=0.0, shuffle_commands=True), torch.Generator().manual_seed(0))
+    seen = spy.calls[-1]["text"][:, 0, 0]
+    assert sorted(seen.tolist()) == list(range(64)) and (seen != torch.arange(64.0)).float().mean() > 0.8

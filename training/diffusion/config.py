@@ -47,6 +47,10 @@ class ObjectiveConfig:
     num_history_frames: int = 1          # latent frames of context (resim_cond_aug; also the loss mask there)
     cond_aug_max_t: Optional[int] = None # t_aug ~ U{0, …, cond_aug_max_t}; None: num_train_timesteps - 1
     text_drop_prob: float = 0.5          # command dropped → the prefix-only prompt (null_text) is used
+    # control experiment (ReSim's controllability claim needs one): each sample's prompt is replaced by the prompt
+    # of a random other sample of the batch, so the command says nothing about the future. A model trained so
+    # must not follow commands; if `resim eval commands` still reads them, the metric reads something else.
+    shuffle_commands: bool = False
     trajectory_drop_prob: float = 0.5    # trajectory → null embedding ...
     trajectory_keep_sources: tuple[str, ...] = ("carla",)   # ... except for these sources (always kept)
     action_drop_prob: float = 0.2        # each frame's action independently → null action

@@ -90,6 +90,9 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
     x_t = add_noise(x0, noise, t, ac)
     target = v_target(x0, noise, t, ac)
 
+    if cfg.shuffle_commands:   # the control: prompts permuted across the batch (see ObjectiveConfig)
+        text = text[torch.randperm(b, generator=generator).to(text.device)]
+
     # --- condition dropout
     keep_text = _bernoulli_keep(cfg.text_drop_prob, (b,), generator, dev)
     if cfg.text_drop_prob > 0:
