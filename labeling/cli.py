@@ -8,12 +8,19 @@ import argparse
 import json
 import sys
 
+from labeling.config import TURN_THRESHOLD_REF_WINDOW_S, CommandConfig   # light: dataclasses only
+
 EPILOG = """\
 output (one line per window):
   start_s end_s command yaw_deg confidence
   yaw_deg is the heading change over the window in degrees, positive = left;
   command is "Turning left" / "Moving forward" / "Turning right" (|yaw_deg| >= turn threshold is a turn);
   confidence (0..1) is 0.5 at the threshold, near 1 far from it, times the flow quality.
+  --json lines also carry the threshold applied: turn_threshold_deg (degrees over the window) and
+  turn_rate_threshold_deg_s (the same as a steady yaw rate); the summary line on stderr states both.
+
+The turn threshold is a yaw rate: command.turn_threshold_deg ({thr:g} by default) is degrees over a {ref:g}-s
+window and scales with the window's length, {rate:g} deg/s at any window (--window-s 2: {thr2:g} deg).
 
 The yaw estimate assumes a horizontal field of view (--hfov-deg, default 80): uncalibrated video
 reads roughly tan(true/2)/tan(assumed/2) times the true heading change (docs/labeling.md).
@@ -60,10 +67,13 @@ def _run(args: argparse.Namespace) -> int:
     except VideoError as e:
         print(f"resim label: cannot label {e.path}: {e.reason}", file=sys.stderr)
         return 1
+    cc = cfg.command
+    thr_deg, rate = cc.turn_threshold_for(), cc.turn_rate_threshold_deg_s
     if args.json:
         for w in res.windows:
             print(json.dumps({"start_s": w.start_s, "end_s": w.end_s, "command": w.command,
-                              "yaw_deg": round(w.yaw_deg, 3), "confidence": round(w.confidence, 3)}))
+                              "yaw_deg": round(w.yaw_deg, 3), "confidence": round(w.confidence, 3),
+                              "turn_threshold_deg": round(thr_deg, 4), "turn_rate_threshold_deg_s": round(rate, 4)}))
     else:
         print(f"{'start_s':>8} {'end_s':>7}  {'command':<15} {'yaw_deg':>8} {'confidence':>10}")
         for w in res.windows:
@@ -92,7 +102,8 @@ def _run(args: argparse.Namespace) -> int:
     stream = f" (video stream {info.stream_index}; the first is a still picture)" if info.opencv_problem else ""
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps{stream}, sampled at "
           f"{res.sample_hz:g} Hz, {len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "
-          f"{res.yaw_inc_deg.sum():+.1f} deg, hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "
+          f"{res.yaw_inc_deg.sum():+.1f} deg, turn threshold {thr_deg:g} deg over {cc.window_s:g} s ({rate:g} deg/s), "
+          f"hfov assumed {fc.hfov_deg:g} deg, {rig}; {res.decode.get('decoder')} "
           f"decoded {n_dec} of {info.num_frames or 'an unknown number of'} frames"
           f"{skipped}", file=sys.stderr)
     if res.decode.get("incomplete"):
@@ -103,14 +114,18 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
+    c = CommandConfig()
+    epilog = EPILOG.format(thr=c.turn_threshold_deg, ref=TURN_THRESHOLD_REF_WINDOW_S,
+                           rate=c.turn_rate_threshold_deg_s, thr2=c.turn_threshold_for(2.0))
     p = subparsers.add_parser(
         "label", help="driving commands (left/forward/right) of a video from optical flow",
         description="Estimate ego yaw from optical flow and print one driving command per window "
                     "(start_s, end_s, command, yaw_deg [left +], confidence).",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("video", help="any video file OpenCV/FFmpeg can decode")
     p.add_argument("--window-s", type=float, default=None,
-                   help="window length in seconds (default: command.window_s of the config, 4 = ReSim's future)")
+                   help="window length in seconds (default: command.window_s of the config, 4 = ReSim's future); "
+                        f"the turn threshold scales with it ({c.turn_rate_threshold_deg_s:g} deg/s)")
     p.add_argument("--stride-s", type=float, default=2.0, help="step between window starts in seconds (default 2)")
     p.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     p.add_argument("--quiet", action="store_true",

@@ -4,7 +4,8 @@ Commands are the strings of ``shards.schema.COMMANDS``: "Turning left", "Moving
 forward", "Turning right" (ReSim's three text conditions).
 
 * From flow: the heading change over the future window (degrees, left +) against
-  ``turn_threshold_deg`` (calibrated on the synthetic world, docs/labeling.md).
+  ``turn_threshold_deg`` (calibrated on the synthetic world over 4-s windows, docs/labeling.md),
+  scaled to the window's length: a steady yaw rate gets the same command at any window.
 * From a trajectory (ego frame at the current frame, x forward, y left, yaw left +):
   common practice of planning datasets (ST-P3 / UniAD / VAD on nuScenes, cited by
   ReSim as "following common practice"): the lateral offset of the last waypoint,
@@ -38,17 +39,21 @@ def _command_cfg(cfg: CommandConfig | LabelerConfig) -> CommandConfig:
     return cfg.command if isinstance(cfg, LabelerConfig) else cfg
 
 
-def command_from_yaw(yaw_deg: float, cfg: CommandConfig | LabelerConfig) -> tuple[str, float]:
-    """Heading change over the window (deg, left +) -> (command, confidence in [0.5, 1)).
+def command_from_yaw(yaw_deg: float, cfg: CommandConfig | LabelerConfig,
+                     window_s: float | None = None) -> tuple[str, float]:
+    """Heading change over a window of ``window_s`` (default: the config's window_s; deg, left +) ->
+    (command, confidence in [0.5, 1)).
 
-    Confidence is 0.5 exactly at the threshold (a coin flip) and approaches 1 as
-    the heading change moves away from it: ``0.5 + 0.5 * tanh(d / confidence_scale_deg)``.
+    The threshold is ``turn_threshold_for(window_s)``: ``turn_threshold_deg`` per 4 s, scaled to the window.
+    Confidence is 0.5 exactly at the threshold (a coin flip) and approaches 1 as the heading change moves
+    away from it: ``0.5 + 0.5 * tanh(d / confidence_scale_deg)``, the scale scaled to the window likewise.
     """
     c = _command_cfg(cfg)
     y = float(yaw_deg)
     if not math.isfinite(y):
         raise ValueError(f"yaw_deg must be finite, got {yaw_deg!r}")
-    thr = c.turn_threshold_deg
+    k = c.window_factor(window_s)
+    thr = c.turn_threshold_deg * k
     if y >= thr:
         cmd = LEFT
     elif y <= -thr:
@@ -56,7 +61,7 @@ def command_from_yaw(yaw_deg: float, cfg: CommandConfig | LabelerConfig) -> tupl
     else:
         cmd = FORWARD
     d = abs(abs(y) - thr)
-    return cmd, 0.5 + 0.5 * math.tanh(d / c.confidence_scale_deg)
+    return cmd, 0.5 + 0.5 * math.tanh(d / (c.confidence_scale_deg * k))
 
 
 def command_from_trajectory(traj: np.ndarray, cfg: CommandConfig | LabelerConfig) -> tuple[str, float]:
@@ -75,6 +80,7 @@ def command_from_trajectory(traj: np.ndarray, cfg: CommandConfig | LabelerConfig
     # left U-turn past 180 deg read as a right turn from the last waypoint alone
     yaw_deg = math.degrees(float(np.unwrap(np.r_[0.0, t[:, 2]])[-1]))
     by_offset = LEFT if lateral >= c.lateral_threshold_m else RIGHT if lateral <= -c.lateral_threshold_m else FORWARD
+    # the command window's threshold: the waypoints' horizon is at most that window (pipelines checks it), equal by default
     by_heading = command_from_yaw(yaw_deg, c)[0]
     if c.trajectory_rule == "lateral_offset":
         cmd = by_offset

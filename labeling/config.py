@@ -126,13 +126,19 @@ class FlowConfig:
             raise ConfigError("irls_iters >= 1, foe_iters >= 0 and chunk_pairs >= 2 are required")
 
 
+# The window the degree thresholds below are stated for: bench/calibrate_labeler.py calibrated them on 4-s
+# windows (ReSim's future). Other windows scale them by window_s / this, so a steady yaw rate is a turn or not
+# whatever the window (15.5 deg per 4 s = 3.875 deg/s); at 4 s the factor is exactly 1 (labels unchanged).
+TURN_THRESHOLD_REF_WINDOW_S = 4.0
+
+
 @dataclass
 class CommandConfig:
     """Heading change / trajectory -> command."""
 
     window_s: float = 4.0                  # future window a command describes (ReSim: 40 frames at 10 Hz)
-    turn_threshold_deg: float = 15.5       # calibrated (bench/calibrate_labeler.py, 48 synthetic episodes, seed 11): |heading change| >= this over the window is a turn
-    confidence_scale_deg: float = 4.0      # distance from the threshold at which confidence reaches ~0.88
+    turn_threshold_deg: float = 15.5       # calibrated (bench/calibrate_labeler.py, 48 synthetic episodes, seed 11): |heading change| >= this over a 4-s window is a turn; scaled to the window (turn_threshold_for)
+    confidence_scale_deg: float = 4.0      # distance from the threshold at which confidence reaches ~0.88, over 4 s; scaled like the threshold
     # trajectory rule (common practice of nuScenes/NAVSIM planners: ST-P3, UniAD, VAD): the lateral
     # offset of the last waypoint in the ego frame; >= +2 m left, <= -2 m right. "heading" uses the
     # heading change at the horizon with turn_threshold_deg (same rule as flow); "either" fires on both.
@@ -147,6 +153,19 @@ class CommandConfig:
             raise ConfigError(f"turn_threshold_deg must be in (0, 180), got {self.turn_threshold_deg}")
         if self.confidence_scale_deg <= 0 or self.lateral_threshold_m <= 0:
             raise ConfigError("confidence_scale_deg and lateral_threshold_m must be > 0")
+
+    def window_factor(self, window_s: float | None = None) -> float:
+        """Scale of the degree thresholds for a window of ``window_s`` (default: this config's window_s)."""
+        return (self.window_s if window_s is None else window_s) / TURN_THRESHOLD_REF_WINDOW_S
+
+    def turn_threshold_for(self, window_s: float | None = None) -> float:
+        """|heading change| in degrees that is a turn over a window of ``window_s`` (default: window_s)."""
+        return self.turn_threshold_deg * self.window_factor(window_s)
+
+    @property
+    def turn_rate_threshold_deg_s(self) -> float:
+        """The turn threshold as a steady yaw rate, deg/s: the same at every window."""
+        return self.turn_threshold_deg / TURN_THRESHOLD_REF_WINDOW_S
 
 
 @dataclass

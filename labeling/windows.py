@@ -117,7 +117,9 @@ def label_video(path: str | Path, cfg: LabelerConfig | None = None, window_s: fl
         # window_s of pairs, not one more (both ends inclusive summed 4.1 s for [0.25, 4.25] at 10 Hz)
         sel = (mid >= s) & (mid < e)
         yaw = float(inc[sel].sum())
-        cmd, conf = command_from_yaw(yaw, cfg.command)
+        # the threshold of the window asked for, also for the one short window of a shorter video (as before:
+        # scaling it to the shorter span would change the labels of short clips at the default window)
+        cmd, conf = command_from_yaw(yaw, cfg.command, window_s)
         q = window_quality(quality[sel])
         windows.append(WindowLabel(round(s, 3), round(min(e, float(t[-1])), 3), cmd, yaw, conf * q, q))
     return VideoLabels(info, eff_hz, t, inc, quality, windows, stats, list(labeler.last_foe_sources))

@@ -25,13 +25,41 @@ def test_label_json_lines(left_turn_video, capsys):
     rows = [json.loads(line) for line in out.out.splitlines()]
     assert [(r["start_s"], r["end_s"]) for r in rows] == [(0.0, 4.0), (1.0, 5.0), (2.0, 6.0)]
     for r in rows:
-        assert set(r) == {"start_s", "end_s", "command", "yaw_deg", "confidence"}
+        assert set(r) == {"start_s", "end_s", "command", "yaw_deg", "confidence", "turn_threshold_deg",
+                          "turn_rate_threshold_deg_s"}
+        assert (r["turn_threshold_deg"], r["turn_rate_threshold_deg_s"]) == (15.5, 3.875)
         assert r["command"] == "Turning left"
         assert 28 < r["yaw_deg"] < 36                          # 8 deg/s x 4 s = 32
         assert 0.5 < r["confidence"] <= 1
     assert "left.mp4" in out.err and "10 Hz" in out.err and "rig unknown" in out.err
     # one curve from the first frame: no straight driving to pool the FOE over, and the summary says so
     assert "FOE per_pair (per pair until 3 s of straight driving is seen)" in out.err
+
+
+def test_steady_curve_is_a_turn_at_a_2_s_window_and_says_which_threshold(render, tmp_path, capsys):
+    """6.5 deg/s for 4 s: --window-s 2 reads ~13 deg per window, "Moving forward" against 15.5 deg per window
+    before; the threshold now scales with the window (7.75 deg over 2 s, 3.875 deg/s), and says so."""
+    frames, _ = render(41, 10.0, 6.5, speed_mps=6.0, hfov_deg=80.0, seed=7)
+    path = tmp_path / "curve.mp4"
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (frames.shape[2], frames.shape[1]))
+    for f in frames:
+        wr.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    wr.release()
+    for window_s, thr in (("2", 7.75), ("4", 15.5)):
+        assert main(["label", str(path), "--json", "--window-s", window_s]) == 0
+        out = capsys.readouterr()
+        rows = [json.loads(line) for line in out.out.splitlines()]
+        assert rows and all(r["command"] == "Turning left" for r in rows), rows
+        assert all(r["turn_threshold_deg"] == thr and r["turn_rate_threshold_deg_s"] == 3.875 for r in rows)
+        assert f"turn threshold {thr:g} deg over {window_s} s (3.875 deg/s)" in out.err
+
+
+def test_help_states_the_threshold_as_degrees_per_window_and_a_rate(capsys):
+    with pytest.raises(SystemExit):
+        main(["label", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "15.5 by default) is degrees over a 4-s window" in text and "3.875 deg/s" in text
+    assert "--window-s 2: 7.75 deg" in text
 
 
 def test_label_with_known_rig(left_turn_video, capsys):

@@ -27,6 +27,39 @@ def test_command_from_yaw_thresholds_and_confidence():
         command_from_yaw(float("nan"), c)
 
 
+def test_turn_threshold_is_a_rate_a_steady_curve_is_a_turn_at_any_window():
+    """A steady 6.5 deg/s curve: 13 deg over 2 s was "Moving forward" against 15.5 deg per window; the threshold
+    now scales with the window (15.5 deg per 4 s = 3.875 deg/s), so it is a turn at 2 s and at 4 s."""
+    from labeling.flow import FlowLabeler
+
+    fps = 10.0
+    for window_s in (2.0, 4.0):
+        c = CommandConfig(window_s=window_s)
+        rates = np.full(int(window_s * fps), 6.5)                      # deg/s, one per frame pair
+        assert FlowLabeler(LabelerConfig(command=c)).label_from_rates(rates, fps).command == L
+        assert FlowLabeler(LabelerConfig(command=c)).label_from_rates(-rates, fps).command == R
+        assert command_from_yaw(6.5 * window_s, CommandConfig(), window_s)[0] == L   # the window passed wins
+        assert command_from_yaw(3.5 * window_s, c)[0] == F                          # under 3.875 deg/s
+        assert c.turn_rate_threshold_deg_s == 3.875
+    assert CommandConfig(window_s=2.0).turn_threshold_for() == 7.75
+    assert command_from_yaw(7.75, CommandConfig(window_s=2.0)) == (L, 0.5)        # the coin flip moved with it
+    # confidence is the same function of the yaw rate at any window
+    assert command_from_yaw(10.0, CommandConfig(window_s=2.0))[1] == command_from_yaw(20.0, CommandConfig())[1]
+
+
+def test_default_window_thresholds_are_bit_identical_to_before():
+    """At window_s = 4 the scale factor is exactly 1: shipped datasets' labels do not move by one ulp."""
+    c = CommandConfig()
+    assert (c.window_s, c.turn_threshold_deg, c.confidence_scale_deg) == (4.0, 15.5, 4.0)
+    assert c.turn_threshold_for() == 15.5 and c.window_factor() == 1.0
+    assert command_from_yaw(15.5, c) == (L, 0.5) and command_from_yaw(-15.5, c) == (R, 0.5)
+    assert command_from_yaw(15.499999, c)[0] == F
+    for y in (-40.0, -15.6, -3.3, 0.0, 7.1, 15.4, 15.51, 22.2, 90.0):
+        old = 0.5 + 0.5 * math.tanh(abs(abs(y) - 15.5) / 4.0)         # the formula before the scaling
+        assert command_from_yaw(y, c)[1] == old
+        assert command_from_yaw(y, c, 4.0) == command_from_yaw(y, c)
+
+
 def _arc(v, omega, n, fps, x0=3.0, y0=-2.0, a0=0.7):
     t = np.arange(n) / fps
     if omega == 0:
