@@ -168,18 +168,24 @@ def _cmd_preview(args) -> int:
     import random
     from pathlib import Path
 
+    from shards.confine import UnsafePathError, confined
     from shards.manifest import read_manifest
     from shards.preview import render_preview
-    from shards.reader import find_sample
+    from shards.reader import ShardReadError, find_sample
 
     if bool(args.key) == bool(args.random):
         print("error: give either KEY or --random N", file=sys.stderr)
         return 2
+    # (folder, file name) per key: the name holds the key, a dataset value, so it is confined to the folder
+    # (a key like ../../x must not write outside it); an --out file path the user chose is taken as is
     if args.key:
         keys = [args.key]
-        out = Path(args.out or f"preview-{args.key}.png")
+        out = Path(args.out or ".")
         into_folder = out.is_dir() or (args.out or "").endswith(("/", os.sep))   # a folder: write KEY.png into it
-        outs = [out / f"{args.key}.png" if into_folder else out]
+        if args.out is None:
+            targets = [(out, f"preview-{args.key}.png")]
+        else:
+            targets = [(out, f"{args.key}.png") if into_folder else (None, out)]
     else:
         all_keys = read_manifest(args.dir)["key"].to_pylist()
         if not all_keys:
@@ -187,15 +193,21 @@ def _cmd_preview(args) -> int:
             return 1
         keys = random.Random(args.seed).sample(all_keys, min(args.random, len(all_keys)))
         folder = Path(args.out or "previews")
-        outs = [folder / f"{k}.png" for k in keys]
-    for k, o in zip(keys, outs):
+        targets = [(folder, f"{k}.png") for k in keys]
+    skipped = 0
+    for k, (folder, name) in zip(keys, targets):
         try:
+            o = confined(folder, name, f"sample {k!r}: preview file") if folder is not None else name
             s = find_sample(args.dir, k, decode_video=True, attach_prompts=False)
         except KeyError as e:
             print(f"error: {e.args[0]}", file=sys.stderr)
             return 1
+        except (UnsafePathError, ShardReadError) as e:   # a hostile key or a bad sample: the others still render
+            print(f"resim shards preview: skipping {e}", file=sys.stderr)
+            skipped += 1
+            continue
         print(render_preview(s, o))
-    return 0
+    return 1 if skipped else 0
 
 
 def _on_dataset(cmd):

@@ -11,9 +11,10 @@ index without its tar.
 """
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
+
+from shards import safejson
 
 PREFIX_RE = re.compile(r"^[A-Za-z0-9_-]{1,120}$")
 SHARD_RE = re.compile(r"^(?P<prefix>[A-Za-z0-9_-]+)-(?P<seq>\d{5})\.tar$")
@@ -88,8 +89,7 @@ def committed_shards(root) -> list[Path]:
 
 
 def read_index(root, shard: str) -> dict:
-    with open(index_path(root, shard)) as fh:
-        return json.load(fh)
+    return safejson.load_file(index_path(root, shard))
 
 
 def foreign_entries(out, allowed: set[str]) -> str | None:

@@ -1,9 +1,8 @@
 """Read a dataset's manifests (one Parquet row per sample) and indexes (one JSON per shard) without opening tars."""
 from __future__ import annotations
 
-import json
-
-from shards import layout
+from shards import layout, safejson
+from shards.confine import UnsafePathError, confined
 from shards.reader import ShardReadError
 from shards.schema import MANIFEST_COLUMNS
 
@@ -41,12 +40,15 @@ def read_indexes(root) -> list[dict]:
     for p in sorted(d.glob("*.json")) if d.is_dir() else []:
         if not p.name.startswith("."):
             try:
-                with open(p) as fh:
-                    idx = json.load(fh)
+                idx = safejson.load_file(p)
             except (OSError, ValueError) as e:
                 raise ShardReadError(f"index {p}: unreadable: {e} (`resim shards verify` lists every problem)") from e
             if not isinstance(idx, dict) or not {"shard", "num_samples", "bytes"} <= set(idx):
                 raise ShardReadError(f"index {p}: not a shard index (a JSON object with shard, num_samples, bytes)")
+            try:   # the shard's name becomes a path (stats checks the tar exists): it must stay in DIR/shards
+                confined(layout.shards_dir(root), idx["shard"], f"index {p}: shard")
+            except UnsafePathError as e:
+                raise ShardReadError(str(e)) from None
             out.append(idx)
     return out
 

@@ -29,23 +29,38 @@ import fcntl
 import hashlib
 import json
 import os
+import stat
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from shards import layout
+from shards import layout, safejson
+from shards.confine import UnsafePathError, confined
 from shards.fsio import atomic_write_bytes, link_no_clobber, tmp_name
-from shards.npy import decode_npy, encode_npy, stored_to_float32
+from shards.npy import NpyError, decode_npy, encode_npy, stored_to_float32
+from shards.reader import ShardReadError
 from shards.schema import COMMANDS, prompt_id
 
 ROLES = ("command", "null")
 EMBED_DTYPES = {"float16": np.dtype("float16"), "float32": np.dtype("float32"), "bfloat16": np.dtype("uint16")}
 TABLE_VERSION = 1
+# An .npy file is its header (magic, version, length, a dict padded to a multiple of 64 bytes; v1 allows a
+# 65535-byte dict) plus the data. The declared size must fit the declared shape within that, so a table cannot
+# make a reader take a much larger file for a small embedding.
+MAX_NPY_HEADER_BYTES = 65535 + 10
+# CogVideoX's padded T5 embedding is 226 x 4096 float32 = 3.7 MB: an entry declaring more than this is refused
+# before its file is opened (a sparse file of matching size would otherwise be read whole).
+MAX_EMBEDDING_BYTES = 256 << 20
 
 
 class PromptConflictError(ValueError):
     """The same prompt id is being added with a different embedding or encoder."""
+
+
+class PromptTableError(ShardReadError):
+    """The prompt table cannot be used: prompts.json unreadable or malformed, or an entry whose file lies outside
+    ``prompts/``, is not a regular file, or differs from the size, dtype and shape the entry declares."""
 
 
 class PromptTable:
@@ -66,10 +81,18 @@ class PromptTable:
         """id -> entry (empty when the table does not exist)."""
         if self._entries is None or reload:
             if self.json_path.is_file():
-                with open(self.json_path) as fh:
-                    data = json.load(fh)
+                try:
+                    data = safejson.load_file(self.json_path)   # size and nesting limits (a JSON bomb)
+                except ValueError as e:
+                    raise PromptTableError(f"prompt table {self.json_path}: unreadable: {e}") from e
+                if not isinstance(data, dict) or not isinstance(data.get("prompts"), dict):
+                    raise PromptTableError(f"prompt table {self.json_path}: not an object with a 'prompts' object")
                 if data.get("version") != TABLE_VERSION:
-                    raise ValueError(f"{self.json_path}: unknown prompt table version {data.get('version')!r}")
+                    raise PromptTableError(f"{self.json_path}: unknown prompt table version {data.get('version')!r}")
+                for pid, e in data["prompts"].items():
+                    if not isinstance(e, dict):
+                        raise PromptTableError(f"prompt table {self.json_path}: prompt {pid}: entry is a JSON "
+                                               f"{type(e).__name__}, not an object")
                 self._entries = data["prompts"]
             else:
                 self._entries = {}
@@ -87,17 +110,66 @@ class PromptTable:
                 raise KeyError(f"prompt id {pid} is not in {self.json_path}") from None
             return self._entries[pid]
 
+    def file_path(self, pid: str) -> Path:
+        """The embedding file of ``pid``: its entry's ``file``, which must name a file inside ``prompts/``
+        (prompts.json is dataset input: ``"file": "/dev/zero"`` or ``"../../x"`` is a :class:`PromptTableError`)."""
+        try:
+            return confined(self.dir, self.info(pid).get("file", f"{pid}.npy"), f"prompt {pid}: file")
+        except UnsafePathError as e:
+            raise PromptTableError(str(e)) from None
+
+    def declared_bytes(self, pid: str) -> int:
+        """The size ``pid``'s entry declares for its file (``bytes``), checked to fit its ``shape`` and ``dtype``
+        (an .npy of exactly that data plus a header) and :data:`MAX_EMBEDDING_BYTES`; :class:`PromptTableError`."""
+        info = self.info(pid)
+        shape, dtype, nbytes = info.get("shape"), info.get("dtype"), info.get("bytes")
+        if dtype not in EMBED_DTYPES:
+            raise PromptTableError(f"prompt {pid}: dtype {dtype!r} is not one of {list(EMBED_DTYPES)}")
+        if not (isinstance(shape, list) and len(shape) == 2
+                and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
+            raise PromptTableError(f"prompt {pid}: shape {shape!r} is not [L, D] (two non-negative integers)")
+        data = shape[0] * shape[1] * EMBED_DTYPES[dtype].itemsize
+        if not isinstance(nbytes, int) or isinstance(nbytes, bool) or not data < nbytes <= data + MAX_NPY_HEADER_BYTES:
+            raise PromptTableError(f"prompt {pid}: bytes {nbytes!r} does not fit shape {shape} of {dtype} (an .npy "
+                                   f"file of {data} data bytes plus its header)")
+        if nbytes > MAX_EMBEDDING_BYTES:
+            raise PromptTableError(f"prompt {pid}: declares a {nbytes}-byte embedding, more than the limit of "
+                                   f"{MAX_EMBEDDING_BYTES}")
+        return nbytes
+
+    def read_file(self, pid: str) -> bytes:
+        """The bytes of ``pid``'s embedding file: confined to ``prompts/`` (:meth:`file_path`), a regular file (a
+        FIFO or device is refused before reading), of the declared size (:meth:`declared_bytes`); never more than
+        that is read. :class:`PromptTableError` (OSError where the file is missing or unreadable)."""
+        path = self.file_path(pid)
+        nbytes = self.declared_bytes(pid)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))   # a FIFO must not block the open
+        with os.fdopen(fd, "rb") as fh:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise PromptTableError(f"prompt {pid}: file {path} is not a regular file")
+            if st.st_size != nbytes:
+                raise PromptTableError(f"prompt {pid}: file {path} holds {st.st_size} bytes, prompts.json says "
+                                       f"{nbytes}")
+            data = fh.read(nbytes + 1)
+        if len(data) != nbytes:
+            raise PromptTableError(f"prompt {pid}: file {path} changed size while read ({len(data)} bytes, "
+                                   f"prompts.json says {nbytes})")
+        return data
+
     def get(self, pid: str, as_float32: bool = False) -> np.ndarray:
         """The stored embedding (bfloat16 as uint16 bits), read-only and cached; ``as_float32`` widens exactly."""
         arr = self._cache.get(pid)
         if arr is None:
             info = self.info(pid)
-            with open(self.dir / info["file"], "rb") as fh:
-                arr = decode_npy(fh.read())
+            try:
+                arr = decode_npy(self.read_file(pid))
+            except NpyError as e:
+                raise PromptTableError(f"prompt {pid}: file {self.file_path(pid)}: {e}") from e
             want = EMBED_DTYPES[info["dtype"]]
             if arr.dtype != want or list(arr.shape) != list(info["shape"]):
-                raise ValueError(f"prompt {pid}: file holds {arr.dtype}{list(arr.shape)}, table says "
-                                 f"{info['dtype']}{info['shape']}")
+                raise PromptTableError(f"prompt {pid}: file holds {arr.dtype}{list(arr.shape)}, table says "
+                                       f"{info['dtype']}{info['shape']}")
             arr.setflags(write=False)
             self._cache[pid] = arr
         if as_float32:

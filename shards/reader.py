@@ -13,7 +13,6 @@ Latents and prompt embeddings come back as exact float32 by default
 """
 from __future__ import annotations
 
-import json
 import re
 from functools import partial
 from pathlib import Path
@@ -21,7 +20,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from shards import layout
+from shards import layout, safejson
+from shards.confine import UnsafePathError, confined
 from shards.npy import decode_npy, decode_npy_view, stored_to_float32
 from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS
 from shards.validate import LATENT_DTYPES, is_forbidden_ext
@@ -78,7 +78,7 @@ def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "fl
             continue
         try:
             if m.encoding == "json":
-                out[ext] = json.loads(bytes(value).decode("utf-8"))
+                out[ext] = safejson.loads(value)   # size and nesting limits: a JSON bomb is a bad sample
             elif m.encoding == "npy":
                 out[ext] = decode_npy_view(value) if npy_view else decode_npy(value)
             else:
@@ -150,15 +150,28 @@ def iter_samples(root, *, decode_video: bool = False, latent_as: str = "float32"
             yield attach(s) if attach else s
 
 
-def find_sample(root, key: str, **kw) -> dict:
-    """One decoded sample by key (finds its shard through the manifest, else scans)."""
+def find_sample(root, key: str, *, decode_video: bool = False, latent_as: str = "float32",
+                attach_prompts: bool = True) -> dict:
+    """One decoded sample by key (finds its shard through the manifest, else scans).
+
+    Only the sample asked for is decoded: a corrupt neighbour in the same shard does not hide it. The manifest's
+    shard name is a dataset value, so it must name a file inside ``DIR/shards`` (else :class:`ShardReadError`).
+    """
     from shards.manifest import shard_of_key
 
     shard = shard_of_key(root, key)
-    paths = [layout.shards_dir(root) / shard] if shard else None
-    for s in iter_samples(root, shards=paths, **kw):
-        if s["__key__"] == key:
-            return s
+    if shard:
+        try:
+            paths = [confined(layout.shards_dir(root), shard, f"manifest row of sample {key!r}: shard")]
+        except UnsafePathError as e:
+            raise ShardReadError(str(e)) from None
+    else:
+        paths = layout.committed_shards(root)
+    for p in paths:
+        for raw in iter_raw_shard(p):
+            if raw["__key__"] == key:
+                s = decode_sample(raw, decode_video=decode_video, latent_as=latent_as)
+                return PromptAttacher(root, latent_as)(s) if attach_prompts else s
     raise KeyError(f"no sample with key {key!r} in {root}")
 
 

@@ -3,13 +3,21 @@
 ``make_dummy_sample`` builds a sample that passes the schema: random latents (fp16
 or bf16 bits), a real mp4 of moving stripes, an optional trajectory and DINO
 features. ``add_dummy_prompts`` fills a prompt table with small random embeddings
-for the three commands and the null prompt (marked as placeholders).
+for the three commands and the null prompt (marked as placeholders). ``insert_raw_sample``
+puts a hand-made sample (any key, any member bytes) into a committed shard, as an attacker would.
 """
 from __future__ import annotations
 
+import io
+import json
+import tarfile
+
 import numpy as np
 
+from shards import layout
+from shards.fsio import sha256_file
 from shards.npy import float32_to_bf16_bits
+from shards.reader import split_member_name
 from shards.schema import COMMANDS, SCHEMA_VERSION, ClipSpec, make_key, prompt_id, prompt_text
 
 DUMMY_ENCODER_ID = "placeholder-t5-random"
@@ -127,3 +135,38 @@ def write_dummy_dataset(root, num_samples: int = 12, prefix: str = "dummy", max_
             w.write(make_dummy_sample(item_id=f"dummy/episode-{seed}-{i // 4}", start_frame=(i % 4) * 10,
                                       command=COMMANDS[i % 3], seed=seed * 1000 + i, **sample_kw))
     return w.close()
+
+
+def insert_raw_sample(root, shard: str, key: str, overrides: dict[str, bytes] | None = None, *,
+                      first: bool = True) -> str:
+    """Put a sample into committed ``shard`` of dataset ``root`` as a hand-made hostile dataset would: the members
+    of the shard's first sample with ``overrides`` (ext -> bytes) applied, under ``key`` as given (no schema check:
+    ``../../x`` or ``/tmp/x`` go in as they are), before (``first``) or after the others. The manifest gets a row
+    for it and the index its key, count, size and sha256, so tar, manifest and index agree and only the sample
+    itself is bad. Returns ``key``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path = layout.shards_dir(root) / shard
+    with tarfile.open(path) as t:
+        old = [(m.name, t.extractfile(m).read()) for m in t.getmembers() if m.isfile()]
+    first_key = split_member_name(old[0][0])[0]
+    members = {split_member_name(n)[1]: d for n, d in old if split_member_name(n)[0] == first_key}
+    members.update(overrides or {})
+    new = [(f"{key}.{ext}", data) for ext, data in members.items()]
+    with tarfile.open(path, "w", format=tarfile.PAX_FORMAT) as t:
+        for name, data in (new + old if first else old + new):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            t.addfile(info, io.BytesIO(data))
+    mp = layout.manifest_path(root, shard)
+    table = pq.read_table(mp)
+    rows = table.to_pylist()
+    row = dict(rows[0], key=key)
+    pq.write_table(pa.Table.from_pylist([row] + rows if first else rows + [row], schema=table.schema), mp)
+    idx = layout.read_index(root, shard)
+    idx["keys"] = [key] + idx["keys"] if first else idx["keys"] + [key]
+    idx["num_samples"] += 1
+    idx["sha256"], idx["bytes"] = sha256_file(path)
+    layout.index_path(root, shard).write_text(json.dumps(idx, indent=1, sort_keys=True) + "\n")
+    return key

@@ -22,13 +22,12 @@ Checks, in order:
 from __future__ import annotations
 
 import hashlib
-import json
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from shards import layout
+from shards import layout, safejson
 from shards.fsio import is_tmp_name, sha256_file
 from shards.npy import NpyError, decode_npy
 from shards.reader import ShardReadError, decode_sample, iter_raw_shard
@@ -52,7 +51,7 @@ class Problem:
 
 
 def _check_prompts(root, problems: list[Problem]) -> dict:
-    from shards.prompts import EMBED_DTYPES, PromptTable
+    from shards.prompts import EMBED_DTYPES, PromptTable, PromptTableError
 
     table = PromptTable(root)
     try:
@@ -64,11 +63,19 @@ def _check_prompts(root, problems: list[Problem]) -> dict:
         where = f"prompt {pid}"
         if prompt_id(e.get("text", "")) != pid:
             problems.append(Problem(None, None, f"{where}: id is not sha256 of its text {e.get('text')!r}"))
-        path = table.dir / e.get("file", f"{pid}.npy")
+        try:
+            path = table.file_path(pid)   # confined to prompts/: a hostile "file" is a problem, never opened
+        except PromptTableError as err:
+            problems.append(Problem(None, None, str(err)))
+            continue
         if not path.is_file():
             problems.append(Problem(None, None, f"{where}: embedding file {path} is missing"))
             continue
-        data = path.read_bytes()
+        try:
+            data = table.read_file(pid)   # size checked against the entry before reading
+        except (PromptTableError, OSError) as err:
+            problems.append(Problem(None, None, f"{where}: {err}" if isinstance(err, OSError) else str(err)))
+            continue
         if hashlib.sha256(data).hexdigest() != e.get("npy_sha256"):
             problems.append(Problem(None, None, f"{where}: {path.name} does not match its sha256 in prompts.json"))
             continue
@@ -139,7 +146,7 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
         if progress:
             progress(shard)
         try:
-            index = json.loads(ip.read_text())
+            index = safejson.load_file(ip)
         except (OSError, ValueError) as e:
             problems.append(Problem(shard, None, f"index {ip} unreadable: {e}"))
             continue

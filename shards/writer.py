@@ -54,7 +54,7 @@ from pathlib import Path
 from typing import Any
 
 
-from shards import layout
+from shards import layout, safejson
 from shards.fsio import atomic_write_bytes, fsync_dir, is_tmp_name, link_no_clobber, sha256_file, tmp_name
 from shards.npy import encode_npy
 from shards.schema import MANIFEST_COLUMNS, MEMBERS, SCHEMA_VERSION
@@ -306,8 +306,7 @@ class ShardWriter:
         if not link_no_clobber(self._tmp, self._final):
             old = None
             if idx_path.exists():
-                with open(idx_path) as fh:
-                    old = json.load(fh)
+                old = safejson.load_file(idx_path)
             if old is not None and old.get("sha256") == sha and old.get("num_samples") == self._count:
                 self._tmp.unlink()
                 reused = True

@@ -82,6 +82,9 @@ class DataConfig:
 
     shards: Optional[Path] = None          # dataset folder (with shards/, index/, manifest/, prompts/)
     urls: tuple[str, ...] = ()             # or explicit shard URLs (anything webdataset's gopen opens)
+    # ``pipe:CMD`` URLs run CMD in a shell; since urls is reachable from ``--set`` and config files, they are
+    # refused unless this is set (e.g. to stream with ``pipe:aws s3 cp ...``)
+    allow_pipe_urls: bool = False
     batch_size_per_gpu: int = 1
     num_workers: int = 0                   # DataLoader workers per rank
     samples_per_epoch: Optional[int] = None  # global; None = number of samples in the dataset
@@ -106,6 +109,11 @@ class DataConfig:
             raise ConfigError("data.open_shards_per_worker must be >= 1")
         if self.max_shape_buckets < 1:
             raise ConfigError("data.max_shape_buckets must be >= 1")
+        # any case and leading blanks: URL parsing (webdataset's gopen) lower-cases the scheme and strips blanks
+        pipes = [u for u in self.urls if str(u).strip().lower().startswith("pipe:")]
+        if pipes and not self.allow_pipe_urls:
+            raise ConfigError(f"data.urls {pipes[0]!r} is a pipe: URL, a shell command; set data.allow_pipe_urls=true "
+                              "to run it, or give shard paths / http(s) URLs")
         for k, v in self.source_weights.items():
             if v < 0:
                 raise ConfigError(f"data.source_weights.{k} must be >= 0, got {v}")

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from shards.prompts import PromptTable, PromptTableError
 from shards.schema import COMMANDS
 from training.config import DataConfig
 from training.stream import (SAMPLE_ORDER, Cursor, DataError, StreamPlan, WorkerStream, batches_per_worker,
@@ -227,11 +228,17 @@ class StreamLoader:
         spe = cfg.samples_per_epoch or total
         if cfg.urls and cfg.samples_per_epoch is None:
             raise DataError("data.urls given: set data.samples_per_epoch (the shard indexes may not describe them)")
-        from shards.prompts import PromptTable
         self.prompts = PromptTable(root)
+        try:   # every entry's file confined to prompts/ and sized, up front: not an error at the first batch
+            prompt_ids = self.prompts.ids()
+            for pid in prompt_ids:
+                self.prompts.file_path(pid)
+                self.prompts.declared_bytes(pid)
+        except PromptTableError as e:
+            raise DataError(str(e)) from e
         W = max(1, cfg.num_workers)
         self.plan = StreamPlan(
-            urls=urls, probs=probs, prompt_ids=list(self.prompts.ids()), batch_size=cfg.batch_size_per_gpu,
+            urls=urls, probs=probs, prompt_ids=prompt_ids, batch_size=cfg.batch_size_per_gpu,
             batches_per_worker=batches_per_worker(spe, cfg.batch_size_per_gpu, world_size, W), num_workers=W,
             world_size=world_size, seed=cfg.seed, open_shards=cfg.open_shards_per_worker, strict=cfg.strict,
             max_consecutive_failures=cfg.max_consecutive_failures, load_frames=cfg.load_frames,
@@ -258,7 +265,11 @@ class StreamLoader:
 
     def _embedding(self, pid: str) -> torch.Tensor:
         if pid not in self._emb:
-            self._emb[pid] = torch.from_numpy(np.array(self.prompts.get(pid, as_float32=True), dtype=np.float32, copy=True))
+            try:
+                emb = self.prompts.get(pid, as_float32=True)
+            except PromptTableError as e:   # an entry naming a file outside prompts/, of another size, ...
+                raise DataError(str(e)) from e
+            self._emb[pid] = torch.from_numpy(np.array(emb, dtype=np.float32, copy=True))
         return self._emb[pid]
 
     def _batch(self, d: dict) -> Batch:

@@ -412,7 +412,12 @@ def dataset_counts(root: Path) -> tuple[list[str], list[dict[str, int]]]:
     paths = layout.committed_shards(root)
     counts = []
     for p in paths:
-        idx = layout.read_index(root, p.name)
+        try:
+            idx = layout.read_index(root, p.name)   # size/nesting-limited JSON
+        except (OSError, ValueError) as e:
+            raise DataError(f"index {layout.index_path(root, p.name)}: unreadable: {e}") from e
+        if not isinstance(idx, dict):
+            raise DataError(f"index {layout.index_path(root, p.name)}: a JSON {type(idx).__name__}, not an object")
         hist = (idx.get("histograms") or {}).get("source")
         counts.append({str(k): int(v) for k, v in hist.items()} if hist else {"unknown": int(idx.get("num_samples", 0))})
     return [str(p) for p in paths], counts

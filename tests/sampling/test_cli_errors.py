@@ -1,6 +1,7 @@
 """User mistakes in `resim sample` / `resim plan`: a one-line error `resim <sub>: ...` naming the item and the
 reason, exit 2, never a traceback; command-line mistakes are found before any model is loaded."""
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -175,3 +176,25 @@ def test_help_says_what_works_and_what_is_written(capsys):
         main(["plan", "--help"])
     out = " ".join(capsys.readouterr().out.split())
     assert "run.json" in out and "m/s > 0" in out
+
+
+def test_hostile_shard_dataset_is_one_line(env, capsys, tmp_path):
+    """A JSON bomb as the history's meta.json (was a RecursionError traceback) and a prompt entry naming /dev/zero
+    (was read until MemoryError), each next to good samples and entries: one line, exit 2."""
+    from shards.testing import insert_raw_sample
+
+    data = tmp_path / "data"
+    shutil.copytree(env["data"], data)
+    shard = sorted((data / "shards").glob("*.tar"))[0].name
+    bomb = insert_raw_sample(data, shard, "synthetic-bomb-000", {"meta.json": b"[" * 200_000})
+    _one_line_error(capsys, _base(env, "sample", "--shards", str(data), "--history", bomb, out=tmp_path / "o"),
+                    f"history {bomb!r}: shard {data / 'shards' / shard} sample {bomb!r}: member meta.json cannot be "
+                    "decoded: JSON nested 200000 levels deep")
+    path = data / "prompts" / "prompts.json"
+    table = json.loads(path.read_text())
+    pid = next(p for p, e in table["prompts"].items() if e["role"] == "null")
+    table["prompts"][pid]["file"] = "/dev/zero"
+    path.write_text(json.dumps(table))
+    for sub in ("sample", "plan"):
+        _one_line_error(capsys, _base(env, sub, "--shards", str(data), out=tmp_path / sub),
+                        f"prompt {pid}: file '/dev/zero' is an absolute path", sub)

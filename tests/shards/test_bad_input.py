@@ -6,17 +6,19 @@ list in meta.json crashed verify, a corrupt index crashed ls/stats with a bare t
 """
 import io
 import json
+import re
 import tarfile
 
 import numpy as np
 import pytest
 
 from resim.cli import main
-from shards import layout
+from shards import layout, safejson
+from shards.confine import UnsafePathError, confined
 from shards.npy import NpyError, decode_npy, encode_npy
 from shards.reader import ShardReadError, decode_sample, iter_raw_shard, iter_samples
 from shards.tario import open_records
-from shards.testing import make_dummy_sample
+from shards.testing import insert_raw_sample, make_dummy_sample
 from shards.validate import sample_problems, meta_problems
 from shards.verify import verify
 
@@ -142,3 +144,144 @@ def test_stats_says_when_manifests_and_indexes_disagree(dataset, capsys):
     assert st["bytes_per_sample"]["in_shards"] == pytest.approx(st["shard_bytes"] / 10)
     assert main(["shards", "stats", str(dataset)]) == 0
     assert "manifest does not match the index" in capsys.readouterr().out
+
+
+# ---- hostile datasets: a bad file next to good ones --------------------------------------------------------------
+BOMB = b"[" * 200_000   # json.loads recursed once per level: RecursionError, which no reader treated as bad data
+
+
+def _files_under(folder):
+    return {p for p in folder.rglob("*")} if folder.exists() else set()
+
+
+def test_confined_refuses_absolute_dotdot_nul_and_escaping_symlinks(tmp_path):
+    base = tmp_path / "base"
+    (base / "sub").mkdir(parents=True)
+    (tmp_path / "outside").mkdir()
+    (base / "out-link").symlink_to(tmp_path / "outside")
+    (base / "in-link").symlink_to(base / "sub")
+    assert confined(base, "sub/x.png", "item") == base / "sub" / "x.png"
+    assert confined(base, "in-link/x.png", "item") == base / "in-link" / "x.png"   # a link that stays inside
+    for name, reason in [("/etc/passwd", "is an absolute path"), ("../x", "climbs out of"),
+                         ("a/../../x", "climbs out of"), ("a\0b", "NUL byte"), ("", "not a file name"),
+                         ("out-link/x.png", "leads through a symbolic link"), ("\\\\tmp\\x", "is an absolute path")]:
+        with pytest.raises(UnsafePathError, match=reason) as e:
+            confined(base, name, "sample 'k': preview file")
+        assert str(e.value).startswith("sample 'k': preview file ") and "\n" not in str(e.value)
+
+
+def test_safe_json_limits_depth_without_recursion_and_counts_only_brackets_outside_strings(tmp_path):
+    assert safejson.loads(b'{"a": ["[[[[", {"b": "\\"[{"}]}') == {"a": ["[[[[", {"b": '"[{'}]}
+    assert safejson.loads(b'"' + b"[" * 1000 + b'"') == "[" * 1000           # brackets in a string: depth 0
+    with pytest.raises(safejson.JSONLimitError, match="nested 200000 levels deep, more than the limit of 64"):
+        safejson.loads(BOMB)
+    with pytest.raises(safejson.JSONLimitError, match="larger than the limit"):
+        safejson.loads(b"[1]" + b" " * 100, max_bytes=50)
+    with pytest.raises(safejson.JSONLimitError, match="not a regular file"):
+        safejson.load_file("/dev/zero")                                       # never read
+    p = tmp_path / "big.json"
+    p.write_bytes(b"[" + b"0," * 100 + b"0]")
+    with pytest.raises(safejson.JSONLimitError, match="larger than the limit of 64 bytes"):
+        safejson.load_file(p, max_bytes=64)
+
+
+def test_preview_skips_a_sample_whose_key_escapes_the_out_folder(dataset, tmp_path, capsys):
+    out = tmp_path / "a" / "b" / "previews"
+    out.mkdir(parents=True)
+    escape = insert_raw_sample(dataset, SHARD, "../../escaped")            # would write tmp_path/a/escaped.png
+    absolute = insert_raw_sample(dataset, SHARD, str(tmp_path / "abs"))    # would write tmp_path/abs.png
+    for p in layout.manifest_dir(dataset).glob("*.parquet"):               # preview only this shard's samples
+        if p.name != SHARD.replace(".tar", ".parquet"):
+            p.unlink()
+    before = _files_under(tmp_path) - _files_under(out)
+    assert main(["shards", "preview", str(dataset), "--random", "100", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert sorted(err) == sorted([
+        f"resim shards preview: skipping sample {escape!r}: preview file '../../escaped.png' climbs out of {out} "
+        "with '..'",
+        f"resim shards preview: skipping sample {absolute!r}: preview file '{tmp_path / 'abs'}.png' is an absolute "
+        f"path; it must name a file inside {out}"]), err
+    assert len(list(out.glob("*.png"))) == 4                                 # the good samples of the shard
+    assert _files_under(tmp_path) - _files_under(out) == before              # nothing written outside --out
+    assert not (tmp_path / "a" / "escaped.png").exists() and not (tmp_path / "abs.png").exists()
+
+
+def test_manifest_naming_a_shard_outside_the_dataset_is_not_read(dataset, capsys):
+    import pyarrow.parquet as pq
+
+    mp = layout.manifest_path(dataset, SHARD)
+    t = pq.read_table(mp)
+    key = t["key"][0].as_py()
+    pq.write_table(t.set_column(t.schema.get_field_index("shard"), "shard",
+                                [["/dev/zero"] + t["shard"].to_pylist()[1:]]), mp)
+    assert main(["shards", "show", str(dataset), key]) == 1
+    assert capsys.readouterr().err.strip() == (f"resim shards show: error: manifest row of sample {key!r}: shard "
+                                               f"'/dev/zero' is an absolute path; it must name a file inside "
+                                               f"{layout.shards_dir(dataset)}")
+
+
+def _set_prompt_entry(root, **changes):
+    """Change the null prompt's entry of prompts.json (the table is dataset input); returns its id."""
+    from shards.prompts import PromptTable
+
+    table = PromptTable(root)
+    data = json.loads(table.json_path.read_text())
+    pid = next(p for p, e in data["prompts"].items() if e["role"] == "null")
+    data["prompts"][pid].update(changes)
+    table.json_path.write_text(json.dumps(data))
+    return pid
+
+
+@pytest.mark.parametrize("file,reason", [
+    ("/dev/zero", "is an absolute path"),                 # was read until MemoryError
+    ("/etc/passwd", "is an absolute path"),               # was opened
+    ("../../../../../../../etc/passwd", "climbs out of"),
+    ("evil.npy", "leads through a symbolic link"),        # a link inside prompts/ to a file outside
+])
+def test_prompt_entry_naming_a_file_outside_prompts_is_refused(dataset, capsys, file, reason):
+    from shards.prompts import PromptTable, PromptTableError
+
+    if file == "evil.npy":
+        (layout.prompts_dir(dataset) / file).symlink_to("/etc/passwd")
+    pid = _set_prompt_entry(dataset, file=file)
+    with pytest.raises(PromptTableError, match=f"^prompt {pid}: file '{re.escape(file)}' {reason}"):
+        PromptTable(dataset).get(pid)
+    key = layout.read_index(dataset, SHARD)["keys"][0]
+    assert main(["shards", "show", str(dataset), key]) == 1               # attaches the null prompt
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"resim shards show: error: prompt {pid}: file '{file}' {reason}") and "\n" not in err
+    assert main(["shards", "verify", "-q", "--no-video", str(dataset)]) == 1
+    out = capsys.readouterr().out
+    assert f"dataset: prompt {pid}: file '{file}' {reason}" in out, out
+
+
+def test_prompt_file_size_is_checked_against_the_entry_before_reading(dataset):
+    from shards.prompts import PromptTable, PromptTableError
+
+    pid = _set_prompt_entry(dataset, bytes=10**12)                        # a shape of 16 x 32 bf16 cannot be 1 TB
+    with pytest.raises(PromptTableError, match=f"prompt {pid}: bytes 1000000000000 does not fit shape"):
+        PromptTable(dataset).get(pid)
+    pid = _set_prompt_entry(dataset, bytes=1100, shape=[16, 32])          # fits the shape, not the file on disk
+    with pytest.raises(PromptTableError, match=f"prompt {pid}: file .* holds 1152 bytes, prompts.json says 1100"):
+        PromptTable(dataset).get(pid)
+
+
+def test_json_bomb_in_a_sample_is_one_bad_sample_for_every_cli(dataset, tmp_path, capsys):
+    bomb = insert_raw_sample(dataset, SHARD, "synthetic-bomb-000", {"meta.json": BOMB})   # first in the tar
+    good = layout.read_index(dataset, SHARD)["keys"][1]
+    assert main(["shards", "verify", "-q", "--no-video", str(dataset)]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert [line for line in out if bomb in line] == [
+        f"shard {SHARD} key {bomb}: shard {layout.shards_dir(dataset) / SHARD} sample {bomb!r}: member meta.json "
+        "cannot be decoded: JSON nested 200000 levels deep, more than the limit of 64"], out
+    assert main(["shards", "show", str(dataset), bomb]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("resim shards show: error: ") and "nested 200000 levels deep" in err and "\n" not in err
+    assert main(["shards", "show", str(dataset), good, "--json"]) == 0        # the bomb before it is not decoded
+    assert json.loads(capsys.readouterr().out)["key"] == good
+    assert main(["shards", "preview", str(dataset), bomb, "--out", str(tmp_path) + "/"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"resim shards preview: skipping shard ") and "nested 200000" in err and "\n" not in err
+    assert not list(tmp_path.glob("*.png"))
+    with pytest.raises(ShardReadError, match="nested 200000 levels deep"):
+        list(iter_samples(dataset, attach_prompts=False))

@@ -6,7 +6,9 @@ import tarfile
 import pytest
 import torch
 
-from resim.config import from_dict
+from resim.cli import main
+from resim.config import ConfigError, from_dict
+from shards.testing import insert_raw_sample
 from training.config import DataConfig
 from training.data import Batch, StreamLoader
 from training.stream import DataError, shard_mixing
@@ -256,3 +258,44 @@ def test_too_many_geometries_is_an_error(tmp_path):
         for _ in StreamLoader(_cfg(root, batch_size_per_gpu=3, samples_per_epoch=36, max_shape_buckets=1),
                               verbose=False):
             pass
+
+
+# ---- hostile datasets: a bad file next to good ones --------------------------------------------------------------
+def test_json_bomb_in_meta_is_a_skipped_sample(world_dataset, capfd):
+    shard = sorted((world_dataset / "shards").glob("*.tar"))[0].name
+    bomb = insert_raw_sample(world_dataset, shard, "synthetic-bomb-000", {"meta.json": b"[" * 200_000})
+    loader = StreamLoader(_cfg(world_dataset, samples_per_epoch=24), verbose=False)
+    keys = [k for b in loader for k in b.keys]          # was a RecursionError out of the worker: training ended
+    assert len(keys) == 24 and bomb not in keys and loader.skipped > 0
+    err = capfd.readouterr().err
+    assert f"skipping corrupt sample {bomb!r} of shard" in err and "nested 200000 levels deep" in err
+
+
+@pytest.mark.parametrize("file,reason", [("/dev/zero", "is an absolute path"), ("../../x.npy", "climbs out of")])
+def test_prompt_entry_outside_prompts_is_a_data_error_naming_the_prompt(world_dataset, file, reason):
+    path = world_dataset / "prompts" / "prompts.json"
+    table = json.loads(path.read_text())
+    pid = sorted(table["prompts"])[0]
+    table["prompts"][pid]["file"] = file
+    path.write_text(json.dumps(table))
+    with pytest.raises(DataError, match=f"^prompt {pid}: file '{file}' {reason}"):
+        StreamLoader(_cfg(world_dataset), verbose=False)   # refused when the loader is built, nothing read
+
+
+def test_pipe_urls_are_refused_unless_allowed(tmp_path, capsys):
+    ran = tmp_path / "ran"
+    url = f"pipe:touch {ran}"   # a shell command, reachable from --set
+    with pytest.raises(ConfigError, match=r"data.urls 'pipe:touch .*' is a pipe: URL, a shell command; "
+                                          r"set data.allow_pipe_urls=true"):
+        from_dict(DataConfig, {"urls": ["a.tar", url]})
+    with pytest.raises(ConfigError, match="is a pipe: URL"):
+        from_dict(DataConfig, {"urls": [" PIPE:touch x"]})   # gopen lower-cases the scheme, strips blanks
+    argv = ["train", "world", "--preset", "tiny", "--out", str(tmp_path / "run"), "--print-config",
+            "--set", f"data.urls=['{url}']"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("resim train world: config error: ") and "data.urls 'pipe:touch" in err and "\n" not in err
+    assert main(argv + ["--set", "data.allow_pipe_urls=true"]) == 0   # the explicit opt-in
+    assert url in capsys.readouterr().out
+    assert from_dict(DataConfig, {"urls": [url], "allow_pipe_urls": True}).urls == (url,)
+    assert not ran.exists()

@@ -13,13 +13,13 @@ episode on both sides would leak.
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
 
+from shards import safejson
 from training.reward.config import RewardModelConfig
 
 
@@ -150,7 +150,7 @@ def clips_from_samples(samples: Iterable[dict]) -> Iterator[RewardClip]:
     for s in samples:
         meta = s.get("meta.json") or s.get("meta") or {}
         if isinstance(meta, (bytes, str)):
-            meta = json.loads(meta)
+            meta = safejson.loads(meta)   # size and nesting limits: shard data is untrusted
         if meta.get("infraction_score") is None:
             continue
         key = meta.get("key") or s.get("__key__")

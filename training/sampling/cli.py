@@ -355,7 +355,12 @@ def _cmd_sample(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     commands = args.command or [None]
-    null = s.text_for(None)
+    try:   # every prompt now, before the progress bar: an unusable prompt table (an entry outside prompts/, ...)
+        texts = {c: s.text_for(c) for c in dict.fromkeys([None, *commands])}
+    except SamplingInputError as e:
+        print(f"resim sample: {e}", file=sys.stderr)
+        return 2
+    null = texts[None]
 
     def traj_at(r):
         if not trajs:
@@ -364,7 +369,7 @@ def _cmd_sample(args) -> int:
 
     def cond_at(r):
         cmd = commands[min(r, len(commands) - 1)]
-        return Condition(text=s.text_for(cmd), null_text=null, trajectory=traj_at(r), label=cmd or "(no command)")
+        return Condition(text=texts[cmd], null_text=null, trajectory=traj_at(r), label=cmd or "(no command)")
 
     total = rollout_num_steps_total(s.cfg, s.num_future)
     t0 = time.perf_counter()
@@ -422,10 +427,15 @@ def _cmd_plan(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     total = rollout_num_steps_total(s.cfg, s.num_future)
+    try:   # every prompt now, before the progress bar: an unusable prompt table (an entry outside prompts/, ...)
+        texts = {c: s.text_for(c) for c in dict.fromkeys([None, *(c.command for c in cands)])}
+    except SamplingInputError as e:
+        print(f"resim plan: {e}", file=sys.stderr)
+        return 2
     with s.progress(total, f"imagining {len(cands)} futures") as bar:
         policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if args.actions_from_trajectory else None
-        res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), s.text_for, cands, s.cfg, s.num_future,
-                   seed=args.seed, policy_for=policy_for, progress=bar,
+        res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), texts.__getitem__, cands, s.cfg,
+                   s.num_future, seed=args.seed, policy_for=policy_for, progress=bar,
                    actions_from_trajectory=args.actions_from_trajectory)
     table = res.table()
     (out / "ranking.md").write_text(table + "\n")

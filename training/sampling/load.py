@@ -93,12 +93,14 @@ class History:
 
 
 def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> History:
-    from shards.reader import find_sample
+    from shards.reader import ShardReadError, find_sample
 
     try:
         s = find_sample(root, key, decode_video=True, attach_prompts=False)
     except KeyError as e:
         raise SamplingInputError(f"history {key!r}: not found in dataset {root}") from e
+    except ShardReadError as e:   # a corrupt or hostile sample (a JSON bomb, a manifest naming a shard outside)
+        raise SamplingInputError(f"history {key!r}: {e}") from None
     meta = s["meta.json"]
     lat = np.asarray(s["latent.npy"], dtype=np.float32)
     h_meta = 1 + (int(meta["num_history_frames"]) - 1) // 4
@@ -177,13 +179,17 @@ class PromptSource:
         self.used: dict[str, str] = {}
 
     def __call__(self, command: str | None) -> torch.Tensor:
+        from shards.prompts import PromptTableError
         from shards.schema import prompt_id, prompt_text
 
         text = prompt_text(command)
         pid = prompt_id(text)
-        if self.table is not None and pid in self.table.ids():
-            self.used[text] = "prompt_table"
-            return torch.from_numpy(np.array(self.table.get(pid, as_float32=True)))[None]
+        try:
+            if self.table is not None and pid in self.table.ids():
+                self.used[text] = "prompt_table"
+                return torch.from_numpy(np.array(self.table.get(pid, as_float32=True)))[None]
+        except PromptTableError as e:   # prompts.json naming a file outside prompts/, a bad size, ...
+            raise SamplingInputError(str(e)) from None
         if self.encoder_dir is None:
             raise SamplingInputError(f"prompt {text!r} is not in the dataset's prompt table and no --text-encoder "
                                      "was given to encode it")
