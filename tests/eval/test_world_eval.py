@@ -97,6 +97,31 @@ def test_quality_command(world, capsys):
     assert main(["eval", "quality", *_common(root, ds, out), "--metrics", "lpips", "--limit", "1"]) == 2
 
 
+def test_drift_command_rolls_out_past_the_clip(world, capsys):
+    root, ds = world
+    out = root / "drift"
+    assert main(["eval", "drift", *_common(root, ds, out), "--all-clips", "--limit", "1", "--seconds", "3"]) == 0
+    rep = json.loads((out / "drift.json").read_text())
+    assert rep["generated_frames"] == 30 and [r["t_s"] for r in rep["per_second"]] == [1.0, 2.0, 3.0]
+    assert all(np.isfinite(r["drift"]) for r in rep["per_second"]) and set(rep["drift_at"]) == {"1s"}
+    assert (out / "drift.png").stat().st_size > 1000 and (out / "drift_strip.png").is_file()
+    assert "drift" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="Turning up"):
+        main(["eval", "drift", *_common(root, ds, out), "--command", "Turning up"])
+
+
+def test_drift_is_zero_for_real_frames_and_large_for_grey_blur():
+    from training.eval.drift import drift_curve, real_reference
+
+    rng = np.random.default_rng(0)
+    real = [rng.integers(0, 256, (20, 16, 24, 3), dtype=np.uint8) for _ in range(3)]
+    ref = real_reference(real)
+    same = drift_curve(np.stack(real), 0, 10.0, ref)
+    grey = drift_curve(np.full((3, 20, 16, 24, 3), 128, np.uint8), 0, 10.0, ref)
+    assert max(r["drift"] for r in same) < 0.2 and min(r["drift"] for r in grey) > 3
+    assert [r["t_s"] for r in grey] == [1.0, 2.0]
+
+
 def test_mixed_geometries_keep_the_most_common_one(capsys):
     from training.eval.worldeval import EvalClip, _one_geometry
 
@@ -138,7 +163,7 @@ def test_quality_eval_batches_get_the_seeds_of_one_generate_call():
     seen = []
 
     class Recorded(WorldRollouts):
-        def _batch(self, clips, trajs, commands, seed):
+        def _batch(self, clips, trajs, commands, seed, num_future_latents=None):
             seen.append(seed)
             return np.stack([c.frames for c in clips])
 

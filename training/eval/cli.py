@@ -23,6 +23,8 @@ typical flow (held-out = the episodes the IDM did not train on):
   resim eval idm --shards DATA --out runs/vo --window history      # VO-style planner (history only)
   resim eval control  --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
   resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
+  resim eval commands --checkpoint runs/wm --shards DATA --all-clips --limit 20 --out out/commands
+  resim eval drift    --checkpoint runs/wm --shards DATA --all-clips --limit 4 --out out/drift   # 30 s rollouts
   resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --allow-placeholder-networks                                 # plumbing check, random-init networks
   resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
@@ -72,6 +74,17 @@ future turns. Writes OUT/commands.json (confusion matrices, accuracy, per-clip l
 beside copy-last-frame, the protocol), OUT/commands.png, OUT/commands_strip.png and OUT/commands.gif (one
 history under the three commands beside the recorded future). Clips are picked with the recorded commands
 in turn, so straight-road histories are asked to turn too.
+"""
+
+DRIFT_EPILOG = """\
+example (the shipped synthetic-world model, 30 s from held-out histories):
+  resim eval drift --checkpoint synth-world --shards data/heldout --all-clips --limit 4 --out out/drift
+
+Each history is rolled out autoregressively for --seconds (chunks of 10 latent frames, the history window
+sliding over the model's own output) under --command. Per frame: sharpness (mean intensity gradient),
+contrast (intensity std) and brightness; the drift is their mean distance to the real frames' mean, in real
+standard deviations (0 = real-looking on these statistics), per second. Writes OUT/drift.json, OUT/drift.png
+(statistics vs time beside the real band) and OUT/drift_strip.png (frames at 0, 2, 5, 10, 20, 30 s).
 """
 
 PLANNING_EPILOG = """\
@@ -173,6 +186,16 @@ def register(subparsers) -> None:
     cm.add_argument("--horizons", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0],
                     help="fidelity horizons in s after the last history frame (default 0.5 1 2 4)")
     cm.set_defaults(func=_cmd_commands)
+
+    d = sub.add_parser("drift", help="long autoregressive rollouts (30 s): frame statistics vs real frames, per second",
+                       description="Roll each clip's history out far past the training horizon and measure how the "
+                                   "frames drift from real ones (sharpness, contrast, brightness), per second.",
+                       epilog=DRIFT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _world_args(d)
+    d.add_argument("--seconds", type=float, default=30.0, help="seconds to generate after the history (default 30)")
+    d.add_argument("--command", default="Moving forward",
+                   help='command for the whole rollout (default "Moving forward"; "none": the null prompt)')
+    d.set_defaults(func=_cmd_drift)
 
     v = sub.add_parser("vae", help="VAE reconstruction PSNR/SSIM per frame on held-out clips, with a picture",
                        description="Encode each clip's recorded frames with the VAE as the pipeline does and decode "
@@ -494,6 +517,45 @@ def _cmd_commands(args) -> int:
     rep["figure_clip"] = clips[idx].key
     _finish(out, "commands", rep, "\n".join([format_protocol(rep["protocol"]), format_commands(rep)]),
             lambda p: plot_commands(rep, p, title=f"{len(clips)} held-out histories x 3 commands"))
+    return 0
+
+
+def _cmd_drift(args) -> int:
+    from shards.reader import ShardReadError
+    from shards.schema import COMMANDS
+    from training.eval.drift import drift_eval, drift_strip, format_drift, plot_drift
+    from training.eval.report import format_protocol
+    from training.eval.worldeval import eval_clips_from_dataset
+
+    if not _device(args, "drift"):
+        return 2
+    if not args.seconds > 0:
+        raise SystemExit(f"resim eval drift: --seconds must be > 0, got {args.seconds}")
+    command = None if args.command.lower() == "none" else args.command
+    if command is not None and command not in COMMANDS:
+        raise SystemExit(f"resim eval drift: --command {args.command!r} is not one of {list(COMMANDS)} or 'none'")
+    items = _heldout_items(args.heldout_from, args.all_clips)
+    try:
+        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit, need_trajectory=False)
+    except (FileNotFoundError, ShardReadError) as e:
+        raise SystemExit(f"resim eval drift: --shards: {e}") from None
+    if not clips:
+        raise SystemExit(f"resim eval drift: no clips in {args.shards}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runner, meta = _runner(args)
+    print(f"[resim eval drift] {len(clips)} histories x {args.seconds:g} s under {command or 'the null prompt'}, "
+          f"{runner.cfg.num_steps} DDIM steps per chunk ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    rep = drift_eval(runner, clips, seconds=args.seconds, command=command)
+    nh, fps = clips[0].num_history_frames, clips[0].fps_hz
+    rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}), "shards": str(args.shards),
+                       "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else args.heldout_from,
+                       "world_model": meta, "seconds": round(time.perf_counter() - t0, 2)}
+    drift_strip(rep["_videos"], nh, fps, out / "drift_strip.png",
+                times_s=[s for s in (0, 2, 5, 10, 20, 30) if s <= args.seconds])
+    _finish(out, "drift", rep, "\n".join([format_protocol(rep["protocol"]), format_drift(rep)]),
+            lambda p: plot_drift(rep, p, title=f"{len(clips)} held-out histories, {args.seconds:g} s"))
     return 0
 
 

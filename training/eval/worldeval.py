@@ -128,8 +128,10 @@ class WorldRollouts:
         return 1 + (clip.num_history_frames - 1) // 4
 
     def generate(self, clips: Sequence[EvalClip], trajectories: Sequence[np.ndarray | None],
-                 commands: Sequence[str | None], offset: int = 0) -> np.ndarray:
-        """Decoded videos ``(N, T, H, W, 3)`` uint8 (history then generated frames, the clip's length).
+                 commands: Sequence[str | None], offset: int = 0,
+                 num_future_latents: int | None = None) -> np.ndarray:
+        """Decoded videos ``(N, T, H, W, 3)`` uint8 (history then generated frames, the clip's length, or
+        ``num_future_latents`` generated latent frames when given: a longer autoregressive rollout).
 
         The batch starting at clip ``i`` of the whole evaluation set is sampled with seed ``seed + i``;
         ``offset`` is the position of ``clips[0]`` in that set, for callers that pass it in parts (e.g.
@@ -138,10 +140,11 @@ class WorldRollouts:
         out = []
         for i in range(0, len(clips), self.batch_size):
             out.append(self._batch(clips[i:i + self.batch_size], trajectories[i:i + self.batch_size],
-                                   commands[i:i + self.batch_size], seed=self.seed + offset + i))
+                                   commands[i:i + self.batch_size], seed=self.seed + offset + i,
+                                   num_future_latents=num_future_latents))
         return np.concatenate(out)
 
-    def _batch(self, clips, trajs, commands, seed: int) -> np.ndarray:
+    def _batch(self, clips, trajs, commands, seed: int, num_future_latents: int | None = None) -> np.ndarray:
         from training.sampling.outputs import decode_rollout
         from training.sampling.rollout import Condition, rollout
 
@@ -159,7 +162,8 @@ class WorldRollouts:
         else:
             traj = torch.from_numpy(np.stack(trajs)).float().to(self.device)
         cond = Condition(text=text, null_text=null, trajectory=traj)
-        res = rollout(self.model, hist, cond, t_lat - h, self.cfg, seed=seed)
+        res = rollout(self.model, hist, cond, t_lat - h if num_future_latents is None else num_future_latents,
+                      self.cfg, seed=seed)
         self.rollouts += len(clips)
         return decode_rollout(self.vae, res.latents, res.num_history_frames, self.cfg.frames_per_round,
                               self.cfg.history_frames)
