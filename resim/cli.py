@@ -62,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    args = None
     try:
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):
@@ -71,6 +72,12 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.flush()   # a closed pipe shows here, not in the interpreter's final flush
     except BrokenPipeError:
         return _stdout_closed()
+    except KeyboardInterrupt:
+        # Ctrl-C is the user's decision, not our bug: one line, and 130 (128 + SIGINT) as a shell reports it.
+        # Training keeps its last complete checkpoint (--resume continues from it); a pipeline run keeps every
+        # committed shard (a rerun skips them).
+        print(f"\nresim {getattr(args, 'command', None) or ''}: interrupted (Ctrl-C)".rstrip(), file=sys.stderr)
+        return 130
     return int(rc or 0)
 
 

@@ -59,3 +59,24 @@ def test_top_level_help_shows_the_flow(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     assert "resim shards ls out/shards --samples" in capsys.readouterr().out
+
+
+def test_ctrl_c_is_one_line_and_exit_130(monkeypatch, capsys):
+    """Ctrl-C anywhere in a command: no KeyboardInterrupt traceback, exit 130 (128 + SIGINT)."""
+    import argparse
+
+    import resim.cli as cli
+
+    def interrupted(_args):
+        raise KeyboardInterrupt
+
+    def parser():
+        p = argparse.ArgumentParser(prog="resim")
+        sub = p.add_subparsers(dest="command")
+        sub.add_parser("train").set_defaults(func=interrupted)
+        return p
+
+    monkeypatch.setattr(cli, "build_parser", parser)
+    assert cli.main(["train"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == "resim train: interrupted (Ctrl-C)"
