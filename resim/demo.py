@@ -233,10 +233,19 @@ def _img(path: Path, root: Path, caption: str) -> str:
     return f'<figure><img src="{rel}" style="max-width:100%"><figcaption>{html.escape(caption)}</figcaption></figure>'
 
 
-def _json_block(path: Path) -> str:
+def _stats_table(path: Path) -> str:
+    """The pipeline's stats.json as two small tables (units; clips per origin and command), not a raw dump."""
     if not path.is_file():
         return ""
-    return f"<pre>{html.escape(json.dumps(json.loads(path.read_text()), indent=2)[:6000])}</pre>"
+    st = json.loads(path.read_text())
+    u, ts = st.get("units", {}), st.get("turning_share", {})
+    head = (f"<p>Units: {u.get('ok', '?')} ok, {u.get('quarantined', '?')} quarantined of {u.get('total', '?')}. "
+            f"Clips: {st.get('clips', {}).get('total', '?')}; turning share {ts.get('before', '?')} before, "
+            f"{ts.get('after', '?')} after ReSim's {ts.get('turn_factor', '?')}x over-sampling of turns.</p>")
+    by = st.get("clips", {}).get("commands_by_origin", {})
+    cmds = sorted({c for v in by.values() for c in v})
+    rows = [[html.escape(o), *[v.get(c, 0) for c in cmds], sum(v.values())] for o, v in sorted(by.items())]
+    return head + _table(["origin", *cmds, "clips"], rows)
 
 
 def _reward_metrics(path: Path) -> str:
@@ -361,7 +370,7 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
         "<h2>Steps</h2>", _table(["step", "seconds"], [[html.escape(k), f"{v:.1f}"] for k, v in timings.items()]),
         "<h2>1. Synthetic world</h2>", _img(out / "world/contact_sheet.png", out, "a few synthetic episodes"),
         "<h2>2. Pipeline → shards</h2>", _img(out / "shards/report.png", out, "pipeline report"),
-        _json_block(out / "shards/stats.json"),
+        _stats_table(out / "shards/stats.json"),
         "<h2>3. Training (here, for minutes: the machinery)</h2>",
         _img(out / "world_model/loss_curve.png", out, "world model loss (the demo's own run)"),
         _img(out / "reward_model/trainer/loss_curve.png", out, "Video2Reward loss"),
@@ -390,7 +399,8 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
                             [[r["rank"], html.escape(r["name"]), html.escape(str(r["command"])), f"{r['reward']:.4f}"]
                              for r in rows]))
     parts += _eval_section(out)
-    parts.append(f"<h2>Config</h2><pre>{html.escape(json.dumps(to_dict(cfg), indent=2))}</pre>")
+    parts.append("<h2>Config</h2><details><summary>the demo's resolved config (also demo_config.yaml)</summary>"
+                 f"<pre>{html.escape(json.dumps(to_dict(cfg), indent=2))}</pre></details>")
     path = out / "report.html"
     path.write_text("\n".join(parts))
     return path

@@ -105,6 +105,17 @@ class MetricsLogger:
         return plot_loss_curve(self.run_dir) if loss_curve else None
 
 
+def _run_title(run_dir: Path) -> str:
+    """"<model> loss (<folder>)" from the run's config.yaml: a folder name alone ("trainer", "final") says little."""
+    import yaml
+
+    try:
+        name = (yaml.safe_load((run_dir / "config.yaml").read_text()) or {}).get("model_name")
+    except (OSError, yaml.YAMLError, AttributeError):
+        name = None
+    return f"{name} loss ({run_dir.name})" if isinstance(name, str) and name else run_dir.name
+
+
 def plot_loss_curve(run_dir: str | Path) -> Path | None:
     """RUN_DIR/loss_curve.png from metrics.jsonl (loss, and a moving average, vs step)."""
     recs = [r for r in read_metrics(run_dir) if isinstance(r.get("loss"), (int, float))]
@@ -123,7 +134,7 @@ def plot_loss_curve(run_dir: str | Path) -> Path | None:
     ax.plot(steps, smooth, lw=1.5, label=f"moving avg ({w})")
     ax.set_xlabel("optimizer step")
     ax.set_ylabel("loss")
-    ax.set_title(Path(run_dir).name)
+    ax.set_title(_run_title(Path(run_dir)))
     if all(v > 0 for v in loss) and max(loss) / max(min(loss), 1e-12) > 50:
         ax.set_yscale("log")
     ax.legend()

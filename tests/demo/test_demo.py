@@ -25,6 +25,8 @@ def test_smoke_demo_writes_report_and_reuses_steps(tmp_path):
     for rel in links:
         assert (out / rel).is_file(), rel
     assert "missing:" not in page
+    # tidy: the pipeline's stats as a table, the config folded away (no raw JSON dumps on the page)
+    assert "<th>origin</th>" in page and '"units"' not in page and "<details><summary>" in page
     ranking = list(out.glob("plan/*.json"))
     assert ranking, "planning wrote no ranking"
     _check_evaluation(out, page)
