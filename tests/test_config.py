@@ -64,3 +64,15 @@ def test_yaml_errors_name_the_file_or_the_override(tmp_path):
     mixed.write_text("on: 1\nzz_typo: 2\n")
     with pytest.raises(ConfigError, match="unknown config key"):
         load(Outer, mixed)
+
+
+def test_yaml_tags_are_refused_not_run(tmp_path):
+    """A config naming a Python object (`!!python/object/apply:os.system`) is invalid YAML, nothing runs."""
+    from resim.config import ConfigError, load
+
+    marker = tmp_path / "ran"
+    cfg = tmp_path / "evil.yaml"
+    cfg.write_text(f"steps: !!python/object/apply:os.system ['touch {marker}']\n")
+    with pytest.raises(ConfigError, match="evil.yaml: invalid YAML"):
+        load(Inner, cfg)
+    assert not marker.exists()
