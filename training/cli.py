@@ -77,6 +77,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if removed:
             print(f"[resim] --overwrite: removed {', '.join(removed)} of the {args.model_name} run in {args.out}",
                   file=sys.stderr)
+    from training.checkpoint import CheckpointError
     from training.trainer import NonFiniteLossError
 
     try:
@@ -90,6 +91,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except DataError as e:
         print(f"resim train {args.model_name}: data error: {e}", file=sys.stderr)
         return 4
+    except CheckpointError as e:   # a refused or unreadable checkpoint is input, not our bug: one line
+        print(f"resim train {args.model_name}: checkpoint error: {e}", file=sys.stderr)
+        return 5
     return 0
 
 

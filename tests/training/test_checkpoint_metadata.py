@@ -101,3 +101,23 @@ def test_getattr_only_names_members_of_allowed_enums(target, attr):
         _load(pickle.dumps(_Reduce(getattr, (target, attr)), protocol=4))
     member = _load(pickle.dumps(_Reduce(getattr, (_MEM_FORMAT_ENCODING, "TORCH_CONTIGUOUS_FORMAT")), protocol=4))
     assert member is _MEM_FORMAT_ENCODING.TORCH_CONTIGUOUS_FORMAT
+
+
+def test_resume_from_a_hostile_checkpoint_is_one_line(world_dataset, tmp_path, capsys):
+    """`resim train world --resume` on a run whose checkpoint metadata names os.system: refused in one line
+    (exit 5), nothing executed."""
+    from resim.cli import main
+
+    run = tmp_path / "run"
+    common = ["train", "world", "--preset", "tiny", "--shards", str(world_dataset), "--out", str(run),
+              "--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false",
+              "--set", "trainer.loss_curve_png=false"]
+    assert main([*common, "--steps", "1", "--checkpoint-every", "1"]) == 0
+    meta = next(run.glob("checkpoints/step_*/.metadata"))
+    marker = tmp_path / "pwned"
+    meta.write_bytes(_global("torch.distributed.checkpoint.filesystem", "os.system", f"touch {marker}"))
+    capsys.readouterr()
+    assert main([*common, "--steps", "2", "--resume"]) == 5
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("resim train world: checkpoint error:") and "not allowed" in err[0]
+    assert not marker.exists()
