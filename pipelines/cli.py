@@ -18,6 +18,7 @@ examples:
   resim pipeline run CONFIG --set ray.executor=local        # no Ray: sequential, for debugging
 
 Rerunning the same command after a crash resumes: committed units are skipped, the rest redone.
+A second run into an OUT that a live run is writing is refused at once (OUT/.lock); wait, or use another --out.
 Output: OUT/{shards,index,manifest,prompts,quarantine,commits}/, config.yaml, stats.json, report.png.
 """
 
@@ -51,10 +52,11 @@ def _load(args):
     return load_config(args.config, _overrides(args), out=args.out)
 
 
-# What `resim pipeline run` writes in OUT (pipelines.runner.OUTPUT_DIRS + its files): a folder holding only
-# these is an earlier (maybe unfinished) run of the pipeline, which a rerun resumes.
+# What `resim pipeline run` writes in OUT (pipelines.units.OUTPUT_DIRS + its files, the run lock
+# pipelines.out_lock.LOCK_NAME included): a folder holding only these is an earlier (maybe unfinished) run of
+# the pipeline, which a rerun resumes.
 RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging",
-                    "config.yaml", "config_hash.txt", "stats.json", "report.png"}
+                    "config.yaml", "config_hash.txt", "stats.json", "report.png", ".lock"}
 
 
 def foreign_out(out) -> str | None:
@@ -83,6 +85,7 @@ def _cmd_run(args) -> int:
     import logging
 
     from pipelines import runner
+    from pipelines.out_lock import OutBusy
     from pipelines.report import format_summary
     from resim.config import ConfigError
 
@@ -101,6 +104,9 @@ def _cmd_run(args) -> int:
     except ConfigError as e:
         print(f"config error: {e}", file=sys.stderr)
         return 2
+    except OutBusy as e:   # another run is writing OUT: not a config mistake, and nothing was written
+        print(f"resim pipeline run: error: {e}", file=sys.stderr)
+        return 1
     print(format_summary(res.stats, res.out, res.report_png))
     return 0
 

@@ -21,9 +21,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipelines import quarantine, resume
+from pipelines import out_lock, quarantine, resume
 from pipelines.config import PipelineConfig, absolute_paths, check_synthetic_world, to_dict
-from pipelines.units import dumps, loads, make_reader, new_state, source_specs
+from pipelines.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save
 
 log = logging.getLogger("resim.pipeline")
@@ -311,10 +311,6 @@ def run_units_local(cfg: PipelineConfig, states: list[dict], on_done, progress: 
 
 
 # ------------------------------------------------------------------------------------------- run
-# What a run writes under OUT besides config.yaml / config_hash.txt / stats.json / report.png.
-OUTPUT_DIRS = ("commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging")
-
-
 def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
     """Create OUT, refuse to mix two configs in one dataset, save the resolved config.
 
@@ -355,11 +351,21 @@ def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
 
 
 def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = None) -> RunResult:
-    from pipelines import report
-
+    """Run ``cfg`` into ``cfg.out`` holding its run lock (``pipelines.out_lock``; ``OutBusy`` if another run
+    holds it)."""
     t0 = time.perf_counter()
     cfg = absolute_paths(cfg)   # already so when loaded with load_config; workers get the same paths
     progress = cfg.ray.progress_bars if progress is None else progress
+    Path(cfg.out).mkdir(parents=True, exist_ok=True)
+    # Held from before prepare_out's data-hash check (which removes an uncommitted run's leftovers) to the
+    # last stats file: a second run into OUT is refused at once (OutBusy), before it writes anything.
+    with out_lock.hold(cfg.out):
+        return _run_locked(cfg, force, progress, t0)
+
+
+def _run_locked(cfg: PipelineConfig, force: bool, progress: bool, t0: float) -> RunResult:
+    from pipelines import report
+
     out = prepare_out(cfg, force)
     ensure_synthetic(cfg)
     states, bad_sources = EnumerateStage(cfg)()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,7 @@ class SourceSpec:
     max_items: int | None
     options: tuple       # reader config fields as (key, value) pairs (hashable)
     clip: dict | None = None   # per-source clip geometry override (plain dict), None = top-level clip
+    exclude: tuple[str, ...] = ()   # trees the reader never lists: OUT and its output folders (out_trees)
 
     @property
     def origin(self) -> str:
@@ -49,8 +50,21 @@ class SourceSpec:
         return self.kind if self.section == f"sources.{self.kind}" else f"synthetic/{self.kind}"
 
 
+# What a run writes in OUT as folders (its files are config.yaml, config_hash.txt, stats.json, report.png and
+# the run lock); `runner.prepare_out` removes them all when a run with nothing committed is redone.
+OUTPUT_DIRS = ("commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging")
+
+
+def out_trees(out) -> tuple[str, ...]:
+    """What no reader may list: OUT, and its output folders (these still apply when a source root lies inside
+    OUT itself, where OUT as a whole cannot be excluded; ``pipelines.sources.listing``)."""
+    if out is None:
+        return ()
+    return (str(out), *(str(Path(out) / d) for d in OUTPUT_DIRS))
+
+
 def source_specs(cfg: PipelineConfig) -> list[SourceSpec]:
-    """The readers this config asks for (synthetic root expanded into its three layouts)."""
+    """The readers this config asks for (synthetic root expanded into its three layouts), none listing OUT."""
     specs = []
     s = cfg.sources
 
@@ -79,7 +93,8 @@ def source_specs(cfg: PipelineConfig) -> list[SourceSpec]:
                 opts = {"split": _synth_navsim_split(Path(s.synthetic.root))}
             specs.append(SourceSpec(kind, str(Path(s.synthetic.root) / kind), "sources.synthetic", None,
                                     tuple(sorted(opts.items())), clip_of(c)))
-    return specs
+    # an OUT inside an input root must not be read back as input (its _staging previews are videos)
+    return [replace(sp, exclude=out_trees(cfg.out)) for sp in specs]
 
 
 def _synth_navsim_split(root: Path) -> str:
@@ -103,7 +118,7 @@ def make_reader(spec: SourceSpec):
     else:
         raise ValueError(f"unknown source kind {spec.kind!r}")
     try:
-        rcfg = from_dict(C, {"root": spec.root, **dict(spec.options)})
+        rcfg = from_dict(C, {"root": spec.root, **dict(spec.options), "exclude": list(spec.exclude)})
     except ConfigError as e:
         raise ConfigError(f"{spec.section}: {e}") from None
     return R(rcfg)
@@ -117,7 +132,8 @@ def new_state(spec: SourceSpec, item_id: str) -> dict:
         "origin": spec.origin,
         "item_id": item_id,
         "spec": {"kind": spec.kind, "root": spec.root, "section": spec.section,
-                 "max_items": spec.max_items, "options": [list(kv) for kv in spec.options]},
+                 "max_items": spec.max_items, "options": [list(kv) for kv in spec.options],
+                 "exclude": list(spec.exclude)},
         "clip": spec.clip,          # clip geometry for this unit (ClipConfig fields)
         "status": "ok",             # ok | quarantined
         "attempts": 1,
@@ -134,7 +150,8 @@ def new_state(spec: SourceSpec, item_id: str) -> dict:
 
 def spec_from_state(state: dict) -> SourceSpec:
     s = state["spec"]
-    return SourceSpec(s["kind"], s["root"], s["section"], s["max_items"], tuple(tuple(kv) for kv in s["options"]))
+    return SourceSpec(s["kind"], s["root"], s["section"], s["max_items"], tuple(tuple(kv) for kv in s["options"]),
+                      exclude=tuple(s.get("exclude", ())))   # the stages' readers exclude OUT too (CARLA results)
 
 
 def clip_of(state: dict) -> ClipConfig:

@@ -39,6 +39,7 @@ import numpy as np
 from resim.config import ConfigError
 
 from .episode import Episode, SourceError, decode_image_file
+from .listing import children, glob
 from .leaderboard import RouteRecord, load_results
 
 B2D_FPS_HZ = 10.0  # Env_Manager.frame_rate
@@ -52,6 +53,7 @@ class CarlaConfig:
     camera: str = "rgb_front"
     results_glob: str = "*.json"          # leaderboard results files, relative to root
     max_nan_theta_fraction: float = 0.2   # above this share of NaN compass frames the route is refused
+    exclude: tuple[Path, ...] = ()        # trees never listed (the pipeline's OUT: sources/listing.py)
 
     def __post_init__(self):
         self.root = Path(self.root)
@@ -84,7 +86,7 @@ class CarlaReader:
             # instead of finding a partial list (routes silently without outcome).
             records: list[RouteRecord] = []
             problems: list[SourceError] = []
-            for p in sorted(self.cfg.root.glob(self.cfg.results_glob)):
+            for p in glob(self.cfg.root, self.cfg.results_glob, self.cfg.exclude):
                 try:
                     records.extend(load_results(p).records)
                 except SourceError as e:
@@ -110,7 +112,7 @@ class CarlaReader:
         if not self.cfg.root.is_dir():
             raise SourceError(str(self.cfg.root), "CARLA root folder does not exist")
         self.records()   # read the results files now, so `problems` is complete once the items are listed
-        return sorted(p.name for p in self.cfg.root.iterdir() if (p / "anno").is_dir())
+        return sorted(p.name for p in children(self.cfg.root, self.cfg.exclude) if (p / "anno").is_dir())
 
     def open(self, item_id: str) -> Episode:
         folder = self.cfg.root / item_id

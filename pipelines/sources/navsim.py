@@ -24,6 +24,7 @@ import numpy as np
 from resim.config import ConfigError
 
 from .episode import Episode, SourceError, decode_image_file, unwrap_yaw
+from .listing import glob
 from .safe_pickle import load_restricted
 
 NAVSIM_FPS_HZ = 2.0  # NAVSIM_INTERVAL_LENGTH = 0.5 s (navsim/common/dataclasses.py); used for 1-frame logs
@@ -37,6 +38,7 @@ class NavsimConfig:
     camera: str = "CAM_F0"
     check_images_on_open: bool = True   # stat every image when opening a log (cheap; reports missing frames early)
     max_timestamp_gap_s: float = 0.75   # consecutive frames further apart than this: a gap, reported
+    exclude: tuple[Path, ...] = ()      # trees never listed (the pipeline's OUT: sources/listing.py)
 
     def __post_init__(self):
         self.root = Path(self.root)
@@ -69,7 +71,7 @@ class NavsimReader:
         """Log names (pickle stems) of the split, sorted."""
         if not self.logs_dir.is_dir():
             raise SourceError(str(self.logs_dir), "NAVSIM logs folder does not exist")
-        return sorted(p.stem for p in self.logs_dir.glob("*.pkl"))
+        return sorted(p.stem for p in glob(self.logs_dir, "*.pkl", self.cfg.exclude))
 
     def open(self, item_id: str) -> Episode:
         path = self.logs_dir / f"{item_id}.pkl"

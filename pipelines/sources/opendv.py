@@ -34,6 +34,7 @@ from pipelines.frames import MIN_RATE_SLACK
 from resim.config import ConfigError, from_dict
 
 from .episode import Episode, SourceError
+from .listing import walk_files
 
 VIDEO_EXTENSIONS = ("mp4", "mkv", "webm", "mov")
 
@@ -49,6 +50,7 @@ class OpenDVConfig:
     extensions: tuple[str, ...] = VIDEO_EXTENSIONS
     verify_last_frame: bool = True       # on open, seek to the last frame to catch truncated files early
     seek_gap_s: float = 2.0              # seek instead of decoding through gaps longer than this
+    exclude: tuple[Path, ...] = ()       # trees never listed (the pipeline's OUT: sources/listing.py)
 
     def __post_init__(self):
         self.root = Path(self.root)
@@ -149,8 +151,7 @@ class OpenDVReader:
             raise SourceError(str(root), "OpenDV root folder does not exist")
         self._metadata()   # an unreadable videos.csv makes the whole source unusable: fail at listing
         exts = {"." + e.lower().lstrip(".") for e in self.cfg.extensions}
-        return sorted(p.relative_to(root).as_posix() for p in root.rglob("*")
-                      if p.is_file() and p.suffix.lower() in exts)
+        return sorted(p.relative_to(root).as_posix() for p in walk_files(root, self.cfg.exclude, exts))
 
     def open(self, item_id: str) -> Episode:
         import cv2
