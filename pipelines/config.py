@@ -27,6 +27,7 @@ from typing import Literal, Optional
 
 from labeling.config import LabelerConfig
 from resim.config import ConfigError, check_positive, from_dict, load, to_dict
+from resim.folders import folder_problem
 from resim.models import shipped_dir, shipped_model
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -401,11 +402,13 @@ def check_paths(cfg: PipelineConfig) -> None:
         raise ConfigError("out: no output folder (set `out:` in the config or pass --out DIR)")
     for kind in ("opendv", "navsim", "carla"):
         root = getattr(cfg.sources, kind).root
-        if root is not None and not Path(root).is_dir():
-            raise ConfigError(f"sources.{kind}.root: folder {root} does not exist")
+        problem = folder_problem(root) if root is not None else None
+        if problem:
+            raise ConfigError(f"sources.{kind}.root: {root} {problem}")
     for key, p in (("encode.vae", cfg.encode.vae_path), ("encode.text_encoder", cfg.encode.text_encoder_path)):
-        if not Path(p).is_dir():
-            raise ConfigError(f"{key}: model folder {p} does not exist")
+        problem = folder_problem(p)
+        if problem:
+            raise ConfigError(f"{key}: {p} {problem} (a model folder is expected)")
         if not any((Path(p) / sub / "config.json").is_file() for sub in ("", "vae", "text_encoder")):
             raise ConfigError(f"{key}: {p} has no config.json (expected a diffusers/transformers folder)")
     check_synthetic_world(cfg)

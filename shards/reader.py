@@ -4,7 +4,10 @@ A shard is untrusted input. Only the schema's encodings are decoded (JSON, npy
 with ``allow_pickle=False``, mp4 through OpenCV on demand); a sample carrying a
 member whose extension names a code-executing decoder (``FORBIDDEN_EXTENSIONS``:
 ``.pyd``, ``.pickle``, ``.pth``, ...) raises :class:`ForbiddenMemberError` naming
-the shard and key. Members outside the schema are passed through as raw bytes.
+the shard and key. Members outside the schema are passed through as raw bytes. A member that is not a regular
+file (a symbolic or hard link, a device: ``shards.tario`` marks the sample with :data:`BAD_MEMBER`) and, where
+whole samples are read (:func:`find_sample`, :func:`iter_samples`), a missing required member make that one
+sample bad (:class:`ShardReadError` naming shard, key and reason); its neighbours still read.
 
 Latents and prompt embeddings come back as exact float32 by default
 (``latent_as="float32"``; float16 and bfloat16 both widen exactly), or as stored
@@ -23,11 +26,14 @@ import numpy as np
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
 from shards.npy import decode_npy, decode_npy_view, stored_to_float32
-from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS
+from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS, REQUIRED_MEMBERS
 from shards.validate import LATENT_DTYPES, is_forbidden_ext
 
 _BASE_PLUS_EXT = re.compile(r"^((?:.*/|)[^.]+)[.]([^/]*)$")  # the same split WebDataset uses
 LATENT_AS = ("float32", "stored")
+# raw-sample entry (a ``__*__`` name, like WebDataset's ``__key__``) holding why a member of the sample is unusable:
+# set by ``shards.tario`` on a link or device member, whose bytes are never read (a link could point anywhere)
+BAD_MEMBER = "__bad_member__"
 
 
 class ShardReadError(ValueError):
@@ -55,6 +61,24 @@ def check_members(raw: dict, shard: str | None = None) -> None:
                 f"(forbidden: {', '.join(FORBIDDEN_EXTENSIONS)}); refusing this shard")
 
 
+def check_regular(raw: dict) -> None:
+    """Raise :class:`ShardReadError` if ``shards.tario`` found a member of ``raw`` that is not a regular file."""
+    if raw.get(BAD_MEMBER):
+        raise ShardReadError(f"shard {raw.get('__url__', '?')} sample {raw.get('__key__')!r}: {raw[BAD_MEMBER]}")
+
+
+def require_members(raw: dict) -> None:
+    """Raise :class:`ShardReadError` if a member every sample has (``REQUIRED_MEMBERS``) is missing from ``raw``.
+
+    For readers of whole samples; the training stream leaves members it does not need out on purpose. A link in
+    place of a member is named as such, not as a missing member."""
+    check_regular(raw)
+    missing = [ext for ext in REQUIRED_MEMBERS if ext not in raw]
+    if missing:
+        raise ShardReadError(f"shard {raw.get('__url__', '?')} sample {raw.get('__key__')!r}: required member"
+                             f"{'s' if len(missing) > 1 else ''} {', '.join(missing)} missing")
+
+
 def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "float32",
                   npy_view: bool = False) -> dict:
     """Decode one raw WebDataset sample (``{"__key__", "meta.json": bytes, ...}``) with the schema's decoders.
@@ -66,6 +90,7 @@ def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "fl
     if latent_as not in LATENT_AS:
         raise ValueError(f"latent_as must be one of {LATENT_AS}, got {latent_as!r}")
     check_members(raw)
+    check_regular(raw)
     out: dict = {}
     where = f"shard {raw.get('__url__', '?')} sample {raw.get('__key__')!r}"
     for ext, value in raw.items():
@@ -146,6 +171,7 @@ def iter_samples(root, *, decode_video: bool = False, latent_as: str = "float32"
     attach = PromptAttacher(root, latent_as) if attach_prompts else None
     for p in paths:
         for raw in iter_raw_shard(p):
+            require_members(raw)
             s = decode_sample(raw, decode_video=decode_video, latent_as=latent_as)
             yield attach(s) if attach else s
 
@@ -170,6 +196,7 @@ def find_sample(root, key: str, *, decode_video: bool = False, latent_as: str = 
     for p in paths:
         for raw in iter_raw_shard(p):
             if raw["__key__"] == key:
+                require_members(raw)
                 s = decode_sample(raw, decode_video=decode_video, latent_as=latent_as)
                 return PromptAttacher(root, latent_as)(s) if attach_prompts else s
     raise KeyError(f"no sample with key {key!r} in {root}")

@@ -119,6 +119,10 @@ MEMBERS: dict[str, Member] = {
 }
 
 
+# members every sample has: a reader of whole samples treats a sample without one as bad
+REQUIRED_MEMBERS: tuple[str, ...] = tuple(e for e, m in MEMBERS.items() if not m.optional)
+
+
 @dataclass(frozen=True)
 class MetaField:
     name: str

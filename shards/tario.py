@@ -13,7 +13,11 @@ needs one 512-byte header read and one data read per member. This one also
   ``.pickle``, ...) from its header, before reading its bytes (:class:`ForbiddenMemberError`);
 * is **stricter** than ``tarfile``, which ends a stream quietly at a corrupt header after the first:
   a bad checksum, a partial header or short member data raise :class:`ShardReadError` naming the shard
-  and offset.
+  and offset;
+* marks a sample with a member that is a **link or device** instead of a regular file (``tarfile`` and
+  WebDataset drop it silently, leaving a sample short of a member): the sample carries
+  ``shards.reader.BAD_MEMBER`` with the reason, and decoding it raises :class:`ShardReadError`. Its
+  neighbours still read; a link's target is never followed.
 
 Grouping follows ``webdataset.tariterators`` (``tar_file_iterator`` + ``group_by_keys``): regular files
 only, names split with the same regex (``shards.reader.split_member_name``), extension lower-cased,
@@ -27,16 +31,24 @@ import os
 import re
 from typing import BinaryIO, Iterator
 
-from shards.reader import ForbiddenMemberError, ShardReadError, split_member_name
+from shards.reader import BAD_MEMBER, ForbiddenMemberError, ShardReadError, split_member_name
 from shards.schema import FORBIDDEN_EXTENSIONS
 from shards.validate import is_forbidden_ext
 
 BLOCK = 512
 _REGULAR = (b"0", b"\0", b"7")            # regular file, old-style regular, contiguous file
 _NO_DATA = (b"1", b"2", b"3", b"4", b"5", b"6")  # links, devices, directories, fifos: size field is ignored
+# what a member of a sample can be instead of a regular file (directories are left out: writers name them
+# "dir/", which is never a sample member)
+_NOT_REGULAR = {b"1": "hard link", b"2": "symbolic link", b"3": "character device", b"4": "block device",
+                b"6": "FIFO"}
 _SKIP_META = re.compile(r"__[^/]*__($|/)")      # WebDataset's skip_meta
 _COMPRESSED_MAGIC = (b"\x1f\x8b", b"BZh", b"\xfd7zXZ\x00", b"\x28\xb5\x2f\xfd")
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*:")
+
+
+class BadMember(str):
+    """Why a member is unusable; yielded by :func:`iter_members` in place of its data."""
 
 
 def local_path(url: str) -> str | None:
@@ -113,10 +125,12 @@ class _Source:
 def iter_members(src: _Source, select) -> Iterator[tuple[str, str, bytes | None]]:
     """``(key, ext, data)`` of the regular members in order, for which ``select(name)`` returns
     ``(key, ext, read)`` (None: member ignored, data seeked over); ``data`` is None where ``read`` is
-    false (seeked over). Handles ustar prefixes, pax ``path``/``size`` and GNU long names; stops at the
-    first zero block (the end-of-archive marker). EOF before that marker is a truncated shard: a tar cut
-    on a block boundary would otherwise end early and look whole, its last sample missing members."""
+    false (seeked over), a :class:`BadMember` for a selected link or device member. Handles ustar
+    prefixes, pax ``path``/``size``/``linkpath`` and GNU long names; stops at the first zero block (the
+    end-of-archive marker). EOF before that marker is a truncated shard: a tar cut on a block boundary
+    would otherwise end early and look whole, its last sample missing members."""
     long_name: str | None = None
+    long_link: str | None = None
     pax: dict[str, str] = {}
     while True:
         where = f"shard {src.url} offset {src.pos}"
@@ -148,7 +162,9 @@ def iter_members(src: _Source, select) -> Iterator[tuple[str, str, bytes | None]
                 pax = _pax_records(data, where)
             elif typ == b"L":
                 long_name = data.split(b"\0", 1)[0].decode("utf-8", "surrogateescape")
-            continue  # global pax headers ('g') and GNU long link names ('K') change nothing we use
+            elif typ == b"K":
+                long_link = data.split(b"\0", 1)[0].decode("utf-8", "surrogateescape")
+            continue  # global pax headers ('g') change nothing we use
         if hdr[257:263] == b"ustar\x00" and hdr[345:346] != b"\0":
             name = (hdr[345:500].split(b"\0", 1)[0] + b"/" + hdr[0:100].split(b"\0", 1)[0])
         else:
@@ -163,7 +179,14 @@ def iter_members(src: _Source, select) -> Iterator[tuple[str, str, bytes | None]
                 size = int(pax["size"])
             except ValueError:
                 raise ShardReadError(f"{where}: pax size {pax['size']!r} is not a number") from None
-        pax = {}
+        link = pax.get("linkpath") or long_link or hdr[157:257].split(b"\0", 1)[0].decode("utf-8", "surrogateescape")
+        pax, long_link = {}, None
+        if typ in _NOT_REGULAR:
+            sel = select(name)
+            if sel is not None:   # a sample member, so the sample is bad, not quietly one member short
+                to = f" to {link[:200]!r}" if typ in (b"1", b"2") else ""   # a dataset value: kept short
+                yield sel[0], sel[1], BadMember(f"member {name!r} is a {_NOT_REGULAR[typ]}{to}, not a regular file")
+            continue
         if typ in _NO_DATA:
             continue
         if typ == b"S":
@@ -200,7 +223,7 @@ def _forbidden(url: str, key: str, name: str) -> ForbiddenMemberError:
 
 def _group(members: Iterator[tuple[str, str, bytes | None]], url: str, start: int) -> Iterator[dict]:
     """Members -> samples ``{"__key__", "__url__", ext: bytes}`` from sample ``start`` on; members whose
-    data is None (not read) are left out of the sample."""
+    data is None (not read) are left out of the sample; the first :class:`BadMember` goes to ``BAD_MEMBER``."""
     cur: dict | None = None
     seen: set = set()
     index = -1  # index of the sample ``cur`` belongs to
@@ -214,7 +237,9 @@ def _group(members: Iterator[tuple[str, str, bytes | None]], url: str, start: in
         if ext in seen:
             raise ShardReadError(f"shard {url}: {key}.{ext}: duplicate file name in tar file ({ext} of {key!r})")
         seen.add(ext)
-        if data is not None:
+        if isinstance(data, BadMember):
+            cur.setdefault(BAD_MEMBER, str(data))
+        elif data is not None:
             cur[ext] = data
     if cur is not None and index >= start:
         yield cur

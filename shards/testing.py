@@ -4,13 +4,15 @@
 or bf16 bits), a real mp4 of moving stripes, an optional trajectory and DINO
 features. ``add_dummy_prompts`` fills a prompt table with small random embeddings
 for the three commands and the null prompt (marked as placeholders). ``insert_raw_sample``
-puts a hand-made sample (any key, any member bytes) into a committed shard, as an attacker would.
+puts a hand-made sample (any key, any member bytes, members left out or written as links or devices:
+:class:`NotRegular`) into a committed shard, as an attacker would.
 """
 from __future__ import annotations
 
 import io
 import json
 import tarfile
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -137,10 +139,19 @@ def write_dummy_dataset(root, num_samples: int = 12, prefix: str = "dummy", max_
     return w.close()
 
 
-def insert_raw_sample(root, shard: str, key: str, overrides: dict[str, bytes] | None = None, *,
+@dataclass(frozen=True)
+class NotRegular:
+    """An ``insert_raw_sample`` override: the member is written as a tar link or device, not as a file."""
+
+    type: bytes       # tarfile.SYMTYPE, tarfile.LNKTYPE, tarfile.CHRTYPE, ...
+    target: str = ""  # the link's target
+
+
+def insert_raw_sample(root, shard: str, key: str, overrides: dict[str, bytes | NotRegular | None] | None = None, *,
                       first: bool = True) -> str:
     """Put a sample into committed ``shard`` of dataset ``root`` as a hand-made hostile dataset would: the members
-    of the shard's first sample with ``overrides`` (ext -> bytes) applied, under ``key`` as given (no schema check:
+    of the shard's first sample with ``overrides`` applied (ext -> bytes, a :class:`NotRegular` link or device, or
+    None: the member is left out), under ``key`` as given (no schema check:
     ``../../x`` or ``/tmp/x`` go in as they are), before (``first``) or after the others. The manifest gets a row
     for it and the index its key, count, size and sha256, so tar, manifest and index agree and only the sample
     itself is bad. Returns ``key``."""
@@ -153,10 +164,14 @@ def insert_raw_sample(root, shard: str, key: str, overrides: dict[str, bytes] | 
     first_key = split_member_name(old[0][0])[0]
     members = {split_member_name(n)[1]: d for n, d in old if split_member_name(n)[0] == first_key}
     members.update(overrides or {})
-    new = [(f"{key}.{ext}", data) for ext, data in members.items()]
+    new = [(f"{key}.{ext}", data) for ext, data in members.items() if data is not None]
     with tarfile.open(path, "w", format=tarfile.PAX_FORMAT) as t:
         for name, data in (new + old if first else old + new):
             info = tarfile.TarInfo(name)
+            if isinstance(data, NotRegular):
+                info.type, info.linkname = data.type, data.target
+                t.addfile(info)
+                continue
             info.size = len(data)
             t.addfile(info, io.BytesIO(data))
     mp = layout.manifest_path(root, shard)

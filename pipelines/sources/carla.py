@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from resim.config import ConfigError
+from resim.folders import folder_problem
 
 from .episode import Episode, SourceError, decode_image_file
 from .listing import children, glob
@@ -109,8 +110,9 @@ class CarlaReader:
 
     # routes ----------------------------------------------------------------------------------
     def list_items(self) -> list[str]:
-        if not self.cfg.root.is_dir():
-            raise SourceError(str(self.cfg.root), "CARLA root folder does not exist")
+        problem = folder_problem(self.cfg.root)
+        if problem:
+            raise SourceError(str(self.cfg.root), f"CARLA root {problem}")
         self.records()   # read the results files now, so `problems` is complete once the items are listed
         return sorted(p.name for p in children(self.cfg.root, self.cfg.exclude) if (p / "anno").is_dir())
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from resim.config import ConfigError
+from resim.folders import folder_problem
 
 from .episode import Episode, SourceError, decode_image_file, unwrap_yaw
 from .listing import glob
@@ -69,8 +70,9 @@ class NavsimReader:
 
     def list_items(self) -> list[str]:
         """Log names (pickle stems) of the split, sorted."""
-        if not self.logs_dir.is_dir():
-            raise SourceError(str(self.logs_dir), "NAVSIM logs folder does not exist")
+        problem = folder_problem(self.logs_dir)
+        if problem:
+            raise SourceError(str(self.logs_dir), f"NAVSIM logs folder {problem}")
         return sorted(p.stem for p in glob(self.logs_dir, "*.pkl", self.cfg.exclude))
 
     def open(self, item_id: str) -> Episode:

@@ -17,7 +17,9 @@ the source frame nearest to ``t_k``.
 Frames are read with OpenCV, which always decodes the file's first video stream. A file whose first video
 stream is a cover picture stored before the video (an MP4 ``covr`` box ahead of the tracks, a Matroska PNG
 track) is quarantined with that reason rather than cut into clips of the picture: ``open`` asks the labeler's
-probe (``labeling.video_probe.probe``, PyAV) which stream is the video (``VideoInfo.opencv_problem``).
+probe (``labeling.video_probe.probe``, PyAV) which stream is the video (``VideoInfo.opencv_problem``). Resampling
+by frame index needs a constant frame rate that the container states: a variable or implausible rate is
+quarantined with that reason (``frame_timing.frame_timing_problem``).
 """
 from __future__ import annotations
 
@@ -32,8 +34,10 @@ import numpy as np
 
 from pipelines.frames import MIN_RATE_SLACK
 from resim.config import ConfigError, from_dict
+from resim.folders import folder_problem
 
 from .episode import Episode, SourceError
+from .frame_timing import frame_timing_problem
 from .listing import walk_files
 
 VIDEO_EXTENSIONS = ("mp4", "mkv", "webm", "mov")
@@ -147,8 +151,9 @@ class OpenDVReader:
     def list_items(self) -> list[str]:
         """Relative paths (posix) of all videos under root, sorted."""
         root = self.cfg.root
-        if not root.is_dir():
-            raise SourceError(str(root), "OpenDV root folder does not exist")
+        problem = folder_problem(root)
+        if problem:
+            raise SourceError(str(root), f"OpenDV root {problem}")
         self._metadata()   # an unreadable videos.csv makes the whole source unusable: fail at listing
         exts = {"." + e.lower().lstrip(".") for e in self.cfg.extensions}
         return sorted(p.relative_to(root).as_posix() for p in walk_files(root, self.cfg.exclude, exts))
@@ -165,6 +170,11 @@ class OpenDVReader:
             if not cap.isOpened():
                 raise SourceError(item_id, "cannot open video (unreadable or truncated container)")
             src_fps = float(cap.get(cv2.CAP_PROP_FPS))
+            # before the frame count, which OpenCV derives from the rate where the container states none: a
+            # variable or absurd rate then promises frames the file lacks, which read as "truncated"
+            timing = frame_timing_problem(path, src_fps)
+            if timing:
+                raise SourceError(item_id, timing)
             count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
             w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
             h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))

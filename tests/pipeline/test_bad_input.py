@@ -3,6 +3,7 @@
 * a reader's SourceError reaches the quarantine row with the file/frame it named;
 * malformed optional NAVSIM fields, a CSV that is not UTF-8 or has a bad row, a frame rate the clip
   cannot be honestly cut from, an unreadable CARLA results file: quarantined (or a row), never a crash;
+* a video whose frame rate is variable or absurd (90000 fps) is quarantined with that reason, not as "truncated";
 * a plain OSError is retried (``quarantine.max_attempts``), and the attempt count is the same in the
   row and in the commit marker;
 * a run that committed nothing does not lock OUT to its config.
@@ -12,7 +13,9 @@ import gzip
 import json
 import pathlib
 import pickle
+import re
 import shutil
+from fractions import Fraction
 
 import cv2
 import numpy as np
@@ -332,6 +335,65 @@ def test_opendv_video_below_the_clip_rate_is_quarantined(tmp_path):
     st = _cut_all(_opendv_config(src, tmp_path))[0]["five_fps.mp4"]   # was: ok, every frame shown twice
     assert st["status"] == "quarantined"
     assert st["quarantine"][0]["reason"] == "frame rate 5 fps is below the output rate 10 Hz (frames would be repeated)"
+
+
+def _pyav_video(path, pts, rate, time_base=None):
+    """A tiny H.264 video (32x32) whose frames have presentation timestamps ``pts`` (in ``time_base``, default
+    1 / ``rate``), written with PyAV: timings OpenCV's writer cannot produce."""
+    av = pytest.importorskip("av")
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=rate)
+        s.width = s.height = 32
+        s.pix_fmt = "yuv420p"
+        if time_base is not None:
+            s.codec_context.time_base = time_base
+        for i, t in enumerate(pts):
+            f = av.VideoFrame.from_ndarray(np.full((32, 32, 3), 6 * i % 256, np.uint8), format="rgb24")
+            f.pts = t
+            if time_base is not None:
+                f.time_base = time_base
+            for pkt in s.encode(f):
+                c.mux(pkt)
+        for pkt in s.encode():
+            c.mux(pkt)
+
+
+_PAUSES = [0] + list(np.cumsum([1 if i % 3 else 7 for i in range(39)]))   # 30 fps ticks, every third frame late
+
+
+@pytest.mark.parametrize("name,pts,rate,time_base,reason", [
+    # the container's rate is its time base: was "too short: 0.0 s minus discards ..."
+    ("absurd_rate.mp4", range(12), 90000, None, r"implausible frame rate 90000 fps \(more than 240"),
+    # frames 1/30 s apart in a 1/90000 time base stated as the rate; OpenCV: 30000 fps x 1.3 s = 39000 frames, so
+    # was "truncated video: header says 39000 frames but frame 38999 cannot be decoded"
+    ("time_base_as_rate.mkv", [3000 * i for i in range(40)], 90000, Fraction(1, 90000),
+     r"implausible frame rate \d+ fps \(more than 240"),
+    # irregular timestamps: was "truncated video: header says 118 frames ..." (mkv) and "frame rate 9.67742 fps is
+    # below the output rate" (mp4, whose average rate the pauses lower)
+    ("variable_rate.mkv", _PAUSES, 30, None, r"variable frame rate: frame intervals from 33 to 233 ms in the first "),
+    ("variable_rate.mp4", _PAUSES, 30, None, r"variable frame rate: frame intervals from 33.33 to 233.3 ms in the "
+                                             r"first 40 frames \(13 off the usual 33.33 ms\); re-encode it"),
+])
+def test_opendv_video_with_a_variable_or_absurd_frame_rate_is_quarantined_with_that_reason(
+        tmp_path, name, pts, rate, time_base, reason):
+    src = tmp_path / "videos"
+    src.mkdir()
+    _pyav_video(src / name, pts, rate, time_base)
+    st = _cut_all(_opendv_config(src, tmp_path))[0][name]
+    assert st["status"] == "quarantined"
+    assert re.match(reason, st["quarantine"][0]["reason"]), st["quarantine"][0]["reason"]
+    assert "truncated" not in st["quarantine"][0]["reason"]
+
+
+@pytest.mark.parametrize("name,rate", [("ntsc.mkv", Fraction(30000, 1001)), ("fast.mkv", 120), ("ntsc.mp4", 29.97)])
+def test_a_constant_frame_rate_is_not_taken_for_a_variable_one(tmp_path, name, rate):
+    """Matroska's 1 ms ticks round a 29.97 fps file's intervals to 33 or 34 ms, a 120 fps file's to 8 or 9 ms."""
+    from pipelines.sources.frame_timing import frame_timing_problem
+
+    rate = Fraction(rate).limit_denominator(1001)
+    _pyav_video(tmp_path / name, range(30), rate)
+    fps = cv2.VideoCapture(str(tmp_path / name)).get(cv2.CAP_PROP_FPS)
+    assert abs(fps - float(rate)) < 0.01 and frame_timing_problem(tmp_path / name, fps) is None
 
 
 # ------------------------------------------------------------------------------ OUT and failed runs

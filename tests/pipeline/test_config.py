@@ -72,6 +72,36 @@ def test_cli_check_reports_config_error(capsys):
     assert "balance.turn_factr" in capsys.readouterr().err
 
 
+def test_a_root_that_is_a_file_is_named_a_file_not_a_missing_folder(tmp_path, capsys):
+    from resim.cli import main
+
+    f = tmp_path / "opendv.mp4"
+    f.write_bytes(b"")
+    with pytest.raises(ConfigError) as e:      # was "sources.opendv.root: folder ... does not exist"
+        _load(f"sources.opendv.root={f}", base="configs/pipeline/opendv.yaml")
+    assert str(e.value) == f"sources.opendv.root: {f} is a file, not a folder"
+    with pytest.raises(ConfigError) as e:
+        _load(f"encode.vae={f}")
+    assert str(e.value) == f"encode.vae: {f} is a file, not a folder (a model folder is expected)"
+    with pytest.raises(ConfigError) as e:
+        _load(f"sources.carla.root={tmp_path / 'nope'}")
+    assert str(e.value) == f"sources.carla.root: {tmp_path / 'nope'} does not exist"
+    rc = main(["pipeline", "check", str(REPO / "configs/pipeline/opendv.yaml"), "--out", str(tmp_path / "o"),
+               "--set", f"sources.opendv.root={f}"])
+    assert rc == 2
+    assert capsys.readouterr().err.strip() == f"config error: sources.opendv.root: {f} is a file, not a folder"
+
+
+def test_a_reader_whose_root_became_a_file_says_so(tmp_path):
+    from pipelines.sources.episode import SourceError
+    from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
+
+    f = tmp_path / "videos"
+    f.write_bytes(b"")
+    with pytest.raises(SourceError, match=f"^{f}: OpenDV root is a file, not a folder$"):
+        OpenDVReader(OpenDVConfig(root=f)).list_items()
+
+
 def test_vae_and_text_encoder_flags_override(tmp_path, capsys):
     from resim.cli import main
 

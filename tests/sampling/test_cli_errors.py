@@ -2,6 +2,7 @@
 reason, exit 2, never a traceback; command-line mistakes are found before any model is loaded."""
 import json
 import shutil
+import tarfile
 
 import numpy as np
 import pytest
@@ -198,3 +199,24 @@ def test_hostile_shard_dataset_is_one_line(env, capsys, tmp_path):
     for sub in ("sample", "plan"):
         _one_line_error(capsys, _base(env, sub, "--shards", str(data), out=tmp_path / sub),
                         f"prompt {pid}: file '/dev/zero' is an absolute path", sub)
+
+
+@pytest.mark.parametrize("ext,member,reason", [
+    ("meta.json", "symlink", "member '{key}.meta.json' is a symbolic link to '/etc/passwd', not a regular file"),
+    ("latent.npy", "hardlink", "member '{key}.latent.npy' is a hard link to '{first}.latent.npy', not a regular file"),
+    ("latent.npy", None, "required member latent.npy missing"),
+])
+def test_history_sample_with_a_link_or_missing_member_is_one_line(env, capsys, tmp_path, ext, member, reason):
+    """Each was a KeyError traceback (the reader dropped the member; history_from_shard indexed it)."""
+    from shards.testing import NotRegular, insert_raw_sample
+
+    data = tmp_path / "data"
+    shutil.copytree(env["data"], data)
+    shard = sorted((data / "shards").glob("*.tar"))[0].name
+    first = env["key"]
+    override = {"symlink": NotRegular(tarfile.SYMTYPE, "/etc/passwd"),
+                "hardlink": NotRegular(tarfile.LNKTYPE, f"{first}.{ext}"), None: None}[member]
+    key = insert_raw_sample(data, shard, "synthetic-link-000", {ext: override})
+    _one_line_error(capsys, _base(env, "sample", "--shards", str(data), "--history", key, out=tmp_path / "o"),
+                    f"history {key!r}: shard {data / 'shards' / shard} sample {key!r}: "
+                    + reason.format(key=key, first=first))

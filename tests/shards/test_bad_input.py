@@ -16,9 +16,9 @@ from resim.cli import main
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
 from shards.npy import NpyError, decode_npy, encode_npy
-from shards.reader import ShardReadError, decode_sample, iter_raw_shard, iter_samples
+from shards.reader import ShardReadError, decode_sample, find_sample, iter_raw_shard, iter_samples
 from shards.tario import open_records
-from shards.testing import insert_raw_sample, make_dummy_sample
+from shards.testing import NotRegular, insert_raw_sample, make_dummy_sample
 from shards.validate import sample_problems, meta_problems
 from shards.verify import verify
 
@@ -285,3 +285,37 @@ def test_json_bomb_in_a_sample_is_one_bad_sample_for_every_cli(dataset, tmp_path
     assert not list(tmp_path.glob("*.png"))
     with pytest.raises(ShardReadError, match="nested 200000 levels deep"):
         list(iter_samples(dataset, attach_prompts=False))
+
+
+@pytest.mark.parametrize("ext,member,reason", [
+    # a link's target is never read: tarfile's extractfile follows a hard link to the other member's bytes, and
+    # tarfile/WebDataset drop a symbolic link silently, which left the sample without meta.json (a KeyError later)
+    ("meta.json", NotRegular(tarfile.SYMTYPE, "/etc/passwd"),
+     "member '{key}.meta.json' is a symbolic link to '/etc/passwd', not a regular file"),
+    ("latent.npy", NotRegular(tarfile.LNKTYPE, "{first}.latent.npy"),
+     "member '{key}.latent.npy' is a hard link to '{first}.latent.npy', not a regular file"),
+    ("frames.mp4", NotRegular(tarfile.CHRTYPE), "member '{key}.frames.mp4' is a character device, not a regular file"),
+    ("meta.json", None, "required member meta.json missing"),
+])
+def test_a_link_device_or_missing_member_is_one_bad_sample(dataset, tmp_path, capsys, ext, member, reason):
+    first = layout.read_index(dataset, SHARD)["keys"][0]
+    if member is not None:
+        member = NotRegular(member.type, member.target.format(first=first))
+    key = insert_raw_sample(dataset, SHARD, "synthetic-link-000", {ext: member}, first=False)
+    line = f"shard {layout.shards_dir(dataset) / SHARD} sample {key!r}: {reason.format(key=key, first=first)}"
+    with pytest.raises(ShardReadError) as e:
+        find_sample(dataset, key, attach_prompts=False)
+    assert str(e.value) == line
+    assert find_sample(dataset, first, attach_prompts=False)["__key__"] == first    # its neighbours still read
+    with pytest.raises(ShardReadError, match=re.escape(line)):
+        list(iter_samples(dataset, attach_prompts=False))
+    assert any(key in str(p) for p in verify(dataset, decode_video=False))
+    assert main(["shards", "show", str(dataset), key]) == 1                         # was a KeyError traceback
+    assert capsys.readouterr().err.strip() == f"resim shards show: error: {line}"
+    for p in layout.manifest_dir(dataset).glob("*.parquet"):                        # preview only this shard's samples
+        if p.name != SHARD.replace(".tar", ".parquet"):
+            p.unlink()
+    out = tmp_path / "previews"
+    assert main(["shards", "preview", str(dataset), "--random", "100", "--out", str(out)]) == 1
+    assert capsys.readouterr().err.strip() == f"resim shards preview: skipping {line}"
+    assert len(list(out.glob("*.png"))) == 4 and not (out / f"{key}.png").exists()  # the good samples still render
