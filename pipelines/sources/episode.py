@@ -24,6 +24,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from media.frames import resize_rgb
+
 
 class SourceError(Exception):
     """Bad input: ``item`` (file or work unit) and ``reason`` (what is wrong)."""
@@ -97,17 +99,6 @@ class Episode:
 
     def replace(self, **changes) -> "Episode":
         return dataclasses.replace(self, **changes)
-
-
-def resize_rgb(img: np.ndarray, size_hw: tuple[int, int] | None) -> np.ndarray:
-    """Resize with area interpolation when shrinking (anti-aliased), linear when growing."""
-    if size_hw is None or tuple(img.shape[:2]) == tuple(size_hw):
-        return img
-    import cv2
-
-    h, w = size_hw
-    interp = cv2.INTER_AREA if (h < img.shape[0] and w < img.shape[1]) else cv2.INTER_LINEAR
-    return cv2.resize(img, (int(w), int(h)), interpolation=interp)
 
 
 def decode_image_file(path, item: str, size_hw: tuple[int, int] | None = None,

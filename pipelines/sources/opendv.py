@@ -32,7 +32,7 @@ from typing import Iterator
 
 import numpy as np
 
-from pipelines.frames import MIN_RATE_SLACK
+from media.frames import MIN_RATE_SLACK, resize_rgb
 from resim.config import ConfigError, from_dict
 from resim.folders import folder_problem
 
@@ -274,8 +274,6 @@ def _decode(path: Path, item_id: str, wanted: np.ndarray, src_fps: float, size_h
             if not ok or bgr is None:
                 raise SourceError(item_id, f"frame {idx} cannot be decoded")
             if size_hw is not None:
-                from .episode import resize_rgb
-
                 bgr = resize_rgb(bgr, size_hw)   # resize first: colour conversion on fewer pixels
             last_idx, last_img = idx, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             yield last_img

@@ -14,7 +14,7 @@ quarantine table: the unit goes on, and the caveat is saved with the dataset.
 from __future__ import annotations
 
 from pipelines import quarantine
-from pipelines.frames import rate_step
+from media.frames import rate_step
 from pipelines.stages.base import BadInput, Stage
 from pipelines.units import clip_of, make_reader, spec_from_state
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.frames import center_crop, clip_frames, cover_size, sliding_windows
+from media.frames import center_crop, clip_frames, cover_size, sliding_windows
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
 from pipelines.units import clip_of

@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from pipelines import quarantine
-from pipelines.frames import clip_frames
+from media.frames import clip_frames
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
 from pipelines.units import clip_of

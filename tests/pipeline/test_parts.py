@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pipelines.frames import center_crop, cover_size, rate_step, sliding_windows
+from media.frames import center_crop, cover_size, rate_step, sliding_windows
 from pipelines.stages.balance import select_windows
 
 from .conftest import REPO

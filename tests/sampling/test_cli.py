@@ -219,3 +219,35 @@ def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, 
     assert torch.equal(res.action_valid[:, 3:], want_valid[:, 3:])
     torch.testing.assert_close(res.actions[:, 3:], want[:, 3:])
     assert json.loads((tmp_path / "out" / "run.json").read_text())["latent_frame_dt_s"] == pytest.approx(0.8)
+
+
+def test_video_history_takes_the_training_clips_size_and_crop(setup, tmp_path, capsys):
+    """A run whose data was encoded at 32x48: a video history is encoded at 32x48 by default, cover-resized
+    and centre-cropped as the pipeline cut its clips (a 32x96 frame keeps its middle, it is not squeezed), and
+    a --size that disagrees is refused in one line."""
+    import shutil
+    import types
+
+    from shards.video import encode_mp4
+    from training.sampling.load import history_from_video, trained_size_hw
+
+    run = tmp_path / "run"
+    shutil.copytree(setup["run"], run)
+    (run / "final" / "data_encode.yaml").write_text(yaml.safe_dump({"encode": {"height_px": 32, "width_px": 48}}))
+    assert trained_size_hw(run) == (32, 48) and trained_size_hw(setup["run"]) is None
+    frames = np.zeros((12, 32, 96, 3), np.uint8)
+    frames[:, :, :24] = 255                     # white outer quarters: a centre crop drops them, a squeeze keeps them
+    frames[:, :, 72:] = 255
+    video = tmp_path / "wide.mp4"
+    video.write_bytes(encode_mp4(frames, 10.0))
+    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 6), np.float32))
+    h = history_from_video(video, vae, 3, (32, 48))
+    assert h.frames.shape[1:3] == (32, 48) and h.frames.mean() < 40
+    common = ["sample", "--checkpoint", str(run), "--history", str(video), "--command", "Moving forward",
+              "--max-text-tokens", "8", "--seconds", "0.4", "--steps", "1", "--no-guidance", "--device", "cpu"]
+    assert main([*common, "--out", str(tmp_path / "o")]) == 0
+    assert np.load(tmp_path / "o" / "sample_latents.npy").shape[-2:] == (4, 6)     # 32x48 px / 8
+    capsys.readouterr()
+    assert main([*common, "--size", "64x96", "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "trained on 32x48 clips" in err and "Traceback" not in err

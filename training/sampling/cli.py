@@ -81,7 +81,10 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     p.add_argument("--max-text-tokens", type=positive_int, default=226, help="T5 padding length (CogVideoX: 226)")
     p.add_argument("--size", type=height_width, default=None,
-                   help="HxW pixels for a video history, e.g. 64x96 (default: the model's sample size)")
+                   help="HxW pixels for a video history, e.g. 64x96 (default: the size of the model's training clips, "
+                        "from --shards or the run's final/data_encode.yaml; else its sample size). The video is "
+                        "cover-resized and centre-cropped as training clips were; another size than the training "
+                        "clips' is refused")
     p.add_argument("--device", type=torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
     p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16", "float16"],
                    help="world-model weights and compute dtype (default float32; bfloat16/float16 for GPUs)")
@@ -231,7 +234,8 @@ class _Setup:
 
         from media.encoders import VideoVAE
         from training.sampling.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
-                                            history_from_video, load_world_model, video_clip_fps_hz)
+                                            history_from_video, load_world_model, trained_size_hw,
+                                            video_clip_fps_hz)
         from training.sampling.rollout import model_ddim_schedule, rollout_num_future_frames
 
         self.device = device
@@ -245,9 +249,15 @@ class _Setup:
         self.cfg = cfg
         model_ddim_schedule(self.model, self.cfg)   # --steps / --history-noise-level vs the model's schedule, now
         if Path(args.history).is_file():
-            size = (args.size if args.size
-                    else (mcfg.sample_height * self.vae.info.spatial_compression,
-                          mcfg.sample_width * self.vae.info.spatial_compression))
+            # the size the model's training clips were encoded at (its data's encode section), else its sample size
+            trained = trained_size_hw(args.checkpoint, args.shards)
+            if args.size and trained and tuple(args.size) != trained:
+                raise UsageError(f"--size {args.size[0]}x{args.size[1]}: the model was trained on {trained[0]}x"
+                                 f"{trained[1]} clips (its training data's encode size); leave --size out or give "
+                                 f"{trained[0]}x{trained[1]}")
+            size = (tuple(args.size) if args.size else trained
+                    or (mcfg.sample_height * self.vae.info.spatial_compression,
+                        mcfg.sample_width * self.vae.info.spatial_compression))
             sc = self.vae.info.spatial_compression
             mult = sc * int(getattr(mcfg, "patch_size", 1) or 1)
             if size[0] % mult or size[1] % mult:

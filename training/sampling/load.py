@@ -23,6 +23,8 @@ import numpy as np
 import torch
 import yaml
 
+from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
+
 
 class SamplingInputError(ValueError):
     """A checkpoint, history or prompt given to the sampler is missing or unusable (names it and why)."""
@@ -123,7 +125,6 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
     than the clip rate is refused: its missing frames would have to be invented."""
     import cv2
 
-    from pipelines.frames import MIN_RATE_SLACK   # the pipeline's rule: a history is resampled as its clips were
 
     p = Path(path)
     if not p.is_file():
@@ -158,8 +159,9 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
                                  f"{need} frames at {clip_fps_hz:g} Hz need {back[0] + 1} "
                                  f"({(need - 1) / clip_fps_hz:.2f} s)")
     last = len(buf) - 1
-    clip = np.stack([cv2.cvtColor(cv2.resize(buf[last - d], (size_hw[1], size_hw[0]), interpolation=cv2.INTER_AREA),
-                                  cv2.COLOR_BGR2RGB) for d in back])
+    # the pipeline's clip geometry (cover-resize keeping the aspect ratio, centre crop): a 16:9 dashcam frame
+    # is not squeezed into the training clips' shape
+    clip = np.stack([cv2.cvtColor(cover_crop(buf[last - d], tuple(size_hw)), cv2.COLOR_BGR2RGB) for d in back])
     lat = vae.encode(clip[None], seeds=[0])
     return History(torch.from_numpy(lat), clip, float(clip_fps_hz), f"video:{p.name}",
                    meta={"source_fps_hz": src_fps, "clip_fps_hz": float(clip_fps_hz)})
@@ -243,6 +245,23 @@ def _encode_section(path: Path) -> dict | None:
     if not isinstance(enc, dict):
         raise SamplingInputError(f"{path}: no encode section; pass --vae")
     return enc
+
+
+def trained_size_hw(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> tuple[int, int] | None:
+    """(H, W) pixels of the clips the latents were encoded from (``shards``' pipeline config, else the world
+    model's ``final/data_encode.yaml``); None when neither says. A history video must be encoded at this size."""
+    from resim.models import shipped_model
+
+    encs = []
+    if shards is not None:
+        encs.append(_encode_section(Path(shards) / "config.yaml"))
+    if checkpoint is not None:
+        encs += [_encode_section(d / ENCODE_FILE) for d in (Path(shipped_model(checkpoint)),
+                                                             Path(shipped_model(checkpoint)) / "final")]
+    for enc in encs:
+        if enc is not None and isinstance(enc.get("height_px"), int) and isinstance(enc.get("width_px"), int):
+            return int(enc["height_px"]), int(enc["width_px"])
+    return None
 
 
 def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> Path:

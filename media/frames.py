@@ -1,4 +1,5 @@
-"""Frame geometry and streaming helpers shared by the label and encode stages.
+"""Frame geometry and streaming helpers shared by the pipeline's label and encode stages and the sampler
+(a history video is resized exactly as training clips were). A leaf module: imports nothing of ours.
 
 * ``cover_size`` + ``center_crop``: resize keeping the aspect ratio so the frame covers the target,
   then crop the centre (no distortion; ReSim's 256x448 / 512x896 are ~16:9 like dashcams, so the
@@ -24,6 +25,22 @@ def cover_size(src_hw: tuple[int, int], dst_hw: tuple[int, int]) -> tuple[int, i
     dh, dw = dst_hw
     scale = max(dh / sh, dw / sw)
     return max(dh, math.ceil(sh * scale - 1e-6)), max(dw, math.ceil(sw * scale - 1e-6))
+
+
+def resize_rgb(img: np.ndarray, size_hw: tuple[int, int] | None) -> np.ndarray:
+    """Resize with area interpolation when shrinking (anti-aliased), linear when growing."""
+    if size_hw is None or tuple(img.shape[:2]) == tuple(size_hw):
+        return img
+    import cv2   # OpenCV only where a frame is resized (the geometry helpers above need numpy alone)
+
+    h, w = size_hw
+    interp = cv2.INTER_AREA if (h < img.shape[0] and w < img.shape[1]) else cv2.INTER_LINEAR
+    return cv2.resize(img, (int(w), int(h)), interpolation=interp)
+
+
+def cover_crop(img: np.ndarray, dst_hw: tuple[int, int]) -> np.ndarray:
+    """The pipeline's clip geometry in one call: cover-resize keeping the aspect ratio, then centre crop."""
+    return center_crop(resize_rgb(img, cover_size(tuple(img.shape[:2]), dst_hw)), dst_hw)
 
 
 def center_crop(img: np.ndarray, dst_hw: tuple[int, int]) -> np.ndarray:
