@@ -35,6 +35,59 @@ class ConfigError(ValueError):
     """A config value is missing, unknown, of the wrong type or out of range."""
 
 
+# Configs, run folders and datasets come from other people: YAML is parsed within limits. PyYAML's safe_load
+# runs no code, but aliases let 478 bytes stand for a tree of billions of nodes ("billion laughs"): shared
+# references while loaded, expanded by any copy or JSON dump of the config (ours deep-copies it). The limit is
+# on the *expanded* size, which is what a copy costs, not on the number of aliases (9 levels of 9 are enough).
+MAX_YAML_BYTES = 16 << 20
+MAX_YAML_EXPANDED_NODES = 1_000_000
+
+
+def _expanded_nodes(root: yaml.Node) -> int:
+    """Nodes of ``root`` with every alias expanded (shared subtrees counted once per reference), computed
+    without expanding and without recursion; yaml.YAMLError beyond the limit or for a recursive alias."""
+    def kids(n):
+        if isinstance(n, yaml.MappingNode):
+            return [x for kv in n.value for x in kv]
+        return list(n.value) if isinstance(n, yaml.SequenceNode) else []
+
+    size: dict[int, int] = {}
+    open_: set[int] = set()
+    stack = [(root, False)]
+    while stack:
+        n, done = stack.pop()
+        if done:
+            open_.discard(id(n))
+            size[id(n)] = 1 + sum(size[id(k)] for k in kids(n))
+            if size[id(n)] > MAX_YAML_EXPANDED_NODES:
+                raise yaml.YAMLError(f"aliases expand to more than {MAX_YAML_EXPANDED_NODES:,} nodes: refused, as a "
+                                     "YAML bomb would be")
+        elif id(n) not in size:
+            if id(n) in open_:
+                raise yaml.YAMLError("a recursive alias (a node containing itself): refused")
+            open_.add(id(n))
+            stack.append((n, True))
+            stack.extend((k, False) for k in kids(n) if id(k) not in size)
+    return size[id(root)]
+
+
+class _LimitedSafeLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` refusing documents whose aliases expand beyond MAX_YAML_EXPANDED_NODES."""
+
+    def compose_document(self):   # noqa: D401 - PyYAML hook
+        node = super().compose_document()
+        if node is not None:
+            _expanded_nodes(node)
+        return node
+
+
+def safe_yaml(text: str) -> Any:
+    """``yaml.safe_load`` within limits (characters, expanded nodes); yaml.YAMLError otherwise."""
+    if len(text) > MAX_YAML_BYTES:
+        raise yaml.YAMLError(f"{len(text):,} characters, more than the {MAX_YAML_BYTES:,} a config may have")
+    return yaml.load(text, Loader=_LimitedSafeLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def check_positive(name: str, value: float, allow_zero: bool = False) -> None:
     """ConfigError unless ``value`` is a finite number > 0 (>= 0 with ``allow_zero``)."""
     # Written as `not (value > 0)` and with isfinite: NaN compares False both ways, so `value <= 0` let
@@ -201,7 +254,7 @@ def _parse_value(v: str) -> Any:
     if not v.strip():
         return ""
     try:
-        out = yaml.safe_load(v)
+        out = safe_yaml(v)
     except yaml.YAMLError as e:
         raise ConfigError(f"--set value {v!r} is not valid YAML: {str(e).splitlines()[0]}") from None
     if isinstance(out, str) and _FLOAT_RE.match(out.strip()):
@@ -218,7 +271,7 @@ def load(cls: type[T], path: str | Path | None = None, overrides: typing.Iterabl
         if not p.is_file():
             raise ConfigError(f"config file {p} does not exist")
         try:
-            loaded = yaml.safe_load(p.read_text()) or {}
+            loaded = safe_yaml(p.read_text()) or {}
         except yaml.YAMLError as e:   # names the file, with the line and column YAML gives
             raise ConfigError(f"config file {p}: invalid YAML: {e}".replace('"<unicode string>"', str(p))) from None
         if not isinstance(loaded, dict):

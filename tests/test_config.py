@@ -76,3 +76,19 @@ def test_yaml_tags_are_refused_not_run(tmp_path):
     with pytest.raises(ConfigError, match="evil.yaml: invalid YAML"):
         load(Inner, cfg)
     assert not marker.exists()
+
+
+def test_a_yaml_bomb_is_refused_before_it_expands(tmp_path):
+    """478 bytes of nested aliases ("billion laughs") used to grow past 3 GB when the config was copied."""
+    from resim.config import ConfigError, load
+
+    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for i in range(1, 9):
+        prev, cur = chr(ord("a") + i - 1), chr(ord("a") + i)
+        lines.append(f"{cur}: &{cur} [" + ",".join([f"*{prev}"] * 9) + "]")
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError, match="bomb.yaml: invalid YAML.*expand"):
+        load(Inner, bomb)
+    from resim.config import safe_yaml
+    assert safe_yaml("x: &v 3.0\ny: *v\n") == {"x": 3.0, "y": 3.0}     # a handful of aliases is fine

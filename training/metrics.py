@@ -109,8 +109,10 @@ def _run_title(run_dir: Path) -> str:
     """"<model> loss (<folder>)" from the run's config.yaml: a folder name alone ("trainer", "final") says little."""
     import yaml
 
+    from resim.config import safe_yaml   # metrics.py stays light (imported by every run before its model)
+
     try:
-        name = (yaml.safe_load((run_dir / "config.yaml").read_text()) or {}).get("model_name")
+        name = (safe_yaml((run_dir / "config.yaml").read_text()) or {}).get("model_name")
     except (OSError, yaml.YAMLError, AttributeError):
         name = None
     return f"{name} loss ({run_dir.name})" if isinstance(name, str) and name else run_dir.name

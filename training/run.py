@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-from resim.config import ConfigError, load
+from resim.config import ConfigError, load, safe_yaml
 from training.config import RunConfig
 
 
@@ -56,7 +56,7 @@ def _config_kind(path: Path) -> str | None:
     import yaml
 
     try:
-        d = yaml.safe_load(path.read_text())
+        d = safe_yaml(path.read_text())
     except (OSError, yaml.YAMLError, UnicodeDecodeError):
         return None
     if not isinstance(d, dict):
@@ -173,7 +173,7 @@ def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
     if cfg.data.shards is None or not (Path(cfg.data.shards) / "config.yaml").is_file():
         return None
     try:
-        enc = (yaml.safe_load((Path(cfg.data.shards) / "config.yaml").read_text()) or {}).get("encode")
+        enc = (safe_yaml((Path(cfg.data.shards) / "config.yaml").read_text()) or {}).get("encode")
     except (OSError, yaml.YAMLError, AttributeError):
         return None
     if not isinstance(enc, dict):

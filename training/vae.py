@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from diffusers import AutoencoderKLCogVideoX
 
-from resim.config import ConfigError, from_dict
+from resim.config import ConfigError, from_dict, safe_yaml
 
 
 @dataclass
@@ -152,7 +152,7 @@ def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = 
     out = Path(out) if out is not None else run_dir / "final" / "vae"
     import yaml
 
-    cfg = from_dict(VaeTrainConfig, yaml.safe_load((run_dir / "config.yaml").read_text())["model"], prefix="model")
+    cfg = from_dict(VaeTrainConfig, safe_yaml((run_dir / "config.yaml").read_text())["model"], prefix="model")
     vae = AutoencoderKLCogVideoX.from_config(diffusers_config(cfg))
     weights = run_dir / "final" / ("ema.safetensors" if (run_dir / "final" / "ema.safetensors").is_file()
                                    else "model.safetensors")

@@ -18,6 +18,11 @@ Anything else (a class of nuPlan, ``os.system``, ``builtins.eval``, even
 ``_codecs.encode`` used by protocol-2 pickles of arrays) is refused with a
 :class:`~pipelines.sources.episode.SourceError` that names the file and the
 class. Object arrays are safe too: their elements go through the same check.
+
+Allocation is bounded too: an admitted callable that allocates from a size argument (``bytearray(n)``,
+``numpy.ndarray(shape, dtype)``, ``_reconstruct(cls, shape, dtype)``) may not ask for more than
+:func:`allocation_limit` of the file's size, so a 37-byte pickle cannot allocate gigabytes. Real logs carry
+their array data in the file (``_reconstruct`` of an empty array, then its bytes), so they stay far below.
 """
 from __future__ import annotations
 
@@ -54,18 +59,67 @@ def _numpy_attr(module: str, name: str):
     return getattr(getattr(core, sub), name)
 
 
+def allocation_limit(file_bytes: int) -> int:
+    """Bytes one admitted call may allocate for a pickle of ``file_bytes``: 8x the file, at least 64 MiB."""
+    return max(64 << 20, 8 * int(file_bytes))
+
+
+def _nbytes(shape, dtype) -> int:
+    """Bytes of an array of ``shape`` (int or tuple) and ``dtype``; a shape that is not ints counts as 0 here
+    (numpy itself refuses it)."""
+    dims = shape if isinstance(shape, (tuple, list)) else (shape,)
+    if not all(isinstance(d, int) for d in dims):
+        return 0
+    try:
+        itemsize = np.dtype(dtype).itemsize if dtype is not None else 8
+    except TypeError:
+        itemsize = 8
+    n = 1
+    for d in dims:
+        n *= max(d, 0)
+    return n * max(itemsize, 1)
+
+
 class RestrictedUnpickler(pickle.Unpickler):
     """Unpickler admitting only builtins data and numpy arrays (see module docstring)."""
 
-    def __init__(self, file, item: str):
+    def __init__(self, file, item: str, limit_bytes: int | None = None):
         super().__init__(file)
         self._item = item
+        self._limit = limit_bytes
+
+    def _bounded(self, fn, what: str, size_of):
+        """``fn``, refusing calls whose allocation (``size_of(*args)`` bytes) exceeds the limit."""
+        limit, item = self._limit, self._item
+
+        def call(*args, **kwargs):
+            n = size_of(*args, **kwargs)
+            if limit is not None and n > limit:
+                raise SourceError(item, f"pickle asks {what} to allocate {n:,} bytes (limit {limit:,} for a file "
+                                        "this size): refused")
+            return fn(*args, **kwargs)
+        return call
 
     def find_class(self, module: str, name: str):
         if module == "builtins" and name in _BUILTINS:
-            return getattr(__import__("builtins"), name)
+            fn = getattr(__import__("builtins"), name)
+            if name == "bytearray":
+                return self._bounded(fn, "bytearray", lambda n=0, *a, **k: n if isinstance(n, int) else 0)
+            return fn
         if (module, name) in _NUMPY:
-            return _numpy_attr(module, name)
+            fn = _numpy_attr(module, name)
+            if name == "ndarray":
+                # array pickles name ndarray only as _reconstruct's first argument (unwrapped there, below); a
+                # direct call ndarray(shape, dtype) allocates uninitialised memory of any size
+                guard = self._bounded(fn, "numpy.ndarray", lambda shape=(), dtype=float, *a, **k: _nbytes(shape, dtype))
+                guard.wrapped_type = fn   # type: ignore[attr-defined]
+                return guard
+            if name == "_reconstruct":
+                def reconstruct(cls, *args, **kwargs):
+                    return fn(getattr(cls, "wrapped_type", cls), *args, **kwargs)
+                return self._bounded(reconstruct, "numpy _reconstruct",
+                                     lambda cls=None, shape=(), dtype=None, *a, **k: _nbytes(shape, dtype))
+            return fn
         raise SourceError(
             self._item,
             f"pickle names class {module}.{name}, which the restricted unpickler refuses "
@@ -79,7 +133,7 @@ class RestrictedUnpickler(pickle.Unpickler):
 def loads_restricted(data: bytes, item: str = "<bytes>"):
     """Unpickle ``data`` with :class:`RestrictedUnpickler`; SourceError on refusal or corruption."""
     try:
-        return RestrictedUnpickler(io.BytesIO(data), item).load()
+        return RestrictedUnpickler(io.BytesIO(data), item, allocation_limit(len(data))).load()
     except SourceError:
         raise
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError,

@@ -56,3 +56,23 @@ def test_never_calls_pickle_load(monkeypatch):
     monkeypatch.setattr(pickle, "loads", lambda *a, **k: pytest.fail("pickle.loads called"))
     assert loads_restricted(b"\x80\x04\x95\x05\x00\x00\x00\x00\x00\x00\x00]\x94K\x01a.") == [1]
     assert io  # keep import
+
+
+class _Calls:
+    def __init__(self, fn, args):
+        self.fn, self.args = fn, args
+
+    def __reduce__(self):
+        return self.fn, self.args
+
+
+@pytest.mark.parametrize("fn,args", [(bytearray, (2 * 10**9,)), (np.ndarray, ((10**5, 10**5), "f8"))])
+def test_a_tiny_pickle_cannot_allocate_gigabytes(fn, args):
+    """A 37-byte pickle calling bytearray(2e9) used to allocate 1.9 GB; allowed callables are now bounded by
+    the file's size (real logs carry their array data in the file)."""
+    data = pickle.dumps([{"token": "t", "x": _Calls(fn, args)}], protocol=4)
+    assert len(data) < 200
+    with pytest.raises(SourceError, match="allocate .* bytes"):
+        loads_restricted(data, "bomb")
+    small = loads_restricted(pickle.dumps(_Calls(fn, (16,) if fn is bytearray else ((4, 4), "f8"))), "ok")
+    assert len(small) in (16, 4)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from resim.config import ConfigError, check_positive
+from resim.config import ConfigError, check_positive, safe_yaml
 from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
 
 
@@ -288,7 +288,7 @@ def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsM
 
     # a user's files that cannot be read are ValueErrors naming the file (the CLI prints them in one line)
     try:
-        run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
+        run_cfg = safe_yaml((d / "config.yaml").read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as e:
         raise ValueError(f"{d / 'config.yaml'}: invalid YAML ({e})") from None
     if not isinstance(run_cfg, dict) or run_cfg.get("model_name") != "idm":

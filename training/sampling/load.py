@@ -24,6 +24,7 @@ import torch
 import yaml
 
 from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
+from resim.config import safe_yaml
 
 
 class SamplingInputError(ValueError):
@@ -62,7 +63,7 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
     from training import registry
 
     d = _checkpoint_dir(ckpt)
-    run_cfg = yaml.safe_load((d / "config.yaml").read_text()) or {}
+    run_cfg = safe_yaml((d / "config.yaml").read_text()) or {}
     name = run_cfg.get("model_name", "world")
     model_cfg = dict(run_cfg.get("model") or {})
     if "init_weights" in model_cfg:
@@ -238,7 +239,7 @@ def _encode_section(path: Path) -> dict | None:
     if not path.is_file():
         return None
     try:
-        d = yaml.safe_load(path.read_text())
+        d = safe_yaml(path.read_text())
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
         raise SamplingInputError(f"{path}: unreadable ({e}); pass --vae") from None
     enc = d.get("encode", d) if isinstance(d, dict) else None
