@@ -64,7 +64,7 @@ WORLD_PRESETS: dict[str, dict] = {
     # command alone must steer, which is what `resim eval commands` measures.
     "synth": {
         "model_name": "world", "preset": "synth",
-        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
+        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12],
                   "objective": {**_OBJECTIVE, "cond_aug_max_t": 200, "text_drop_prob": 0.3,
                                 "trajectory_keep_sources": []}},
         "data": {"batch_size_per_gpu": 8, "num_workers": 1},
@@ -79,12 +79,27 @@ WORLD_PRESETS: dict[str, dict] = {
     # --set model.init_weights=RUN_SYNTH/final/ema.safetensors
     "synth-control": {
         "model_name": "world", "preset": "synth-control",
-        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
+        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12],
                   "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.3,
                                 "trajectory_keep_sources": []}},
         "data": {"batch_size_per_gpu": 8, "num_workers": 1},
         "optim": {"lr": 5e-4, "warmup_steps": 50, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
         "trainer": {"steps": 2500, "checkpoint_every_steps": 500, "precision": "fp32", "ema_decay": 0.999,
+                    "log_every_steps": 20},
+    },
+    # third stage: from "synth-control"'s EMA weights, the command also through a pooled text vector in AdaLN
+    # (training/models/config.py: TextPoolConfig, zero-initialised so training starts from the earlier model).
+    # After "synth-control" the command moved the prediction by ~1 %; through joint attention alone the small
+    # model had learnt to ignore it. The shipped model: 800 steps of this preset, then 9,000 more from there
+    # (docs/models/synth-world.md). --set model.init_weights=RUN_CONTROL/final/ema.safetensors
+    "synth-command": {
+        "model_name": "world", "preset": "synth-command",
+        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
+                  "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.3,
+                                "trajectory_keep_sources": []}},
+        "data": {"batch_size_per_gpu": 8, "num_workers": 1},
+        "optim": {"lr": 5e-4, "warmup_steps": 50, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
+        "trainer": {"steps": 9000, "checkpoint_every_steps": 500, "precision": "fp32", "ema_decay": 0.999,
                     "log_every_steps": 20},
     },
     "stage1": _stage(1, trainable="dit", lora=0, hw=(512, 896), bs=2, gbs=80, lr=1e-5, steps=20_000,
