@@ -12,6 +12,7 @@ from resim.argtypes import wrap as _wrap
 RUN_EPILOG = """\
 examples:
   resim pipeline run configs/pipeline/synthetic.yaml --out out/synth_shards
+  resim pipeline run configs/pipeline/my_videos.yaml --set sources.opendv.root=~/Videos/dashcam --out out/my_videos
   resim pipeline run configs/pipeline/opendv.yaml --set sources.opendv.root=/data/OpenDV-YouTube \\
       --vae /models/CogVideoX-2b --text-encoder /models/CogVideoX-2b --out /data/shards/opendv
   resim pipeline run CONFIG --set ray.address=auto          # join a running cluster from a head node
@@ -86,6 +87,7 @@ def _cmd_run(args) -> int:
 
     from pipelines import runner
     from pipelines.out_lock import OutBusy
+    from pipelines.ray_connect import ClusterError
     from pipelines.report import format_summary
     from resim.config import ConfigError
 
@@ -104,7 +106,7 @@ def _cmd_run(args) -> int:
     except ConfigError as e:
         print(f"config error: {e}", file=sys.stderr)
         return 2
-    except OutBusy as e:   # another run is writing OUT: not a config mistake, and nothing was written
+    except (OutBusy, ClusterError) as e:   # OUT in use / no usable cluster: not a config mistake, nothing written
         print(f"resim pipeline run: error: {e}", file=sys.stderr)
         return 1
     print(format_summary(res.stats, res.out, res.report_png))
@@ -115,6 +117,7 @@ def _cmd_check(args) -> int:
     import yaml
 
     from pipelines.config import to_dict
+    from pipelines.video_preflight import opendv_warnings
     from resim.config import ConfigError
 
     try:
@@ -123,6 +126,8 @@ def _cmd_check(args) -> int:
         print(f"config error: {e}", file=sys.stderr)
         return 2
     print(yaml.safe_dump(to_dict(cfg), sort_keys=False), end="")
+    for w in opendv_warnings(cfg):   # a valid config that would make nothing from these videos
+        print(f"warning: {w}", file=sys.stderr)
     return 0
 
 
@@ -197,7 +202,9 @@ def register(subparsers) -> None:
     c = sub.add_parser("check", help="validate a config (+ overrides) and print it resolved; starts nothing",
                        description=_wrap("Load a pipeline config with its --set/--out/--vae/--text-encoder overrides, "
                                    "check it (keys, types, source and model folders) and print it resolved as "
-                                   "YAML, paths made absolute. Starts no Ray and writes nothing; exit 2 on a "
+                                   "YAML, paths made absolute. Probes the first few OpenDV-layout videos and "
+                                   "warns (stderr) where the discards leave less than one clip or every video "
+                                   "is below min_height_px. Starts no Ray and writes nothing; exit 2 on a "
                                    "config error."),
                        epilog="example:\n  resim pipeline check configs/pipeline/synthetic.yaml "
                               "--set clip.stride_frames=10 --out out/shards",

@@ -266,12 +266,19 @@ class StageResources:
     actors: int = 1
     num_cpus: float = 1.0
     num_gpus: float | Literal["auto"] = 0.0   # "auto": 1 per actor when the cluster has GPUs, else 0
+    memory_gib: float = 0.0                   # reserved per actor (Ray's `memory`); 0: no reservation
 
     def __post_init__(self):
         check_positive("actors", self.actors)
         check_positive("num_cpus", self.num_cpus, allow_zero=True)
         if self.num_gpus != "auto":
             check_positive("num_gpus", float(self.num_gpus), allow_zero=True)
+        check_positive("memory_gib", self.memory_gib, allow_zero=True)
+
+    @property
+    def memory_bytes(self) -> int | None:
+        """Ray's ``memory`` argument (whole bytes), None where nothing is reserved."""
+        return int(self.memory_gib * (1 << 30)) or None
 
 
 def _res(actors=1, num_cpus=1.0, num_gpus=0.0):

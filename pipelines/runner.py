@@ -18,10 +18,10 @@ import logging
 import os
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from pipelines import out_lock, quarantine, resume
+from pipelines import out_lock, quarantine, ray_connect, resume, stage_fit
 from pipelines.config import PipelineConfig, absolute_paths, check_synthetic_world, to_dict
 from pipelines.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save
@@ -152,14 +152,16 @@ def ensure_synthetic(cfg: PipelineConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------- executors
-def _gpus(res, have_gpu: bool) -> float:
-    if res.num_gpus == "auto":
-        return 1.0 if have_gpu else 0.0
-    return float(res.num_gpus)
+def is_embedded(cfg: PipelineConfig) -> bool:
+    """This run's Ray is this machine alone: no ``ray.address``, not inside a Ray job (``RAY_ADDRESS``)."""
+    return not cfg.ray.address and not os.environ.get("RAY_ADDRESS")
 
 
 def init_ray(cfg: PipelineConfig) -> bool:
-    """Start or join Ray; returns True when this call started it (and so should shut it down)."""
+    """Start or join Ray; returns True when this call started it (and so should shut it down).
+
+    A cluster that is absent, dead or of another Ray/Python version is a one-line ``ClusterError``
+    (``pipelines.ray_connect``)."""
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     import ray
@@ -171,11 +173,11 @@ def init_ray(cfg: PipelineConfig) -> bool:
     if cfg.ray.address:   # join a cluster from a checkout: ship our packages to its workers
         from pipelines.submit import JOB_ENV, package_dirs
 
-        ray.init(address=cfg.ray.address, logging_level=logging.ERROR,
-                 runtime_env={"py_modules": package_dirs(), "excludes": ["__pycache__", "*.pyc"],
-                              "env_vars": dict(JOB_ENV)})
+        ray_connect.join(cfg.ray.address, logging_level=logging.ERROR,
+                         runtime_env={"py_modules": package_dirs(), "excludes": ["__pycache__", "*.pyc"],
+                                      "env_vars": dict(JOB_ENV)})
     elif os.environ.get("RAY_ADDRESS"):   # inside a Ray job (resim pipeline submit): the job's runtime env
-        ray.init(logging_level=logging.ERROR)
+        ray_connect.join(None, logging_level=logging.ERROR)
     else:
         # workers inherit this environment; make sure they can import our packages from the checkout
         repo = str(Path(__file__).resolve().parents[1])
@@ -184,6 +186,33 @@ def init_ray(cfg: PipelineConfig) -> bool:
             os.environ["PYTHONPATH"] = os.pathsep.join([repo] + ([pp] if pp else []))
         ray.init(num_cpus=cfg.ray.num_cpus, **kw)
     return True
+
+
+def pool_names(cfg: PipelineConfig) -> list[str]:
+    """The ``ray.stages`` entries a Ray run uses: its actor pools (``unit_pipeline``) and the prompt task."""
+    from pipelines.stages import UNIT_STAGES
+
+    fused = ("cut", "label", "balance") if cfg.ray.fuse_cpu_stages else ()
+    return [n for n, _ in UNIT_STAGES if n not in fused or n == "label"] + ["prompts"]
+
+
+def fit_to_cluster(cfg: PipelineConfig, have_gpu: bool) -> PipelineConfig:
+    """``cfg`` with stage resources the connected Ray can schedule: clamped to the machine for an embedded run
+    (one log line per clamped stage), else unchanged, or a one-line ``StageTooBig`` for a stage no node can run
+    (``pipelines.stage_fit``). Before any work: an impossible actor would otherwise wait forever."""
+    nodes = stage_fit.cluster_nodes()
+    names = pool_names(cfg)
+    if is_embedded(cfg):
+        machine = max(nodes, key=lambda n: (n.cpus, n.gpus, n.memory_bytes))   # one node: this machine
+        # the prompt task is no pool: it ends on its own, so it need not fit beside them
+        stages, notes = stage_fit.clamp_to_machine(cfg.ray.stages, names, have_gpu, machine,
+                                                   pools=[n for n in names if n != "prompts"])
+        for note in notes:
+            log.warning("%s", note)
+        return replace(cfg, ray=replace(cfg.ray, stages=stages))
+    stage_fit.check_cluster([(n, stage_fit.request_of(getattr(cfg.ray.stages, n), have_gpu)) for n in names],
+                            nodes, ray_connect.describe_address(cfg.ray.address))
+    return cfg
 
 
 def _quiet_ray_data(progress: bool) -> None:
@@ -202,7 +231,8 @@ def start_prompts_ray(cfg: PipelineConfig, have_gpu: bool):
 
     res = cfg.ray.stages.prompts
 
-    @ray.remote(num_cpus=res.num_cpus, num_gpus=_gpus(res, have_gpu), max_retries=0)
+    @ray.remote(num_cpus=res.num_cpus, num_gpus=stage_fit.resolve_gpus(res, have_gpu), memory=res.memory_bytes,
+                max_retries=0)
     def encode_prompts(cfg_dict: dict) -> list[str]:
         from pipelines.stages.prompts import PromptStage, all_prompts
 
@@ -257,7 +287,8 @@ def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_do
         res = getattr(cfg.ray.stages, name)
         ds = ds.map_batches(cls, fn_constructor_kwargs={**kwargs, "progress": board}, batch_size=1,
                             batch_format="numpy", compute=ray.data.ActorPoolStrategy(size=res.actors),
-                            num_cpus=res.num_cpus, num_gpus=_gpus(res, have_gpu))
+                            num_cpus=res.num_cpus, num_gpus=stage_fit.resolve_gpus(res, have_gpu),
+                            memory=res.memory_bytes)
     if board is None:
         for row in ds.iter_rows():
             on_done(loads(row["unit"]))
@@ -364,6 +395,29 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
 
 
 def _run_locked(cfg: PipelineConfig, force: bool, progress: bool, t0: float) -> RunResult:
+    started = False
+    have_gpu, cpus = False, 1.0
+    if cfg.ray.executor == "ray":
+        # Ray first, checked against the stages before OUT is prepared: a cluster that cannot run the config is
+        # one line and leaves OUT as it was (but for the run lock)
+        started = init_ray(cfg)
+    try:
+        if cfg.ray.executor == "ray":
+            import ray
+
+            have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
+            cpus = float(ray.cluster_resources().get("CPU", 1.0))
+            cfg = fit_to_cluster(cfg, have_gpu)
+        return _run_units(cfg, force, progress, t0, have_gpu, cpus)
+    finally:
+        if started:
+            import ray
+
+            ray.shutdown()
+
+
+def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have_gpu: bool,
+               cpus: float) -> RunResult:
     from pipelines import report
 
     out = prepare_out(cfg, force)
@@ -378,24 +432,13 @@ def _run_locked(cfg: PipelineConfig, force: bool, progress: bool, t0: float) -> 
         done["units"] += 1
         done["clips_written"] += (summary.get("written") or {}).get("num_samples", 0)
 
-    started = False
-    cpus = 1.0
     if cfg.ray.executor == "ray":
-        started = init_ray(cfg)
-        try:
-            import ray
+        import ray
 
-            _quiet_ray_data(progress)
-            have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
-            cpus = float(ray.cluster_resources().get("CPU", 1.0))
-            prompts = start_prompts_ray(cfg, have_gpu)
-            run_units_ray(cfg, todo, have_gpu, on_done, progress)
-            ray.get(prompts)
-        finally:
-            if started:
-                import ray
-
-                ray.shutdown()
+        _quiet_ray_data(progress)
+        prompts = start_prompts_ray(cfg, have_gpu)
+        run_units_ray(cfg, todo, have_gpu, on_done, progress)
+        ray.get(prompts)
     else:
         run_prompts_local(cfg)
         run_units_local(cfg, todo, on_done, progress)

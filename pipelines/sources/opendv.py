@@ -147,6 +147,13 @@ class OpenDVReader:
                 raise SourceError(*self._bad_meta[k])
         return _VideoMeta()
 
+    def discards_s(self, item_id: str) -> tuple[float, float]:
+        """(start, end) seconds dropped from video ``item_id``: its videos.csv row, else the config's."""
+        meta = self._video_meta(item_id)
+        start_s = self.cfg.start_discard_s if meta.start_discard_s is None else meta.start_discard_s
+        end_s = self.cfg.end_discard_s if meta.end_discard_s is None else meta.end_discard_s
+        return start_s, end_s
+
     # -- listing / opening -------------------------------------------------------------------
     def list_items(self) -> list[str]:
         """Relative paths (posix) of all videos under root, sorted."""
@@ -195,9 +202,7 @@ class OpenDVReader:
         finally:
             cap.release()
 
-        meta = self._video_meta(item_id)
-        start_s = self.cfg.start_discard_s if meta.start_discard_s is None else meta.start_discard_s
-        end_s = self.cfg.end_discard_s if meta.end_discard_s is None else meta.end_discard_s
+        start_s, end_s = self.discards_s(item_id)
         duration_s = count / src_fps
         usable_s = duration_s - start_s - end_s
         n_out = int(math.floor(usable_s * self.cfg.fps_hz + 1e-9))

@@ -1,0 +1,96 @@
+"""Joining a Ray cluster (``ray.address``) with one-line errors instead of Ray's tracebacks.
+
+``ray.init(address="auto")`` with no cluster raised a raw ``ConnectionError`` traceback; against a cluster of
+another Ray or Python version a 40-line ``Version mismatch`` traceback; and an explicit ``HOST:PORT`` that nobody
+listens on retried for minutes before dying. Here each is a :class:`ClusterError` whose message names the
+address and the way out, and an explicit address is probed with one TCP connect first, so a dead address fails
+in seconds.
+"""
+from __future__ import annotations
+
+import os
+import re
+import socket
+
+# how long the TCP probe of an explicit HOST:PORT waits: a live GCS answers at once, a firewalled one never does
+PROBE_TIMEOUT_S = 5.0
+
+EMBEDDED_HINT = "or run embedded on this machine with --set ray.address=null"
+
+
+class ClusterError(RuntimeError):
+    """The Ray cluster cannot be used as configured (one line: the address and the reason)."""
+
+
+def describe_address(address: str | None) -> str:
+    """How an error names the address: the config value, and ``RAY_ADDRESS`` where that overrides it."""
+    env = os.environ.get("RAY_ADDRESS")
+    if env and (address is None or address == "auto"):
+        # Ray lets RAY_ADDRESS win over a null or "auto" address, so the message must name it
+        return f"ray.address={address or 'null'} (RAY_ADDRESS={env})"
+    return f"ray.address={address}"
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """``(host, port)`` of an explicit ``[ray://]HOST:PORT``; None for ``auto`` and anything unparsable."""
+    m = re.fullmatch(r"(?:ray://)?\[?([^\]\s]+?)\]?:(\d{1,5})", address.strip())
+    return (m.group(1), int(m.group(2))) if m else None
+
+
+def probe(address: str, where: str | None = None) -> None:
+    """``ClusterError`` where nothing accepts a TCP connection at an explicit ``HOST:PORT`` (``auto``: no probe,
+    Ray itself finds the cluster or fails at once). ``where``: how the message names the address."""
+    hp = _host_port(address)
+    if hp is None:
+        return
+    host, port = hp
+    try:
+        with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S):
+            return
+    except OSError as e:
+        why = "timed out" if isinstance(e, socket.timeout) else (e.strerror or type(e).__name__)
+        raise ClusterError(
+            f"{where or describe_address(address)}: no Ray cluster answers at {host}:{port} ({why}); start one "
+            f"there with `ray start --head --port {port}`, check the address, {EMBEDDED_HINT}") from None
+
+
+def explain(address: str | None, e: BaseException) -> ClusterError | None:
+    """The one-line :class:`ClusterError` for what ``ray.init`` raised, or None where it is not a cluster problem."""
+    where = describe_address(address)
+    text = str(e)
+    if "Version mismatch" in text:
+        # Ray's message: "The cluster was started with:\n Ray: A\n Python: B\nThis process ... with:\n Ray: C ..."
+        rays = re.findall(r"Ray:\s*(\S+)", text)
+        pys = re.findall(r"Python:\s*(\S+)", text)
+        if len(rays) >= 2 and len(pys) >= 2:
+            versions = (f"the cluster runs Ray {rays[0]} / Python {pys[0]}, this environment Ray {rays[1]} / "
+                        f"Python {pys[1]}")
+        else:
+            versions = "the cluster runs another Ray or Python version than this environment"
+        return ClusterError(f"{where}: {versions}; run resim from an environment with the cluster's Ray and Python "
+                            f"versions (or restart the cluster from this one), {EMBEDDED_HINT}")
+    if isinstance(e, ConnectionError) or "Could not find any running Ray instance" in text:
+        if "Could not find any running Ray instance" in text:
+            reason = "no Ray cluster is running on this machine"
+        else:
+            reason = f"cannot connect ({text.strip().splitlines()[0] if text.strip() else type(e).__name__})"
+        return ClusterError(f"{where}: {reason}; start one with `ray start --head`, or join another with "
+                            f"--set ray.address=HOST:6379, {EMBEDDED_HINT}")
+    return None
+
+
+def join(address: str | None, **init_kwargs) -> None:
+    """``ray.init(address=address, **init_kwargs)``; a missing, dead or incompatible cluster is a ``ClusterError``."""
+    import ray
+
+    env = os.environ.get("RAY_ADDRESS")
+    target = env if env and (address is None or address == "auto") else address   # what Ray will use
+    if target:
+        probe(target, describe_address(address))
+    try:
+        ray.init(address=address, **init_kwargs)
+    except (ConnectionError, RuntimeError) as e:
+        err = explain(address, e)
+        if err is None:
+            raise
+        raise err from None
