@@ -145,7 +145,9 @@ def test_device_and_model_folders_are_checked_first(ds, capsys):
         _usage_error(capsys, ["eval", sub, *argv, "--device", "cudaa"], "--device: expected cpu, cuda")
         _usage_error(capsys, ["eval", sub, *argv, "--vae", str(ds / "nope")], "--vae: ")
         _usage_error(capsys, ["eval", sub, *argv, "--text-encoder", str(ds / "nope")], "no such folder")
-        dev, needle = ("cuda:99", "CUDA device(s) here") if torch.cuda.is_available() else ("cuda", "has no CUDA")
+        # no GPU: a CPU build says it has no CUDA support, a CUDA build that no GPU is visible
+        dev, needle = (("cuda:99", "CUDA device(s) here") if torch.cuda.is_available() else
+                       ("cuda", "has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"))
         assert main(["eval", sub, *argv, "--device", dev]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"resim eval {sub}: --device {dev}: ") and needle in err and "\n" not in err, err
@@ -155,7 +157,8 @@ def test_cuda_message_names_the_way_out(ds, capsys):
     if torch.cuda.is_available():
         pytest.skip("CUDA present: the CPU-build message cannot be shown")
     assert main(["eval", "control", *_world(ds, "--all-clips"), "--idm", str(ds / "idm-fits"), "--device", "cuda"]) == 2
-    _error(capsys, "this torch build has no CUDA support; use --device cpu")
+    _error(capsys, ("this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA GPU is visible")
+           + "; use --device cpu")
 
 
 def test_synth_into_an_existing_folder(tmp_path, capsys):

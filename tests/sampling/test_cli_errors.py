@@ -122,7 +122,8 @@ def test_mistakes_found_before_the_model_is_loaded(env, capsys, no_model_load, t
     if torch.cuda.is_available():
         _one_line_error(capsys, _base(env, "sample", "--device", "cuda:99"), "CUDA device(s) here")
     else:   # was AssertionError "Torch not compiled with CUDA enabled"
-        _one_line_error(capsys, _base(env, "sample", "--device", "cuda"), "--device cuda: this torch build has no")
+        why = "this torch build has no" if torch.version.cuda is None else "no CUDA GPU is visible"   # CPU / CUDA build
+        _one_line_error(capsys, _base(env, "sample", "--device", "cuda"), f"--device cuda: {why}")
     _one_line_error(capsys, _base(env, "sample", "--shards", str(tmp_path / "nope")), "no such folder")
     assert not (env["root"] / "out").exists()
 
