@@ -162,7 +162,7 @@ def test_video_history_slower_than_the_clip_rate_is_refused(tmp_path):
         history_from_video(_coded_video(tmp_path / "short.mp4", 30.0, 15), vae, 3, (32, 64))
 
 
-def test_sample_cli_30fps_video_seconds_at_the_clip_rate(setup, tmp_path):
+def test_sample_cli_30fps_video_seconds_at_the_clip_rate(setup, tmp_path, capsys):
     """--seconds 0.8 from a 30 fps clip: 2 latent frames (8 frames at 10 Hz), not ceil(0.8 * 30 / 4) = 6."""
     video = _coded_video(tmp_path / "clip30.mp4", 30.0, 40)
     out = tmp_path / "out"
@@ -172,6 +172,10 @@ def test_sample_cli_30fps_video_seconds_at_the_clip_rate(setup, tmp_path):
     assert np.load(out / "sample_latents.npy").shape == (3 + 2, 16, 4, 6)
     run = json.loads((out / "run.json").read_text())
     assert run["history_fps_hz"] == 10.0 and run["latent_frame_dt_s"] == pytest.approx(0.4)
+    # every wait says what it is doing; "total" is the wall clock of the whole command, set-up included
+    cap = capsys.readouterr()
+    assert "[resim sample] loading the world model" in cap.err and "[resim sample] decoding" in cap.err
+    assert "s wall clock (set-up and history" in cap.out
 
 
 def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, monkeypatch):

@@ -350,8 +350,10 @@ def _cmd_sample(args) -> int:
         if c not in COMMANDS:
             print(f"resim sample: --command {c!r} is not one of {list(COMMANDS)}", file=sys.stderr)
             return 2
+    t_start = time.perf_counter()
     try:
         device, cfg, trajs = _check_args(args, "sample")   # no model is loaded for a command-line mistake
+        _say("sample")("loading the world model and VAE, reading the history ...")
         s = _Setup(args, device, cfg)
         enc = getattr(s.model, "trajectory_encoder", None)
         want = (enc.cfg.num_waypoints, enc.cfg.waypoint_dim) if enc is not None else None
@@ -386,6 +388,8 @@ def _cmd_sample(args) -> int:
     with s.progress(total, "sampling") as bar:
         res = rollout(s.model, s.history.latents.to(s.device), cond_at, s.num_future, s.cfg, seed=args.seed,
                       policy=s.policy_for(traj_at), progress=bar, actions_from_trajectory=s.actions_from_trajectory)
+    t_setup = t0 - t_start
+    _say("sample")("decoding the rollout with the VAE, writing the video ...")
     frames = decode_rollout(s.vae, res.latents, res.num_history_frames, s.cfg.frames_per_round,
                             s.cfg.history_frames)[0]
     num_hist_px = 1 + 4 * (res.num_history_frames - 1)
@@ -399,12 +403,26 @@ def _cmd_sample(args) -> int:
     print(f"sampled {s.num_future} latent frames ({frames.shape[0] - num_hist_px} video frames, "
           f"{len(res.round_labels)} round(s)) in {res.seconds:.1f} s "
           f"({res.model_forwards} model calls, KV cache {'on' if res.kv_cache_used else 'off'}); "
-          f"total {time.perf_counter() - t0:.1f} s")
+          f"total {time.perf_counter() - t_start:.1f} s wall clock (set-up and history {t_setup:.1f} s, "
+          f"decoding and writing {time.perf_counter() - t0 - res.seconds:.1f} s)")
     for k in ("mp4", "gif", "sheet", "latents"):
         print(f"  {k:8s} {paths[k]}")
     if s.vae.info.placeholder:
         print("  note: the VAE is a random-init placeholder: pixels are not meaningful")
     return 0
+
+
+def _say(cmd: str, bar=None):
+    """A one-line progress message on stderr (through the progress bar when one is open, so it is not torn)."""
+    from tqdm import tqdm
+
+    def say(message: str) -> None:
+        line = f"[resim {cmd}] {message}"
+        if bar is not None:
+            tqdm.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr, flush=True)
+    return say
 
 
 # ----------------------------------------------------------------------------------------------- plan
@@ -446,7 +464,7 @@ def _cmd_plan(args) -> int:
         policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if args.actions_from_trajectory else None
         res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), texts.__getitem__, cands, s.cfg,
                    s.num_future, seed=args.seed, policy_for=policy_for, progress=bar,
-                   actions_from_trajectory=args.actions_from_trajectory)
+                   actions_from_trajectory=args.actions_from_trajectory, log=_say("plan", bar))
     table = res.table()
     (out / "ranking.md").write_text(table + "\n")
     (out / "ranking.json").write_text(json.dumps(

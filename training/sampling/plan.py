@@ -98,13 +98,15 @@ class PlanResult:
 def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
          text_for: Callable[[str | None], torch.Tensor], candidates: Sequence[Candidate],
          cfg: RolloutConfig, num_future_frames: int, *, seed: int = 0, policy_for: Callable | None = None,
-         progress: Any = None, actions_from_trajectory: bool = False) -> PlanResult:
+         progress: Any = None, actions_from_trajectory: bool = False,
+         log: Callable[[str], None] | None = None) -> PlanResult:
     """Roll out every candidate from ``history`` (1, H, C, h, w), decode, score the futures, rank.
 
     ``text_for(command or None)`` → ``(1, L, D_text)`` prompt embedding (None = prefix alone, the CFG null).
     ``policy_for(trajectories (K, 8, 3))`` optionally returns a rollout policy (e.g. actions derived from the
     trajectories for action-conditioned models; then pass ``actions_from_trajectory=True`` so that guidance drops
-    them with the trajectory, see ``rollout``).
+    them with the trajectory, see ``rollout``). ``log(message)`` hears about the steps after the rollouts
+    (decoding, scoring: minutes on a CPU, after a progress bar of the rollouts has reached its end).
     """
     from training.reward.score import score_videos
     from training.sampling.outputs import decode_rollout
@@ -122,8 +124,11 @@ def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
     res = rollout(world_model, history.expand(k, -1, -1, -1, -1), cond, num_future_frames, cfg, seed=seed,
                   policy=policy_for(trajs) if policy_for else None, progress=progress, same_noise=True,
                   actions_from_trajectory=actions_from_trajectory)
+    say = log or (lambda _m: None)
+    say(f"decoding {k} imagined futures with the VAE ...")
     frames = decode_rollout(vae, res.latents, res.num_history_frames, cfg.frames_per_round,
                             cfg.history_frames)                      # (K, F, H, W, 3)
+    say(f"scoring {k} futures with Video2Reward ...")
     h0 = res.num_history_frames
     num_hist_px = 1 + 4 * (h0 - 1)
     futures = [f[num_hist_px:] for f in frames]
