@@ -87,11 +87,11 @@ WORLD_PRESETS: dict[str, dict] = {
         "trainer": {"steps": 2500, "checkpoint_every_steps": 500, "precision": "fp32", "ema_decay": 0.999,
                     "log_every_steps": 20},
     },
-    # third stage: from "synth-control"'s EMA weights, the command also through a pooled text vector in AdaLN
-    # (training/models/config.py: TextPoolConfig, zero-initialised so training starts from the earlier model).
-    # After "synth-control" the command moved the prediction by ~1 %; through joint attention alone the small
-    # model had learnt to ignore it. The shipped model: 800 steps of this preset, then 9,000 more from there
-    # (docs/models/synth-world.md). --set model.init_weights=RUN_CONTROL/final/ema.safetensors
+    # third stage (an experiment, not the shipped model): from "synth-control"'s EMA weights, the command also
+    # through a pooled text vector in AdaLN (training/models/config.py: TextPoolConfig, zero-initialised so
+    # training starts from the earlier model). After "synth-control" the command moved the prediction by ~1 %.
+    # 4,800 steps of this stage raised that to ~9 % but did not make rollouts turn (docs/models/synth-world.md,
+    # "The pooled-text experiment"). --set model.init_weights=RUN_CONTROL/final/ema.safetensors
     "synth-command": {
         "model_name": "world", "preset": "synth-command",
         "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
