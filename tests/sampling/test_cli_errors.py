@@ -79,9 +79,11 @@ def _usage_error(capsys, argv, needle):
 
 
 def _one_line_error(capsys, argv, needle, sub="sample"):
+    """Exit 2 with one error line; progress lines ("[resim sample] loading ...") may come before it."""
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith(f"resim {sub}: ") and needle in err and len(err.splitlines()) == 1, err
+    lines = [ln for ln in capsys.readouterr().err.strip().splitlines() if not ln.startswith(f"[resim {sub}] ")]
+    err = "\n".join(lines)
+    assert err.startswith(f"resim {sub}: ") and needle in err and len(lines) == 1, err
 
 
 @pytest.mark.parametrize("sub", ["sample", "plan"])
