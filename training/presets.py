@@ -87,21 +87,6 @@ WORLD_PRESETS: dict[str, dict] = {
         "trainer": {"steps": 2500, "checkpoint_every_steps": 500, "precision": "fp32", "ema_decay": 0.999,
                     "log_every_steps": 20},
     },
-    # third stage (an experiment, not the shipped model): from "synth-control"'s EMA weights, the command also
-    # through a pooled text vector in AdaLN (training/models/config.py: TextPoolConfig, zero-initialised so
-    # training starts from the earlier model). After "synth-control" the command moved the prediction by ~1 %.
-    # 4,800 steps of this stage raised that to ~9 % but did not make rollouts turn (docs/models/synth-world.md,
-    # "The pooled-text experiment"). --set model.init_weights=RUN_CONTROL/final/ema.safetensors
-    "synth-command": {
-        "model_name": "world", "preset": "synth-command",
-        "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "overrides": dict(_SYNTH_TEXT_POOL),
-                  "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.3,
-                                "trajectory_keep_sources": []}},
-        "data": {"batch_size_per_gpu": 8, "num_workers": 1},
-        "optim": {"lr": 5e-4, "warmup_steps": 50, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
-        "trainer": {"steps": 9000, "checkpoint_every_steps": 500, "precision": "fp32", "ema_decay": 0.999,
-                    "log_every_steps": 20},
-    },
     "stage1": _stage(1, trainable="dit", lora=0, hw=(512, 896), bs=2, gbs=80, lr=1e-5, steps=20_000,
                      weights={"opendv": 1.0},
                      paper={"dit": "trainable", "lora": "-", "traj_enc": "-", "data": "OpenDV",
@@ -117,6 +102,16 @@ WORLD_PRESETS: dict[str, dict] = {
                             "data": "OpenDV, NAVSIM, CARLA", "resolution": "512x896", "batch": 80, "lr": 5e-5,
                             "steps": 50_000}),
 }
+
+# third stage (an experiment, not the shipped model): from "synth-control"'s EMA weights, the command also
+# through a pooled text vector in AdaLN (training/models/config.py: TextPoolConfig, zero-initialised so
+# training starts from the earlier model); otherwise "synth-control". After "synth-control" the command was
+# worth ~1 % of the loss; 7,300 steps with this path raised that to ~18 % but did not make rollouts turn
+# (docs/models/synth-world.md, "The pooled-text experiment"). --set model.init_weights=RUN_CONTROL/final/ema.safetensors
+WORLD_PRESETS["synth-command"] = copy.deepcopy(WORLD_PRESETS["synth-control"])
+WORLD_PRESETS["synth-command"].update(preset="synth-command")
+WORLD_PRESETS["synth-command"]["model"]["overrides"] = dict(_SYNTH_TEXT_POOL)
+WORLD_PRESETS["synth-command"]["trainer"]["steps"] = 9000
 
 VAE_PRESETS: dict[str, dict] = {
     # the synthetic world's VAE (configs/models/synth-vae, docs/models/synth-vae.md): 64x96 clips of

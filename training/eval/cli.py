@@ -337,17 +337,17 @@ def _runner(args):
     return runner, meta
 
 
-def _clips(args, items):
+def _clips(args, items, need_trajectory: bool = True):
     from training.eval.worldeval import eval_clips_from_dataset
 
     from shards.reader import ShardReadError
 
     try:
-        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit)
+        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit, need_trajectory=need_trajectory)
     except (FileNotFoundError, ShardReadError) as e:
         raise SystemExit(f"resim eval: --shards: {e}") from None
     if not clips:
-        raise SystemExit(f"resim eval: no clips with a trajectory in {args.shards}"
+        raise SystemExit(f"resim eval: no clips{' with a trajectory' if need_trajectory else ''} in {args.shards}"
                          + (f" among the {len(items)} held-out episodes" if items else ""))
     return clips
 
@@ -521,11 +521,9 @@ def _cmd_commands(args) -> int:
 
 
 def _cmd_drift(args) -> int:
-    from shards.reader import ShardReadError
     from shards.schema import COMMANDS
     from training.eval.drift import drift_eval, drift_strip, format_drift, plot_drift
     from training.eval.report import format_protocol
-    from training.eval.worldeval import eval_clips_from_dataset
 
     if not _device(args, "drift"):
         return 2
@@ -534,13 +532,7 @@ def _cmd_drift(args) -> int:
     command = None if args.command.lower() == "none" else args.command
     if command is not None and command not in COMMANDS:
         raise SystemExit(f"resim eval drift: --command {args.command!r} is not one of {list(COMMANDS)} or 'none'")
-    items = _heldout_items(args.heldout_from, args.all_clips)
-    try:
-        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit, need_trajectory=False)
-    except (FileNotFoundError, ShardReadError) as e:
-        raise SystemExit(f"resim eval drift: --shards: {e}") from None
-    if not clips:
-        raise SystemExit(f"resim eval drift: no clips in {args.shards}")
+    clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips), need_trajectory=False)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     runner, meta = _runner(args)
