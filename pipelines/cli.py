@@ -89,6 +89,7 @@ def _cmd_run(args) -> int:
     from pipelines.out_lock import OutBusy
     from pipelines.ray_connect import ClusterError
     from pipelines.report import format_summary
+    from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
     from resim.config import ConfigError
 
     logging.basicConfig(level=logging.INFO, format="[pipeline] %(message)s")
@@ -108,6 +109,14 @@ def _cmd_run(args) -> int:
         return 2
     except (OutBusy, ClusterError) as e:   # OUT in use / no usable cluster: not a config mistake, nothing written
         print(f"resim pipeline run: error: {e}", file=sys.stderr)
+        return 1
+    except (OutputError, runner.IncompleteRun) as e:   # disk full, read-only OUT, units that did not commit
+        print(f"resim pipeline run: error: {e}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        if e.errno not in OUTPUT_ERRNOS:    # anything else is a bug: the traceback says where
+            raise
+        print(f"resim pipeline run: error: {runner.output_error(e)}", file=sys.stderr)
         return 1
     print(format_summary(res.stats, res.out, res.report_png))
     return 0

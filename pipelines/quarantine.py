@@ -76,8 +76,12 @@ def write_rows(root: str | Path, unit_id: str, rows: list[dict]) -> Path | None:
     cols = {c: [r[c] for r in rows] for c in QUARANTINE_COLUMNS}
     table = pa.table({**cols, "attempts": pa.array(cols["attempts"], pa.int32())})
     tmp = path.with_name(f".{path.name}.{time.time_ns()}.tmp")
-    pq.write_table(table, tmp)
-    tmp.replace(path)
+    try:
+        pq.write_table(table, tmp)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)       # a full disk leaves no temporary file behind
+        raise
     return path
 
 

@@ -17,6 +17,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 from pipelines import quarantine
+from shards.fsio import atomic_write_bytes
 
 STAGE_ORDER = ("cut", "label", "balance", "encode", "encode.decode", "encode.vae", "encode.mp4", "write")
 
@@ -90,9 +91,7 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
 
 def write_stats(out: str | Path, stats: dict) -> Path:
     p = Path(out) / "stats.json"
-    tmp = p.with_name(".stats.json.tmp")
-    tmp.write_text(json.dumps(stats, indent=2, sort_keys=False))
-    tmp.replace(p)
+    atomic_write_bytes(p, json.dumps(stats, indent=2, sort_keys=False).encode())   # no temp file left on failure
     return p
 
 

@@ -11,10 +11,10 @@ are computed from all markers, so a resumed run reports on the whole dataset.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 from pipelines import quarantine
+from shards.fsio import atomic_write_bytes
 
 SUMMARY_KEYS = ("unit_id", "kind", "origin", "item_id", "status", "attempts", "balance", "timings_s", "written")
 
@@ -37,13 +37,7 @@ def summary(state: dict) -> dict:
 
 def write_marker(out: str | Path, state: dict) -> Path:
     path = marker_path(out, state["unit_id"])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as fh:
-        json.dump(summary(state), fh, sort_keys=True)
-        fh.flush()
-        os.fsync(fh.fileno())
-    tmp.replace(path)
+    atomic_write_bytes(path, json.dumps(summary(state), sort_keys=True).encode())   # no temp file left on failure
     return path
 
 

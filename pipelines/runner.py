@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import time
 from dataclasses import dataclass, field, replace
@@ -23,10 +24,42 @@ from pathlib import Path
 
 from pipelines import out_lock, quarantine, ray_connect, resume, stage_fit
 from pipelines.config import PipelineConfig, absolute_paths, check_synthetic_world, to_dict
+from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
 from pipelines.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save
 
 log = logging.getLogger("resim.pipeline")
+
+
+class IncompleteRun(RuntimeError):
+    """Units that ran without leaving a commit marker: the run must not report success (nothing is lost:
+    committed units are kept and a rerun redoes the others)."""
+
+
+def output_error(e: BaseException) -> OutputError | None:
+    """The :class:`OutputError` behind ``e`` (Ray wraps a stage's exception in its own), or an ``OSError``
+    of the driver's own writes that says OUT cannot be written, as one; ``None`` for anything else."""
+    seen, first = set(), e
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OutputError):
+            return OutputError(str(e))
+        if isinstance(e, OSError) and e.errno in OUTPUT_ERRNOS:
+            return OutputError(f"cannot write {e.filename or 'the output'}: {e.strerror}. Units committed so far "
+                               "are kept; free the space (or fix the mount) and rerun the same command")
+        e = getattr(e, "cause", None) or e.__cause__ or e.__context__
+    # Ray Data passes a stage's exception to the driver as text only (UserCodeException keeps no cause)
+    m = re.search(rf"{re.escape(OutputError.__module__)}\.OutputError: (.+)", str(first))
+    return OutputError(m.group(1).strip()) if m else None
+
+
+def check_committed(out: Path, todo: list[dict]) -> None:
+    """Every unit this run ran must have its commit marker; otherwise fail, naming how many and one of them."""
+    markers = resume.read_markers(out)
+    missing = [s["unit_id"] for s in todo if s["unit_id"] not in markers]
+    if missing:
+        raise IncompleteRun(f"{len(missing)} of {len(todo)} units ran but did not commit (e.g. {missing[0]}); "
+                            "the committed ones are kept: rerun the same command to complete the dataset")
 
 
 @dataclass
@@ -223,6 +256,9 @@ def _quiet_ray_data(progress: bool) -> None:
     ctx.print_on_execution_start = False
     for name in ("ray.data", "ray"):
         logging.getLogger(name).setLevel(logging.ERROR)
+    # a stage's exception reaches the driver inside the one Ray Data raises (with the remote traceback);
+    # Ray Data's own ERROR lines about it only repeat that, before the one-line error or the traceback we give
+    logging.getLogger("ray.data").setLevel(logging.CRITICAL)
 
 
 def start_prompts_ray(cfg: PipelineConfig, have_gpu: bool):
@@ -432,16 +468,23 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
         done["units"] += 1
         done["clips_written"] += (summary.get("written") or {}).get("num_samples", 0)
 
-    if cfg.ray.executor == "ray":
-        import ray
+    try:
+        if cfg.ray.executor == "ray":
+            import ray
 
-        _quiet_ray_data(progress)
-        prompts = start_prompts_ray(cfg, have_gpu)
-        run_units_ray(cfg, todo, have_gpu, on_done, progress)
-        ray.get(prompts)
-    else:
-        run_prompts_local(cfg)
-        run_units_local(cfg, todo, on_done, progress)
+            _quiet_ray_data(progress)
+            prompts = start_prompts_ray(cfg, have_gpu)
+            run_units_ray(cfg, todo, have_gpu, on_done, progress)
+            ray.get(prompts)
+        else:
+            run_prompts_local(cfg)
+            run_units_local(cfg, todo, on_done, progress)
+    except Exception as e:
+        err = output_error(e)
+        if err is None:
+            raise
+        raise err from None
+    check_committed(out, todo)      # a unit that ran without committing is never counted as done
 
     staging = out / "_staging"
     if staging.is_dir() and not any(staging.iterdir()):

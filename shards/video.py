@@ -11,7 +11,9 @@ beyond numpy/pyarrow/webdataset.
 """
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import tempfile
 
 import numpy as np
@@ -50,19 +52,42 @@ def encode_mp4(frames: np.ndarray, fps_hz: float) -> bytes:
     try:
         writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), float(fps_hz), (w, h))
         if not writer.isOpened():
+            _raise_if_full(path, "open an mp4 writer")
             raise VideoError("OpenCV could not open an mp4v writer")
         try:
             for f in frames:
                 writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
         finally:
             writer.release()
-        with open(path, "rb") as fh:
-            data = fh.read()
+        try:
+            with open(path, "rb") as fh:
+                data = fh.read()
+        except FileNotFoundError:       # the muxer removed what it could not finish
+            data = b""
     finally:
-        os.remove(path)
-    if not data:
-        raise VideoError("OpenCV wrote an empty mp4")
+        try:
+            os.remove(path)
+        except FileNotFoundError:
+            pass
+    # OpenCV reports no write error. A file that is gone, empty, or lacks its index (the moov box, written
+    # last) is what a full or read-only temporary folder leaves: an OSError, retried by the pipeline, never a
+    # clip with a broken frames.mp4
+    if not data or b"moov" not in data:
+        _raise_if_full(path, f"write an mp4 of {t} frames")
+        raise OSError(errno.EIO, f"OpenCV wrote an incomplete mp4 of {t} frames ({len(data)} bytes, no index)", path)
     return data
+
+
+def _raise_if_full(path: str, what: str, min_free_bytes: int = 16 << 20) -> None:
+    """ENOSPC naming the folder when the filesystem of ``path`` has almost no space left."""
+    folder = os.path.dirname(path) or "."
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < min_free_bytes:
+        raise OSError(errno.ENOSPC, f"could not {what}: {free} bytes free in the temporary folder {folder} "
+                                    "(TMPDIR)", path)
 
 
 def read_rgb_frames(path: str) -> tuple[bool, list[np.ndarray], int]:

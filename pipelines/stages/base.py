@@ -12,10 +12,16 @@ Bad input is turned into quarantine rows here, once, for all stages:
   corrupt file does not help;
 * ``OSError`` (a file vanished, an NFS hiccup): retried ``quarantine.max_attempts`` times, then
   quarantined with the attempt count;
+* an ``OSError`` that says OUT cannot be written (disk full, quota, read-only: ``OUTPUT_ERRNOS``), or any
+  ``OSError`` of a stage that only touches OUT (``writes_out``: the writer), is the machine's problem, not
+  the unit's: retried after a pause (a disk freed meanwhile lets the run go on), then :class:`OutputError`
+  stops the run. Quarantining the unit would make a good unit look bad, and a unit without its commit
+  marker must never be counted as done;
 * anything else is our bug and propagates: the job fails loudly.
 """
 from __future__ import annotations
 
+import errno
 import time
 
 import numpy as np
@@ -37,6 +43,15 @@ def source_error_reason(e, item_id: str) -> str:
     return e.reason if e.item == item_id else f"{e.item}: {e.reason}"
 
 
+# errno values that say the output cannot be written: the machine's problem, never the unit's bad input
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
+
+
+class OutputError(RuntimeError):
+    """OUT (or the temporary folder) cannot be written: the run stops with this one-line message. Units
+    committed so far are kept; a rerun redoes the rest."""
+
+
 class BadInput(Exception):
     """Raised by our own checks on input data (too short, too low-res, NaN poses...)."""
 
@@ -47,6 +62,9 @@ class BadInput(Exception):
 
 class Stage:
     name = "stage"
+    writes_out = False        # True: every I/O error of this stage is on OUT (see the module docstring)
+    output_attempts = 4       # tries of a unit whose output was refused (pauses 2, 4, 8 s: a disk full for a
+    output_pause_s = 2.0      # few seconds, e.g. while another job cleans up, costs a pause, not the run)
 
     def __init__(self, cfg: dict | PipelineConfig, progress=None):
         self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
@@ -78,7 +96,15 @@ class Stage:
             except BadInput as e:
                 quarantine.quarantine_unit(state, self.name, e.reason, attempts=state["attempts"])
                 break
-            except OSError as e:  # transient I/O: retry, then quarantine with the count
+            except OSError as e:
+                if self.writes_out or e.errno in OUTPUT_ERRNOS:
+                    if attempts < self.output_attempts:
+                        time.sleep(self.output_pause_s * 2 ** (attempts - 1))
+                        continue
+                    raise OutputError(f"{self.name} of unit {state['unit_id']}: cannot write after {attempts} "
+                                      f"attempts: {e}. Units committed so far are kept; free the space (or fix "
+                                      f"the mount) and rerun the same command to complete the dataset") from None
+                # transient I/O on the unit's input: retry, then quarantine with the count
                 # state["attempts"] is the unit's total number of tries (this run's and, with
                 # quarantine.retry_quarantined, earlier runs'): the marker and the row both report it
                 if attempts < self.cfg.quarantine.max_attempts:

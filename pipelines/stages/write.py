@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,7 @@ def remove_unit_files(out: Path, unit_id: str) -> int:
 
 class WriteStage(Stage):
     name = "write"
+    writes_out = True         # it reads only the unit's staging files and writes OUT: no error here is the unit's
 
     def __init__(self, cfg, progress=None):
         super().__init__(cfg, progress)
@@ -69,13 +71,24 @@ class WriteStage(Stage):
         return sample
 
     def process(self, state: dict) -> None:
-        import time
-
-        from shards.writer import ShardWriter
-
         t0 = time.perf_counter()
         uid = state["unit_id"]
         remove_unit_files(self.out, uid)
+        try:
+            self._write(state, t0)
+        except BaseException:
+            try:       # an uncommitted unit leaves nothing half-written behind (a rerun would remove it too)
+                remove_unit_files(self.out, uid)
+            except OSError:
+                pass
+            raise
+        if state.get("staging"):
+            shutil.rmtree(state["staging"], ignore_errors=True)
+
+    def _write(self, state: dict, t0: float) -> None:
+        from shards.writer import ShardWriter
+
+        uid = state["unit_id"]
         shards: list[dict] = []
         keys = state["clips"] if state["status"] == "ok" else []
         if keys:
@@ -92,5 +105,3 @@ class WriteStage(Stage):
         state["timings_s"]["write"] = state["timings_s"].get("write", 0.0) + time.perf_counter() - t0
         resume.write_marker(self.out, state)
         state["timings_s"]["write"] -= time.perf_counter() - t0    # run_one adds the whole stage time back
-        if state.get("staging"):
-            shutil.rmtree(state["staging"], ignore_errors=True)
