@@ -19,7 +19,7 @@ import pytest
 
 from pipelines.stages.base import OutputError, Stage
 
-from .conftest import make_config
+from .conftest import REPO, make_config
 
 
 @pytest.fixture(autouse=True)
@@ -98,7 +98,7 @@ def test_a_full_disk_stops_the_run_loudly_and_a_rerun_completes_it(tmp_path, syn
 
     # the command line says it in one line, exit 1
     monkeypatch.setattr(ShardWriter, "write", write)
-    rc = main(["pipeline", "run", "configs/pipeline/synthetic.yaml", "--out", str(out), "--no-progress",
+    rc = main(["pipeline", "run", str(REPO / "configs/pipeline/synthetic.yaml"), "--out", str(out), "--no-progress",
                "--set", f"sources.synthetic.root={cfg.sources.synthetic.root}", "--set", "ray.executor=local",
                "--set", "sources.synthetic.layouts=[opendv,carla]",
                *[a for kv in ("encode.height_px=16", "encode.width_px=24", "encode.frames_height_px=16",
