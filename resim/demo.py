@@ -334,7 +334,9 @@ def _commands_section(out: Path, cfg: DemoConfig) -> list[str]:
              ", ".join(f"{html.escape(c.split()[-1])} {_f(v, '.2f')}" for c, v in fl[k]["per_command"].items())]
             for name, k in (("commanded (left / forward / right)", "commanded"),
                             ("null prompt (control: 1/3 = ignores the command)", "null_prompt"),
-                            ("recorded future (the labeler's ceiling)", "recorded_future"))]
+                            ("recorded future (the labeler's ceiling)", "recorded_future"),
+                            ("recorded future through the VAE (the ceiling of any world model with this VAE)",
+                             "recorded_through_vae")) if k in fl]
     fid = [[f"{x['horizon_s']:g} s", _f(x["psnr_model"], ".2f"), _f(x["psnr_copy_last_frame"], ".2f"),
             _f(x["ssim_model"]), _f(x["ssim_copy_last_frame"])] for x in r["fidelity"]["per_horizon"]]
     return [

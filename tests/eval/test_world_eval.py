@@ -211,3 +211,22 @@ def test_limit_zero_is_an_error_not_all_clips(tmp_path):
         eval_clips_from_dataset(tmp_path, limit=0)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         eval_clips_from_dataset(tmp_path / "nope")
+
+
+def test_commands_command_reports_the_labeler_through_the_vae(world, capsys):
+    root, _ = world
+    # frames at the size the tiny VAE decodes to (8x its latents), as the pipeline stores them
+    ds = root / "ds-vae-size"
+    spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
+    write_synthetic_shards(ds, SynthConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1,
+                                           frames_hw=(64, 96)), spec)
+    out = root / "commands"
+    assert main(["eval", "commands", *_common(root, ds, out), "--all-clips"]) == 0
+    rep = json.loads((out / "commands.json").read_text())
+    fl = rep["flow_labeler"]
+    n = rep["protocol"]["clips"]
+    # the clips' own latents decoded as a rollout is: the ceiling of any world model through this VAE
+    assert fl["recorded_through_vae"]["n"] == fl["recorded_future"]["n"] == n
+    assert "recorded through the VAE" in fl["mean_yaw_deg"]
+    assert all("recorded_through_vae_flow" in c for c in rep["clips"])
+    assert "recorded_through_vae" in capsys.readouterr().out

@@ -200,7 +200,10 @@ def register(subparsers) -> None:
     v = sub.add_parser("vae", help="VAE reconstruction PSNR/SSIM per frame on held-out clips, with a picture",
                        description="Encode each clip's recorded frames with the VAE as the pipeline does and decode "
                                    "them as the sampler does; report PSNR/SSIM per frame of the clip and show "
-                                   "originals beside reconstructions.",
+                                   "originals beside reconstructions. Motion: the optical-flow labeler reads each "
+                                   "clip's future on the originals and on the reconstructions; its accuracy on the "
+                                   "reconstructions is the ceiling of any world model's command accuracy (resim "
+                                   "eval commands) through this VAE.",
                        epilog="example:\n  resim eval vae --vae synth-vae --shards data/heldout --out out/vae\n\n"
                               "--vae: a folder or a shipped model name (configs/models/NAME). Writes OUT/vae.json "
                               "and OUT/vae.png.", formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -556,8 +559,8 @@ def _cmd_vae(args) -> int:
     from resim.models import shipped_model
     from shards.reader import ShardReadError
     from training.eval.report import write_json
-    from training.eval.vae_eval import plot_vae_eval, vae_eval
-    from training.eval.worldeval import eval_clips_from_dataset
+    from training.eval.vae_eval import format_vae_eval, plot_vae_eval, vae_eval
+    from training.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
 
     if not _device(args, "vae"):
         return 2
@@ -575,7 +578,10 @@ def _cmd_vae(args) -> int:
     print(f"[resim eval vae] {len(clips)} clips of {len(clips[0].frames)} frames through {vae.info.vae_id} ...",
           file=sys.stderr)
     t0 = time.perf_counter()
-    rep = vae_eval(vae, clips)
+    labeler, why_not = flow_labeler_status()
+    if labeler is None:
+        print(f"[resim eval vae] motion through the VAE not measured: {why_not}", file=sys.stderr)
+    rep = vae_eval(vae, clips, labeler=labeler)
     rep["protocol"] = {"vae": str(folder), "vae_placeholder": vae.info.placeholder, "shards": str(args.shards),
                        "episodes": len({c.item_id for c in clips}), "resolution_hw": list(clips[0].frames.shape[1:3]),
                        "round_trip": "VideoVAE.encode (posterior sample x scaling factor, seed = clip index) -> "
@@ -585,8 +591,7 @@ def _cmd_vae(args) -> int:
     plot_vae_eval(rep, out / "vae.png", clips[0].fps_hz)
     rep.pop("_examples")
     write_json(rep, out / "vae.json")
-    print(f"PSNR {rep['psnr_db']['mean']:.2f} dB (worst clip {rep['psnr_db']['per_clip_min']:.2f}), "
-          f"SSIM {rep['ssim']['mean']:.4f} over {rep['clips']} clips x {rep['frames_per_clip']} frames")
+    print(format_vae_eval(rep))
     print(f"wrote {out / 'vae.json'} and {out / 'vae.png'}")
     return 0
 

@@ -11,7 +11,9 @@ anything". The protocol (counterfactual commands from one history):
 * controls beside it: the **null prompt** (prefix only: the model is not told where to go; its futures are
   scored against each of the three commands, so a model that ignores the command scores 1/3 whatever it
   draws), and the **recorded future** (the labeler on the real frames against the recorded command: the
-  labeler's own ceiling);
+  labeler's own ceiling), and the **recorded future through the VAE** (the clip's own latents decoded as a
+  rollout is: what a world model that predicted the recorded future exactly would score; a VAE that smears
+  the ego motion caps every model's accuracy here);
 * **fidelity per horizon** of the rollouts under the recorded command against the recorded future, beside
   the copy-last-frame baseline (the last history frame held).
 
@@ -97,6 +99,7 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
 
     flow = {k: flow_commands(v, nh, fps, labeler) for k, v in videos.items()}
     gt_flow, gt_yaw = flow_commands(gt, nh, fps, labeler)
+    vae_flow, vae_yaw = flow_commands(runner.decode_recorded(clips), nh, fps, labeler)
     recorded = [c.command for c in clips]
     rep: dict[str, Any] = {"flow_labeler": {}, "idm": {}}
     cond = [c for c in COMMANDS for _ in range(n)]
@@ -105,7 +108,9 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     rep["flow_labeler"]["null_prompt_vs_recorded"] = confusion(recorded, flow[NULL][0])
     rep["flow_labeler"]["recorded_future"] = confusion(recorded, gt_flow)
     rep["flow_labeler"]["mean_yaw_deg"] = {k: float(np.mean(v[1])) for k, v in flow.items()}
+    rep["flow_labeler"]["recorded_through_vae"] = confusion(recorded, vae_flow)
     rep["flow_labeler"]["mean_yaw_deg"]["recorded future"] = float(np.mean(gt_yaw))
+    rep["flow_labeler"]["mean_yaw_deg"]["recorded through the VAE"] = float(np.mean(vae_yaw))
     if idm is not None:
         from labeling.config import preset as labeler_preset
 
@@ -122,7 +127,7 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
                                for i, c in enumerate(clips)])
     rep["fidelity"] = fidelity_per_horizon(under_recorded, gt, nh, fps, horizons_s)
     rep["clips"] = [{"key": c.key, "episode": c.item_id, "recorded_command": c.command,
-                     "recorded_future_flow": gt_flow[i],
+                     "recorded_future_flow": gt_flow[i], "recorded_through_vae_flow": vae_flow[i],
                      **{f"flow_{k}": flow[k][0][i] for k in videos}} for i, c in enumerate(clips)]
     rep["_videos"] = {**videos, "recorded": gt}
     return rep

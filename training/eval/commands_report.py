@@ -14,8 +14,10 @@ SHORT = {"Turning left": "left", "Moving forward": "forward", "Turning right": "
 def format_commands(rep: dict) -> str:
     fl = rep["flow_labeler"]
     lines = ["command accuracy (flow labeler on the generated future; 1/3 = ignores the command):"]
-    for name in ("commanded", "null_prompt", "null_prompt_vs_recorded", "recorded_future"):
-        c = fl[name]
+    for name in ("commanded", "null_prompt", "null_prompt_vs_recorded", "recorded_future", "recorded_through_vae"):
+        c = fl.get(name)
+        if c is None:                                  # reports written before the VAE row existed
+            continue
         per = "  ".join(f"{SHORT[k]} {v:.2f}" if v is not None else f"{SHORT[k]} n/a" for k, v in c["per_command"].items())
         lines.append(f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']}; {per})")
     if isinstance(rep.get("idm"), dict):
@@ -38,8 +40,10 @@ def plot_commands(rep: dict, path: str | Path, title: str = "") -> Path:
     import matplotlib.pyplot as plt
 
     fl = rep["flow_labeler"]
-    panels = [("commanded", "commanded"), ("null_prompt", "null prompt"), ("recorded_future", "recorded future")]
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
+    panels = [("commanded", "commanded"), ("null_prompt", "null prompt"), ("recorded_future", "recorded future"),
+              ("recorded_through_vae", "recorded, through the VAE")]
+    panels = [p for p in panels if p[0] in fl]
+    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(4 * (len(panels) + 1), 3.8))
     for ax, (key, name) in zip(axes, panels):
         m = np.asarray(fl[key]["matrix"], float)
         rows = m / np.maximum(m.sum(1, keepdims=True), 1)
@@ -51,9 +55,9 @@ def plot_commands(rep: dict, path: str | Path, title: str = "") -> Path:
         ax.set_xticks(range(3), [SHORT[c] for c in COMMANDS])
         ax.set_yticks(range(3), [SHORT[c] for c in COMMANDS])
         ax.set_xlabel("flow labeler reads")
-        ax.set_ylabel("recorded" if key == "recorded_future" else "conditioned on")
+        ax.set_ylabel("recorded" if key.startswith("recorded") else "conditioned on")
         ax.set_title(f"{name}: acc {fl[key]['accuracy']:.2f}")
-    ax = axes[3]
+    ax = axes[len(panels)]
     rows = rep["fidelity"]["per_horizon"]
     hs = [r["horizon_s"] for r in rows]
     ax.plot(hs, [r["psnr_model"] for r in rows], "o-", label="world model")

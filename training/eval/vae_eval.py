@@ -6,6 +6,12 @@ pipeline runs it (``media.encoders.VideoVAE.encode``: one posterior sample x sca
 through the sampler's decode (``training.sampling.outputs.decode_latents``), i.e. exactly the round trip a
 world-model rollout's frames take. Frame ``k``'s metrics average over clips, so the causal VAE's first
 frame (encoded alone) and the frames at its 4-frame chunk boundaries show up separately.
+
+**Motion through the VAE.** PSNR does not say whether the ego motion survives the round trip, and the
+controllability metric (``resim eval commands``) reads it off decoded video with the optical-flow labeler.
+Given the labeler, the evaluation also labels each clip's future on the originals and on the
+reconstructions: the labeler's accuracy on reconstructions is the ceiling of any world model's command
+accuracy through this VAE (a blur of the same PSNR keeps the heading; a VAE that smears the motion does not).
 """
 from __future__ import annotations
 
@@ -26,10 +32,34 @@ def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarra
     return decode_latents(vae, torch.from_numpy(lat))
 
 
-def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2) -> dict:
+def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np.ndarray],
+                   clips: Sequence[Any]) -> dict:
+    """The flow labeler's command and heading change (deg, left +) of each clip's future, on the originals
+    and on the reconstructions; accuracies against the recorded commands, and how much heading survives."""
+    from training.eval.commands import confusion, flow_commands
+
+    nh, fps = clips[0].num_history_frames, clips[0].fps_hz
+    raw_c, raw_y = flow_commands(np.stack(frames), nh, fps, labeler)
+    rec_c, rec_y = flow_commands(np.stack(recs), nh, fps, labeler)
+    recorded = [c.command for c in clips]
+    keep = [i for i, c in enumerate(recorded) if c is not None]
+    ry, cy = np.asarray(raw_y), np.asarray(rec_y)
+    turning = np.abs(ry) >= 10.0                                        # the heading a turn shows, in deg
+    return {"labeler_on_originals": confusion([recorded[i] for i in keep], [raw_c[i] for i in keep]),
+            "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [rec_c[i] for i in keep]),
+            "same_label": float(np.mean([a == b for a, b in zip(raw_c, rec_c)])),
+            "heading_kept": (float(np.sum(cy[turning] * ry[turning]) / np.sum(ry[turning] ** 2))
+                             if turning.any() else None),
+            "mean_abs_heading_deg": {"originals": float(np.abs(ry).mean()), "reconstructions": float(np.abs(cy).mean())},
+            "clips": len(clips), "turning_clips": int(turning.sum())}
+
+
+def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any = None) -> dict:
     """Per-frame PSNR/SSIM over ``clips`` (``EvalClip``: ``.frames`` uint8 (T, H, W, 3)); ``_examples`` holds
-    the first batch's originals and reconstructions for the picture."""
+    the first batch's originals and reconstructions for the picture. With ``labeler`` (``FlowLabeler``),
+    ``motion`` (:func:`motion_through`): does the ego motion survive the round trip?"""
     per_psnr, per_ssim, examples = [], [], None
+    all_frames, all_recs = [], []
     for i in range(0, len(clips), batch_size):
         part = clips[i:i + batch_size]
         frames = np.stack([c.frames for c in part])
@@ -40,11 +70,31 @@ def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2) -> dict:
         per_ssim.append(ssim(g, r, "uint8"))
         if examples is None:
             examples = (frames, rec)
+        if labeler is not None:
+            all_frames.extend(frames)
+            all_recs.extend(rec)
     p, s = torch.cat(per_psnr), torch.cat(per_ssim)                  # (N, T)
-    return {"psnr_db": {"mean": float(p.mean()), "per_clip_min": float(p.mean(1).min()),
-                        "per_frame": p.mean(0).tolist()},
-            "ssim": {"mean": float(s.mean()), "per_frame": s.mean(0).tolist()},
-            "clips": len(clips), "frames_per_clip": int(p.shape[1]), "_examples": examples}
+    rep = {"psnr_db": {"mean": float(p.mean()), "per_clip_min": float(p.mean(1).min()),
+                       "per_frame": p.mean(0).tolist()},
+           "ssim": {"mean": float(s.mean()), "per_frame": s.mean(0).tolist()},
+           "clips": len(clips), "frames_per_clip": int(p.shape[1]), "_examples": examples}
+    if labeler is not None:
+        rep["motion"] = motion_through(labeler, all_frames, all_recs, clips)
+    return rep
+
+
+def format_vae_eval(rep: dict) -> str:
+    """The summary ``resim eval vae`` prints."""
+    lines = [f"PSNR {rep['psnr_db']['mean']:.2f} dB (worst clip {rep['psnr_db']['per_clip_min']:.2f}), "
+             f"SSIM {rep['ssim']['mean']:.3f} over {rep['clips']} clips"]
+    m = rep.get("motion")
+    if m:
+        kept = "n/a (no turning clip)" if m["heading_kept"] is None else f"{m['heading_kept']:.2f}"
+        lines.append(f"motion: flow-labeler accuracy on originals {m['labeler_on_originals']['accuracy']:.2f}, on "
+                     f"reconstructions {m['labeler_on_reconstructions']['accuracy']:.2f} (the ceiling of a world "
+                     f"model's command accuracy through this VAE); same label {m['same_label']:.2f}; heading kept "
+                     f"{kept} on {m['turning_clips']} turning clips (1 = all)")
+    return "\n".join(lines)
 
 
 def plot_vae_eval(rep: dict, path: str | Path, fps_hz: float, title: str = "") -> Path:

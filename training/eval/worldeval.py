@@ -169,6 +169,20 @@ class WorldRollouts:
                               self.cfg.history_frames)
 
 
+    def decode_recorded(self, clips: Sequence[EvalClip]) -> np.ndarray:
+        """The clips' own latents decoded as a rollout's are (``decode_rollout``, round by round): the video a
+        world model that predicted the recorded future exactly would show, ``(N, T, H, W, 3)`` uint8."""
+        from training.sampling.outputs import decode_rollout
+
+        out = []
+        for i in range(0, len(clips), self.batch_size):
+            part = clips[i:i + self.batch_size]
+            lat = torch.from_numpy(np.stack([c.latents for c in part])).to(self.device)
+            out.append(decode_rollout(self.vae, lat, self.history_latents(part[0]), self.cfg.frames_per_round,
+                                      self.cfg.history_frames))
+        return np.concatenate(out)
+
+
 def _idm_on(idm, videos: np.ndarray, num_history_frames: int, batch_size: int = 16) -> np.ndarray:
     """IDM trajectories ``(N, 8, 3)`` of whole videos ``(N, T, H, W, 3)`` uint8."""
     dev = next(idm.parameters()).device

@@ -1,0 +1,65 @@
+"""Motion through the VAE (`resim eval vae`): the flow labeler's reading of reconstructions separates a VAE
+that blurs (heading kept) from one that smears the ego motion (heading lost), which PSNR alone cannot."""
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from resim.cli import main
+from training.eval.vae_eval import format_vae_eval, motion_through
+from training.eval.worldeval import flow_labeler_status
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _pan(px_per_frame: float, seed: int) -> np.ndarray:
+    """(49, 64, 96, 3) uint8: a texture panning sideways, as a camera yawing (left turn: content moves right)."""
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.integers(0, 256, (64, 400), dtype=np.uint8), (0, 0), 1.2)
+    tex = cv2.normalize(tex, None, 20, 230, cv2.NORM_MINMAX)
+    cols = [150 + int(round(px_per_frame * i)) for i in range(49)]
+    return np.stack([np.repeat(tex[:, c:c + 96, None], 3, axis=2) for c in cols])
+
+
+@pytest.fixture(scope="module")
+def drives():
+    frames = [_pan(-1.5, 0), _pan(1.5, 1), _pan(0.0, 2), _pan(-1.5, 3), _pan(1.5, 4)]
+    clips = [SimpleNamespace(command=c, num_history_frames=9, fps_hz=10.0)
+             for c in ("Turning left", "Turning right", "Moving forward", "Turning left", "Turning right")]
+    labeler, reason = flow_labeler_status()
+    assert labeler is not None, reason
+    return frames, clips, labeler
+
+
+def test_a_blur_keeps_the_heading_a_frozen_reconstruction_loses_it(drives):
+    frames, clips, labeler = drives
+    blurred = [np.stack([cv2.GaussianBlur(f, (0, 0), 1.0) for f in v]) for v in frames]
+    # motion smeared: every 4-frame group shows its first frame, and the image barely moves
+    frozen = [np.stack([v[min(i, 12)] for i in range(len(v))]) for v in frames]
+
+    same = motion_through(labeler, frames, frames, clips)
+    assert same["labeler_on_originals"]["accuracy"] == 1.0 and same["same_label"] == 1.0
+    assert same["heading_kept"] == pytest.approx(1.0)
+
+    blur = motion_through(labeler, frames, blurred, clips)
+    assert blur["labeler_on_reconstructions"]["accuracy"] == 1.0 and blur["heading_kept"] > 0.8, blur
+
+    lost = motion_through(labeler, frames, frozen, clips)
+    assert lost["heading_kept"] < 0.2, lost
+    assert lost["labeler_on_reconstructions"]["accuracy"] == pytest.approx(1 / 5), lost   # only "forward" right
+    assert "on reconstructions 0.20" in format_vae_eval({"psnr_db": {"mean": 30.0, "per_clip_min": 29.0},
+                                                         "ssim": {"mean": 0.9}, "clips": 5, "motion": lost})
+
+
+@pytest.mark.slow
+def test_eval_vae_reports_motion_through_the_shipped_vae(tmp_path, capsys):
+    heldout = REPO / "tests" / "data" / "synth-heldout"
+    assert main(["eval", "vae", "--vae", "synth-vae", "--shards", str(heldout), "--out", str(tmp_path),
+                 "--limit", "2", "--device", "cpu"]) == 0
+    rep = json.loads((tmp_path / "vae.json").read_text())
+    m = rep["motion"]
+    assert m["clips"] == 2 and m["labeler_on_originals"]["n"] == 2 and 0 <= m["same_label"] <= 1
+    assert "motion: flow-labeler accuracy on originals" in capsys.readouterr().out
