@@ -155,8 +155,9 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
         *([f"warnings          {wr['rows']} in {wr['units']} unit(s) (quarantine/*.parquet, status warning)  "
            f"e.g. {wr['examples'][0]}"] if wr["rows"] else []),
         f"turning share     {_pct(ts['before'])} before → {_pct(ts['after'])} after {ts['turn_factor']}x balance",
-        f"throughput        {run.get('clips_per_s')} clips/s ({run.get('clips_per_s_per_core')} per core), "
-        f"wall {run.get('wall_s', 0):.1f} s",
+        (f"throughput        {run.get('clips_per_s')} clips/s ({run.get('clips_per_s_per_core')} per core), "
+         f"wall {run.get('wall_s', 0):.1f} s" if run.get("units_run", 0) else
+         f"throughput        n/a: nothing to run (every unit already committed), wall {run.get('wall_s', 0):.1f} s"),
         f"stage time share  " + ", ".join(f"{k} {v['share']:.0%}" for k, v in stats["stages"].items() if v["share"] is not None),
         f"output            {out}  (stats.json, report: {report_png})",
     ]
