@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # (module defining register(subparsers)); order = order in --help
@@ -61,6 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # FFmpeg (inside OpenCV) prints its own complaint about every bad video ("moov atom not found") before we
+    # quarantine it or stop with a one-line reason that names the file: quiet unless the user asked for it.
+    # Set before cv2 opens its first video; Ray workers started by this process inherit it.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     parser = build_parser()
     args = None
     try:

@@ -230,3 +230,22 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys):
     assert "recorded through the VAE" in fl["mean_yaw_deg"]
     assert all("recorded_through_vae_flow" in c for c in rep["clips"])
     assert "recorded_through_vae" in capsys.readouterr().out
+
+
+def test_protocol_text_gives_a_count_not_a_dump_of_records():
+    from training.eval.report import format_protocol
+
+    skipped = [{"key": f"clip{i}", "reason": "window 'future' needs frames 0..40 of a 9-frame clip"} for i in range(40)]
+    text = format_protocol({"skipped": skipped, "samples": 221})
+    assert len(text.splitlines()) == 3 and "skipped: 40 (e.g. key: clip0" in text and "clip39" not in text
+
+
+def test_quality_warnings_are_printed_once(world, capsys, recwarn):
+    root, ds = world
+    out = root / "quality-fid"
+    assert main(["eval", "quality", *_common(root, ds, out), "--metrics", "psnr", "fid",
+                 "--allow-placeholder-networks", "--limit", "2"]) == 0
+    text = capsys.readouterr()
+    said = [line for line in (text.out + text.err).splitlines() if "biased upwards" in line]
+    assert said and len(said) == len(set(said)), said          # each warning once (per horizon + overall)
+    assert not [w for w in recwarn if "biased" in str(w.message)]

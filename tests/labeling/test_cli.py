@@ -1,5 +1,6 @@
 """`resim label`: output per window, and clear errors on unreadable input."""
 import json
+import os
 
 import cv2
 import pytest
@@ -173,3 +174,17 @@ def test_truncated_file_is_labelled_up_to_the_cut_with_a_warning(left_turn_video
         assert "the labels cover 0-" in warn[0]
     assert main(["label", str(whole), "--json", "--window-s", "2"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_a_truncated_video_is_one_line_without_ffmpegs_own_complaint(left_turn_video, tmp_path):
+    # FFmpeg writes "moov atom not found" to the process's stderr (not through Python): run the real command
+    import subprocess
+    import sys
+
+    p = tmp_path / "cut.mp4"
+    p.write_bytes(left_turn_video.read_bytes()[:3000])           # the index (moov box) is at the end: cut off
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    r = subprocess.run([sys.executable, "-m", "resim", "label", str(p)], capture_output=True, text=True,
+                       env=env, timeout=120)
+    assert r.returncode == 1 and str(p) in r.stderr
+    assert "moov atom" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

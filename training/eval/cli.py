@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from resim.argtypes import height_width as _hw, local_dir as _local_dir, positive_int as _positive_int
@@ -394,7 +395,11 @@ def _cmd_quality(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     runner, meta = _runner(args)
     t0 = time.perf_counter()
-    rep = quality_eval(runner, clips, qcfg, nets)
+    with warnings.catch_warnings():
+        # the evaluator's warnings (e.g. FID/FVD from few samples) are in rep["warnings"], which the summary
+        # prints: letting Python print them as well said each twice
+        warnings.simplefilter("ignore", UserWarning)
+        rep = quality_eval(runner, clips, qcfg, nets)
     rep["protocol"]["world_model"] = meta
     rep["protocol"]["heldout_from"] = "all clips" if args.all_clips or not args.heldout_from else args.heldout_from
     rep["protocol"]["seconds"] = round(time.perf_counter() - t0, 2)

@@ -48,15 +48,26 @@ def write_json(obj: Any, path: str | Path, null_nonfinite: bool = False, indent:
     return p
 
 
+def _brief(v: Any) -> str:
+    """A value as one readable line: a list of records (e.g. skipped clips) is its count and the first one,
+    not a dump of them all (the JSON report keeps the full list)."""
+    if isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+        first = ", ".join(f"{a}: {b}" for a, b in v[0].items())
+        return f"{len(v)} (e.g. {first}; all of them in the JSON report)" if len(v) > 1 else first
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{a}: {_brief(b)}" for a, b in v.items()) + "}"
+    return str(v)
+
+
 def format_protocol(protocol: dict, indent: str = "  ") -> str:
     lines = ["protocol:"]
     for k, v in protocol.items():
         if isinstance(v, dict):
             lines.append(f"{indent}{k}:")
             for k2, v2 in v.items():
-                lines.append(f"{indent * 2}{k2}: {v2}")
+                lines.append(f"{indent * 2}{k2}: {_brief(v2)}")
         else:
-            lines.append(f"{indent}{k}: {v}")
+            lines.append(f"{indent}{k}: {_brief(v)}")
     return "\n".join(lines)
 
 
