@@ -217,7 +217,7 @@ class StreamLoader:
         root = Path(cfg.shards)
         if not root.is_dir():
             raise DataError(f"data.shards={root} is not a folder")
-        paths, counts = dataset_counts(root)
+        paths, counts = dataset_counts(root, strict=cfg.strict)
         urls = list(cfg.urls) or paths
         if cfg.urls and len(cfg.urls) != len(paths):
             counts = [{"unknown": 1} for _ in urls]  # explicit URLs: no per-shard counts, draw uniformly

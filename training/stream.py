@@ -404,12 +404,13 @@ def shard_mixing(counts: list[dict[str, int]], weights: dict[str, float]) -> tup
     return probs, share
 
 
-def dataset_counts(root: Path) -> tuple[list[str], list[dict[str, int]]]:
+def dataset_counts(root: Path, strict: bool = True) -> tuple[list[str], list[dict[str, int]]]:
     """(shard paths, per-shard source counts) of the committed shards, from the index files
-    (each index carries the manifest's per-source histogram)."""
+    (each index carries the manifest's per-source histogram). A tar whose size is not the one its index
+    recorded is a ``DataError`` when ``strict``, else left out with a warning (as unreadable shards are)."""
     from shards import layout
 
-    paths = layout.committed_shards(root)
+    paths, kept, dropped = layout.committed_shards(root), [], []
     counts = []
     for p in paths:
         try:
@@ -418,6 +419,20 @@ def dataset_counts(root: Path) -> tuple[list[str], list[dict[str, int]]]:
             raise DataError(f"index {layout.index_path(root, p.name)}: unreadable: {e}") from e
         if not isinstance(idx, dict):
             raise DataError(f"index {layout.index_path(root, p.name)}: a JSON {type(idx).__name__}, not an object")
+        # the check that costs nothing (the sha256 needs a full read: `resim shards verify`, docs/security.md):
+        # a tar whose size is not the one its index recorded was truncated or replaced after it was written
+        want = idx.get("bytes")
+        if isinstance(want, int) and p.stat().st_size != want:
+            msg = (f"shard {p}: {p.stat().st_size} bytes, but its index recorded {want}: the tar changed after it "
+                   f"was written (truncated or replaced); run `resim shards verify {root}`")
+            if strict:
+                raise DataError(msg)
+            _warn(f"skipping {msg}")
+            dropped.append(msg)
+            continue
+        kept.append(p)
         hist = (idx.get("histograms") or {}).get("source")
         counts.append({str(k): int(v) for k, v in hist.items()} if hist else {"unknown": int(idx.get("num_samples", 0))})
-    return [str(p) for p in paths], counts
+    if paths and not kept:
+        raise DataError(f"none of the {len(paths)} committed shards is usable (e.g. {dropped[0]})")
+    return [str(p) for p in kept], counts

@@ -114,7 +114,8 @@ def test_corrupt_sample_and_truncated_shard_are_skipped_and_counted(world_datase
     err = capfd.readouterr().err
     assert loader.skipped > 0
     assert f"skipping corrupt sample {bad_key!r}" in err and bad_shard in err
-    assert "skipping unreadable shard" in err and cut_shard in err
+    # the truncated shard is left out before the first batch: its size is not its index's
+    assert f"{cut_shard}: " in err and "its index recorded" in err
 
 
 def test_strict_mode_names_the_shard(world_dataset):
@@ -127,9 +128,13 @@ def test_strict_mode_names_the_shard(world_dataset):
 
 def test_every_shard_bad_is_an_error_not_a_hang(tmp_path):
     root = write_world_dataset(tmp_path / "bad", num_samples=4, per_shard=2)
-    for p in (root / "shards").glob("*.tar"):
-        p.write_bytes(b"not a tar at all" * 10)
+    for p in (root / "shards").glob("*.tar"):       # garbage of the recorded size: found only when read
+        p.write_bytes(b"x" * p.stat().st_size)
     with pytest.raises(DataError, match="in a row failed"):
+        next(iter(StreamLoader(_cfg(root, max_consecutive_failures=5), verbose=False)))
+    for p in (root / "shards").glob("*.tar"):       # garbage of another size: found before the first batch
+        p.write_bytes(b"not a tar at all" * 10)
+    with pytest.raises(DataError, match="none of the 2 committed shards is usable"):
         next(iter(StreamLoader(_cfg(root, max_consecutive_failures=5), verbose=False)))
 
 

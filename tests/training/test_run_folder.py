@@ -123,3 +123,20 @@ def test_describe_run(finished, tmp_path):
     (idm / "checkpoints" / "step_00000005" / "meta.json").write_text("{}")
     (idm / "config.yaml").write_text("model_name: idm\n")
     assert describe_run(idm).kind == "idm"
+
+
+def test_a_shard_whose_size_is_not_its_indexs_is_left_out_or_refused_when_strict(tmp_path, capsys):
+    # the loader's free check (the sha256 is `resim shards verify`'s, docs/security.md): a truncated tar
+    from training.testing import write_world_dataset
+
+    ds = write_world_dataset(tmp_path / "ds")
+    tar = sorted((ds / "shards").glob("*.tar"))[0]
+    tar.write_bytes(tar.read_bytes()[:-512])
+    # strict: one line, nothing trained
+    assert _train(ds, tmp_path / "strict", "--steps", "1", "--set", "data.strict=true") == 4     # data error
+    _one_line(capsys, "resim train world: data error:", str(tar), "its index recorded", "resim shards verify")
+    assert not (tmp_path / "strict" / "checkpoints").exists()
+    # default: the shard is left out with a warning naming it, as unreadable shards are, and training goes on
+    assert _train(ds, tmp_path / "run", "--steps", "1") == 0
+    err = capsys.readouterr().err
+    assert f"skipping shard {tar}" in err and "resim shards verify" in err
