@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Literal
+from typing import Literal, Optional
 
 from resim.config import ConfigError, from_dict
 
@@ -193,3 +193,30 @@ def preset(name: str = "default") -> LabelerConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown labeler preset {name!r}; known: {sorted(PRESETS)}")
     return from_dict(LabelerConfig, PRESETS[name])
+
+
+# ------------------------------------------------------------------------------------------- scene cuts
+CUT_METHODS = ("flow", "histogram", "flow+histogram", "adaptive", "content", "hash", "none")
+
+
+@dataclass(frozen=True)
+class CutConfig:
+    """Scene-cut detection (``labels.cuts`` in a pipeline config). Default by measurement (docs/pipeline.md
+    "Scene cuts"): ``flow``, the photometric residual after DIS flow, at 64 px, on the frames the label stage
+    decodes (10 Hz for uploads), on uploaded video only (rendered and logged sources have no edits)."""
+
+    method: str = "flow"
+    threshold: Optional[float] = None   # the method's score threshold; None: resim's default for it (cuts.py)
+    min_shot_s: float = 0.5             # two cuts closer than this are one (flashes, a flickering fade)
+    width_px: int = 64                  # frames are resized to this width first (shot changes are coarse)
+    kinds: tuple[str, ...] = ("opendv",)   # source layouts searched for cuts
+
+    def __post_init__(self):
+        if self.method not in CUT_METHODS:
+            raise ConfigError(f"labels.cuts.method must be one of {CUT_METHODS}, got {self.method!r}")
+        if self.threshold is not None and not self.threshold > 0:
+            raise ConfigError(f"labels.cuts.threshold must be > 0 (or null for the method's default), got {self.threshold}")
+        if not 0 <= self.min_shot_s <= 60:
+            raise ConfigError(f"labels.cuts.min_shot_s must be in [0, 60] s, got {self.min_shot_s}")
+        if not 16 <= self.width_px <= 1920:
+            raise ConfigError(f"labels.cuts.width_px must be in [16, 1920], got {self.width_px}")

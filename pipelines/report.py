@@ -77,6 +77,11 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
             "by_status": dict(Counter(r["status"] for r in rows)),
             "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in rows[:20]],
         },
+        "scene_cuts": {       # labeling/cuts.py: per unit in its commit marker, every clip across one dropped
+            "cuts": sum(len(m.get("cuts") or []) for m in markers),
+            "videos_with_cuts": sum(1 for m in markers if m.get("cuts")),
+            "windows_dropped": sum(1 for r in rows if r["reason"].startswith("spans a scene cut")),
+        },
         "warnings": {
             "rows": len(warned),
             "units": len({r["unit_id"] for r in warned}),
@@ -147,6 +152,7 @@ def write_report_png(out: str | Path, stats: dict) -> Path:
 def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
     ts, q, run = stats["turning_share"], stats["quarantine"], stats["this_run"]
     wr = stats.get("warnings") or {"rows": 0}
+    sc = stats.get("scene_cuts") or {"cuts": 0}
     lines = [
         f"clips written     {stats['clips']['total']}  ({', '.join(f'{k}: {v}' for k, v in stats['clips']['by_origin'].items()) or 'none'})",
         f"units             {stats['units']['ok']} ok, {stats['units']['quarantined']} quarantined "
@@ -154,6 +160,8 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
         f"quarantine rows   {q['rows']}" + (f"  e.g. {q['examples'][0]}" if q["examples"] else ""),
         *([f"warnings          {wr['rows']} in {wr['units']} unit(s) (quarantine/*.parquet, status warning)  "
            f"e.g. {wr['examples'][0]}"] if wr["rows"] else []),
+        *([f"scene cuts        {sc['cuts']} in {sc['videos_with_cuts']} video(s): {sc['windows_dropped']} window(s) "
+           "across one dropped"] if sc["cuts"] else []),
         f"turning share     {_pct(ts['before'])} before → {_pct(ts['after'])} after {ts['turn_factor']}x balance",
         (f"throughput        {run.get('clips_per_s')} clips/s ({run.get('clips_per_s_per_core')} per core), "
          f"wall {run.get('wall_s', 0):.1f} s" if run.get("units_run", 0) else

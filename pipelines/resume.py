@@ -16,7 +16,8 @@ from pathlib import Path
 from pipelines import quarantine
 from shards.fsio import atomic_write_bytes
 
-SUMMARY_KEYS = ("unit_id", "kind", "origin", "item_id", "status", "attempts", "balance", "timings_s", "written")
+SUMMARY_KEYS = ("unit_id", "kind", "origin", "item_id", "status", "attempts", "balance", "timings_s", "written",
+                "cuts")
 
 
 def marker_path(out: str | Path, unit_id: str) -> Path:

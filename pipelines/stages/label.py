@@ -7,6 +7,10 @@
 * **Trajectory command + 8x(x, y, yaw), where the source has poses**: ego frame at the last history
   frame (``labeling.trajectory_from_poses``), command from ``command_from_trajectory``.
 * **Outcome** (CARLA-like): hazard flag and infraction score come from the episode record.
+* **Scene cuts** (uploaded video, ``labels.cuts``): the same decoding pass feeds every source frame to the
+  cut detector (``labeling.cuts``, PySceneDetect's HistogramDetector by default); a window that shows frames
+  of two shots is dropped (a ``dropped`` quarantine row naming the cut), and the unit's cuts are kept in
+  ``state["cuts"]`` (commit marker, ``stats.json``).
 
 ``command`` is the trajectory command where poses exist (``labels.prefer``), else the flow command.
 A window whose poses have NaNs is dropped into the quarantine table (status ``dropped``); the
@@ -18,6 +22,7 @@ import warnings
 
 import numpy as np
 
+from labeling.cuts import CutDetector
 from pipelines import quarantine
 from media.frames import clip_frames
 from pipelines.stages.base import BadInput
@@ -55,12 +60,25 @@ class LabelStage(CutStage):   # shares the reader cache
         end = windows[-1]["start"] + N                                 # frames needed: [0, end)
         ep = self.open(state)
 
-        frames = clip_frames(ep, 0, end, step, self.flow_size_hw(e["frame_size_hw"]))
+        size_hw = self.flow_size_hw(e["frame_size_hw"])
+        cut_cfg = cfg.labels.cuts
+        detector = CutDetector(cut_cfg, e["fps_hz"]) if state["kind"] in cut_cfg.kinds else None
+        if detector is None:
+            frames = clip_frames(ep, 0, end, step, size_hw)
+        else:   # one decoding pass: every source frame to the cut detector, every step-th to the flow
+            def frames_and_cuts():
+                for i, f in enumerate(ep.frames(0, (end - 1) * step + 1, size_hw=size_hw)):
+                    detector.push(f)
+                    if i % step == 0:
+                        yield f
+            frames = frames_and_cuts()
         with warnings.catch_warnings():   # all-NaN residual rows on textureless frames: handled inside
             warnings.simplefilter("ignore", RuntimeWarning)
             rates = self.flow.yaw_rates_deg(frames, fps)               # (end-1,) deg/s, left +
         if len(rates) != end - 1:
             raise BadInput(f"decoded {len(rates) + 1} of {end} frames (truncated video or missing frames)")
+        cuts = detector.finish() if detector is not None else []       # source frames starting a new shot
+        state["cuts"] = [{"frame": int(c), "t_s": round(c / e["fps_hz"], 3)} for c in cuts]
         heading = np.concatenate([[0.0], np.cumsum(rates) / fps])      # heading at frame i, deg
         quality = getattr(self.flow, "last_quality", None)
 
@@ -72,6 +90,12 @@ class LabelStage(CutStage):   # shares the reader cache
         for w in windows:
             s = w["start"]
             t, last = s + H - 1, s + N - 1
+            # the window shows source frames s*step .. last*step: it spans a cut c when frames on both sides
+            spans = [c for c in cuts if s * step < c <= last * step]
+            if spans:
+                quarantine.drop_window(state, self.name, s, f"spans a scene cut at {spans[0] / e['fps_hz']:.2f} s "
+                                                           f"(source frame {spans[0]})")
+                continue
             yaw_flow = float(heading[last] - heading[t])
             cmd_flow, conf_flow = command_from_yaw(yaw_flow, self.lcfg)
             if quality is not None and len(quality) == len(rates):
@@ -100,5 +124,5 @@ class LabelStage(CutStage):   # shares the reader cache
             out["is_turning"] = out["command"] != FORWARD
             labelled.append(out)
         if not labelled:
-            raise BadInput(f"all {len(windows)} windows dropped (NaN poses)")
+            raise BadInput(f"all {len(windows)} windows dropped (NaN poses or scene cuts)")
         state["windows"] = labelled
