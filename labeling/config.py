@@ -220,3 +220,25 @@ class CutConfig:
             raise ConfigError(f"labels.cuts.min_shot_s must be in [0, 60] s, got {self.min_shot_s}")
         if not 16 <= self.width_px <= 1920:
             raise ConfigError(f"labels.cuts.width_px must be in [16, 1920], got {self.width_px}")
+
+
+# ------------------------------------------------------------------------------------------- standing still
+@dataclass(frozen=True)
+class StillConfig:
+    """Clips where the car stands still (``labels.still`` in a pipeline config; ``pipelines/stages/label.py``).
+
+    ReSim has three commands and none for stopping: a car at a red light reads "Moving forward" (no heading
+    change), which teaches a world model that "forward" may mean standing still. Such clips are found from the
+    labeler's flow (``ego_motion_pct_s`` below ``max_motion_pct_s``: the median flow of the textured points is
+    ~0 however the rest of the scene moves) and ``policy`` says what to do: ``tag`` (default: kept, ``stopped:
+    true`` in meta and manifest), ``drop`` (a ``dropped`` quarantine row), ``keep`` (kept untagged). Whatever
+    the policy, a stopped clip is never "turning" (a turn read at standstill is a flow error, e.g. a vehicle
+    crossing), so the balance stage never over-samples it."""
+
+    policy: Literal["tag", "drop", "keep"] = "tag"
+    max_motion_pct_s: float = 1.0       # % of the frame width per second; driving measured 5-23, frozen 0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.max_motion_pct_s) and self.max_motion_pct_s >= 0):
+            raise ConfigError(f"labels.still.max_motion_pct_s must be a finite number >= 0, got {self.max_motion_pct_s}")
+

@@ -100,6 +100,9 @@ def _resize(f: np.ndarray, width_px: int) -> np.ndarray:
 
 
 FLOW_RATIO = 3.0      # a cut: the pair's residual over the median of its 24 neighbours (bench/scene_cuts.py)
+# and at least this residual: a frozen stretch (the car standing, identical frames) has neighbours of ~0, so
+# the codec's flicker would otherwise be a "cut"; continuous driving is ~0.025 (median), cuts ~0.2-0.7
+FLOW_MIN_RESIDUAL = 0.05
 
 
 class _FlowResiduals:
@@ -141,7 +144,7 @@ def _peaks(r: np.ndarray, ratio: float, min_len: int, half_window: int = 12) -> 
     for i in range(len(r)):
         nb = np.concatenate([r[max(0, i - half_window):i], r[i + 1:i + 1 + half_window]])
         base = float(np.median(nb)) if len(nb) else 0.0
-        if r[i] > ratio * max(base, 1e-3) and r[i] >= max(r[max(0, i - 2):i + 3]):
+        if r[i] > max(ratio * base, FLOW_MIN_RESIDUAL) and r[i] >= max(r[max(0, i - 2):i + 3]):
             if not cuts or i + 1 - cuts[-1] >= max(1, min_len):
                 cuts.append(i + 1)
     return cuts

@@ -72,6 +72,7 @@ class FlowLabeler(FlowSampling, MotionFit):
         self._clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(4, 4))
         self._grid_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.last_quality: np.ndarray | None = None   # per-pair share of points kept by the fit
+        self.last_motion_px: np.ndarray | None = None  # per-pair median flow of textured points (px), nan: no texture
         self.last_foe: tuple[float, float] | None = None
         self.last_foe_per_pair: np.ndarray | None = None   # (N-1, 2) px from the image centre
         self.last_distance_over_height: np.ndarray | None = None   # (N-1,) d/h per pair, known rig only (else nan)
@@ -89,6 +90,7 @@ class FlowLabeler(FlowSampling, MotionFit):
         self._pool: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._pending: list[tuple] = []     # pooled FOE: chunks waiting for enough straight driving
         self._prev_flow: np.ndarray | None = None   # the last pair's flow (DIS warm start)
+        self._motion: list[float] = []      # per pair: median flow of the textured grid points (px), nan if too few
         # a new DIS per video: OpenCV keeps the last input flow's pyramid (initial_Ux/Uy, the warm start) inside the
         # object and tries it on every later call, even without an input flow (collectGarbage does not clear it),
         # so the first pair of a video would start from the previous video's flow, and read a buffer of the wrong
@@ -131,6 +133,9 @@ class FlowLabeler(FlowSampling, MotionFit):
         self.last_foe_per_pair = np.concatenate([r[2] for r in res]) if res else np.zeros((0, 2))
         self.last_distance_over_height = np.concatenate(self._dhs) if self._dhs else np.zeros(0)
         self.last_quality = np.concatenate([r[1] for r in res]) if res else np.zeros(0)
+        # per pair: median flow magnitude (px at the working width) of the textured grid points, moving or not:
+        # ~0 when the car stands still, NaN where too little texture to tell (see ``ego_motion_pct_s``)
+        self.last_motion_px = np.asarray(self._motion, np.float64)
         self.last_foe_sources = [r[3] for r in res]
         if not res:
             return np.zeros(0)
@@ -167,3 +172,13 @@ def window_quality(kept: np.ndarray | None) -> float:
     if kept is None or len(kept) == 0:
         return 1.0
     return float(np.clip(np.median(kept) / 0.25, 0.0, 1.0))
+
+
+def ego_motion_pct_s(motion_px: np.ndarray, width_px: int, fps_hz: float) -> float:
+    """A window's ego motion from the labeler's per-pair ``last_motion_px``: the median over its pairs, in %
+    of the frame width per second (resolution-free). NaN when most pairs had too little texture to tell: a car
+    moving through fog or along a blank wall is not taken for one standing still."""
+    m = np.asarray(motion_px, np.float64)
+    if m.size == 0 or np.isnan(m).mean() > 0.5:
+        return float("nan")
+    return float(np.nanmedian(m) / width_px * 100.0 * fps_hz)

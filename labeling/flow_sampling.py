@@ -117,7 +117,10 @@ class FlowSampling:
               + np.clip(np.rint(cols + u), 0, w - 1).astype(np.intp))
         photo = np.abs(g1.ravel()[to].astype(np.int16) - g0.ravel()[flat].astype(np.int16))
         mag2 = u * u + v * v
-        keep = ((tex0 >= fc.min_texture) & (mag2 >= fc.static_flow_px ** 2)
+        textured = tex0 >= fc.min_texture
+        # ego motion, moving or not (the fit below drops static points): enough texture to tell, else nan
+        self._motion.append(float(np.sqrt(np.median(mag2[textured]))) if textured.mean() >= 0.05 else float("nan"))
+        keep = (textured & (mag2 >= fc.static_flow_px ** 2)
                 & (mag2 <= (fc.max_flow_frac * w) ** 2) & (photo <= fc.max_photo_err))
         x = cols[keep] - (w - 1) / 2.0
         y = rows[keep] - (h - 1) / 2.0

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal, Optional
 
-from labeling.config import CutConfig, LabelerConfig
+from labeling.config import CutConfig, LabelerConfig, StillConfig
 from resim.config import ConfigError, check_positive, from_dict, load, to_dict
 from resim.folders import folder_problem
 from resim.models import shipped_dir, shipped_model
@@ -181,6 +181,7 @@ class LabelsConfig:
     labeler: LabelerConfig = field(default_factory=LabelerConfig)
     prefer: Literal["trajectory", "flow"] = "trajectory"   # which command wins where both exist
     cuts: CutConfig = field(default_factory=CutConfig)     # scene cuts: no clip spans one (labeling/cuts.py)
+    still: StillConfig = field(default_factory=StillConfig)  # standing still: tagged, dropped or kept
 
 
 # ------------------------------------------------------------------------------------------- balance

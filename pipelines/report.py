@@ -77,6 +77,10 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
             "by_status": dict(Counter(r["status"] for r in rows)),
             "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in rows[:20]],
         },
+        "standing_still": {   # labels.still: clips written with stopped: true, and windows dropped as stopped
+            "clips_tagged": sum(1 for m in ok for w in m["selected"] if w.get("stopped")),
+            "windows_dropped": sum(1 for r in rows if r["reason"].startswith("stands still")),
+        },
         "scene_cuts": {       # labeling/cuts.py: per unit in its commit marker, every clip across one dropped
             "cuts": sum(len(m.get("cuts") or []) for m in markers),
             "videos_with_cuts": sum(1 for m in markers if m.get("cuts")),
@@ -153,6 +157,7 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
     ts, q, run = stats["turning_share"], stats["quarantine"], stats["this_run"]
     wr = stats.get("warnings") or {"rows": 0}
     sc = stats.get("scene_cuts") or {"cuts": 0}
+    st = stats.get("standing_still") or {"clips_tagged": 0, "windows_dropped": 0}
     lines = [
         f"clips written     {stats['clips']['total']}  ({', '.join(f'{k}: {v}' for k, v in stats['clips']['by_origin'].items()) or 'none'})",
         f"units             {stats['units']['ok']} ok, {stats['units']['quarantined']} quarantined "
@@ -160,6 +165,8 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
         f"quarantine rows   {q['rows']}" + (f"  e.g. {q['examples'][0]}" if q["examples"] else ""),
         *([f"warnings          {wr['rows']} in {wr['units']} unit(s) (quarantine/*.parquet, status warning)  "
            f"e.g. {wr['examples'][0]}"] if wr["rows"] else []),
+        *([f"standing still    {st['clips_tagged']} clip(s) tagged stopped, {st['windows_dropped']} window(s) dropped"]
+          if st["clips_tagged"] or st["windows_dropped"] else []),
         *([f"scene cuts        {sc['cuts']} in {sc['videos_with_cuts']} video(s): {sc['windows_dropped']} window(s) "
            "across one dropped"] if sc["cuts"] else []),
         f"turning share     {_pct(ts['before'])} before → {_pct(ts['after'])} after {ts['turn_factor']}x balance",

@@ -28,7 +28,7 @@ def summary(state: dict) -> dict:
     s = {k: state.get(k) for k in SUMMARY_KEYS}
     s["num_quarantined"] = len(quarantine.problems(state["quarantine"]))   # quarantined + dropped rows
     s["num_warnings"] = len(state["quarantine"]) - s["num_quarantined"]
-    s["selected"] = [{k: w[k] for k in ("start", "command", "command_source", "is_turning")}
+    s["selected"] = [{k: w.get(k) for k in ("start", "command", "command_source", "is_turning", "stopped")}
                      for w in state.get("selected") or []] if state["status"] == "ok" else []
     s["commands_agree"] = [w.get("command_flow") == w.get("command_trajectory")
                            for w in state.get("selected") or [] if w.get("command_trajectory") is not None] \

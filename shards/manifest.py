@@ -4,7 +4,7 @@ from __future__ import annotations
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
 from shards.reader import ShardReadError
-from shards.schema import MANIFEST_COLUMNS
+from shards.schema import MANIFEST_COLUMNS, MANIFEST_COLUMNS_SINCE
 
 
 def read_manifest(root, committed_only: bool = True):
@@ -25,7 +25,11 @@ def read_manifest(root, committed_only: bool = True):
         if committed_only and not layout.index_path(root, p.stem + ".tar").is_file():
             continue
         try:
-            tables.append(pq.read_table(p).select(list(MANIFEST_COLUMNS)).cast(manifest_schema()))
+            t = pq.read_table(p)
+            for c, since in MANIFEST_COLUMNS_SINCE.items():     # a manifest of an older schema: null columns
+                if c not in t.column_names:
+                    t = t.append_column(c, pa.nulls(len(t), manifest_schema().field(c).type))
+            tables.append(t.select(list(MANIFEST_COLUMNS)).cast(manifest_schema()))
         except (pa.ArrowException, KeyError) as e:   # not Parquet, truncated, or missing/mistyped columns
             raise ShardReadError(f"manifest {p}: unreadable: {e} (`resim shards verify` lists every problem)") from e
     if not tables:

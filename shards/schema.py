@@ -31,7 +31,10 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# versions a reader of this code reads: 2 added the optional ego-motion fields (``since=2`` below); a
+# version-1 sample simply lacks them (null in the manifest)
+READABLE_SCHEMA_VERSIONS = (1, 2)
 
 SOURCES = ("opendv", "navsim", "carla", "synthetic")
 COMMANDS = ("Turning left", "Moving forward", "Turning right")
@@ -129,6 +132,7 @@ class MetaField:
     type: str          # JSON type: str | int | float | bool | list | object, '|null' if nullable
     units: str
     description: str
+    since: int = 1     # the schema version that added it (older samples lack it)
 
 
 META_FIELDS: list[MetaField] = [
@@ -157,7 +161,7 @@ META_FIELDS: list[MetaField] = [
     MetaField("yaw_deg_flow", "float|null", "deg, left +", "Heading change estimated from optical flow."),
     MetaField("yaw_deg_trajectory", "float|null", "deg, left +", "Heading change from poses."),
     MetaField("confidence", "float", "0..1", "Confidence of `command`."),
-    MetaField("is_turning", "bool", "-", "command != 'Moving forward'."),
+    MetaField("is_turning", "bool", "-", "command != 'Moving forward' (and the car moves: never for a stopped clip)."),
     MetaField("balance_weight", "float", "-", "Sampling density the clip was extracted at relative to straight "
               "driving (e.g. 5.0 for turning windows with ReSim's 5x balance)."),
     MetaField("hazard", "bool|null", "-", "Hazardous (non-expert) episode; null for sources without outcomes."),
@@ -176,14 +180,25 @@ META_FIELDS: list[MetaField] = [
     MetaField("dino_id", "str|null", "-", "Backbone that produced dino.npy, when present."),
     MetaField("pipeline_version", "str", "-", "resim version that wrote the sample."),
     MetaField("config_hash", "str", "-", "resim.config.config_hash of the resolved pipeline config."),
+    MetaField("ego_motion_pct_s", "float|null", "% of frame width / s",
+              "Ego motion over the clip: median flow of its textured points (labeler), null where too little "
+              "texture to tell.", since=2),
+    MetaField("stopped", "bool|null", "-", "The car stands still (ego_motion_pct_s below labels.still's "
+              "threshold); null where unknown or not tagged (labels.still.policy).", since=2),
 ]
 META_FIELD_NAMES = tuple(f.name for f in META_FIELDS)
 
 # One manifest row per sample (Parquet), for stats and mixing weights without opening tars.
 MANIFEST_COLUMNS = (
     "key", "shard", "source", "item_id", "start_frame", "command", "command_source", "is_turning",
-    "hazard", "infraction_score", "has_trajectory", "prompt_id", "bytes_total",
+    "hazard", "infraction_score", "has_trajectory", "prompt_id", "bytes_total", "ego_motion_pct_s", "stopped",
 )
+MANIFEST_COLUMNS_SINCE = {"ego_motion_pct_s": 2, "stopped": 2}   # absent from older manifests: read as null
+
+
+def meta_fields_of(version: int) -> list[MetaField]:
+    """The meta fields a sample of schema ``version`` carries."""
+    return [f for f in META_FIELDS if f.since <= version]
 
 _KEY_SAFE = re.compile(r"[^A-Za-z0-9-]+")
 

@@ -20,9 +20,11 @@ from shards.schema import (
     FORBIDDEN_EXTENSIONS,
     MEMBERS,
     META_FIELDS,
+    READABLE_SCHEMA_VERSIONS,
     SCHEMA_VERSION,
     SOURCES,
     make_key,
+    meta_fields_of,
 )
 
 KEY_RE = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -74,19 +76,22 @@ def meta_problems(meta: Any, key: str | None = None) -> list[str]:
     if not isinstance(meta, dict):
         return [f"meta.json must be a JSON object, got {type(meta).__name__}"]
     p: list[str] = []
-    names = {f.name for f in META_FIELDS}
-    missing = [f.name for f in META_FIELDS if f.name not in meta]
+    version = meta.get("schema_version")
+    fields = meta_fields_of(version if version in READABLE_SCHEMA_VERSIONS else SCHEMA_VERSION)
+    names = {f.name for f in fields}
+    missing = [f.name for f in fields if f.name not in meta]
     if missing:
         p.append(f"meta.json lacks fields {missing}")
     unknown = sorted(set(meta) - names)
     if unknown:
-        p.append(f"meta.json has fields not in schema v{SCHEMA_VERSION}: {unknown}")
-    for f in META_FIELDS:
+        p.append(f"meta.json has fields not in schema v{version if version in READABLE_SCHEMA_VERSIONS else SCHEMA_VERSION}: {unknown}")
+    for f in fields:
         if f.name in meta and not _type_ok(meta[f.name], f.type):
             p.append(f"meta.{f.name} = {meta[f.name]!r} is not of type {f.type}")
     # a sample from another schema version explains the field problems above: say so first, always
-    if "schema_version" in meta and meta["schema_version"] != SCHEMA_VERSION:
-        p.insert(0, f"meta.schema_version = {meta['schema_version']!r} but this reader knows {SCHEMA_VERSION}")
+    if "schema_version" in meta and meta["schema_version"] not in READABLE_SCHEMA_VERSIONS:
+        p.insert(0, f"meta.schema_version = {meta['schema_version']!r} but this reader knows "
+                    f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}")
     if p:
         return p  # the checks below assume well-typed fields
 

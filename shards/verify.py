@@ -31,7 +31,7 @@ from shards import layout, safejson
 from shards.fsio import is_tmp_name, sha256_file
 from shards.npy import NpyError, decode_npy
 from shards.reader import ShardReadError, decode_sample, iter_raw_shard
-from shards.schema import SCHEMA_VERSION, prompt_id
+from shards.schema import READABLE_SCHEMA_VERSIONS, prompt_id
 from shards.validate import sample_problems, video_problems
 
 
@@ -153,9 +153,9 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
         if not isinstance(index, dict):
             problems.append(Problem(shard, None, f"index {ip} is a JSON {type(index).__name__}, not an object"))
             continue
-        if index.get("schema_version") != SCHEMA_VERSION:
+        if index.get("schema_version") not in READABLE_SCHEMA_VERSIONS:
             problems.append(Problem(shard, None, f"index schema_version {index.get('schema_version')} "
-                                                 f"!= {SCHEMA_VERSION}"))
+                                                 f"is not one this reader knows ({READABLE_SCHEMA_VERSIONS})"))
         path = layout.shards_dir(root) / shard
         if shard not in tars:
             problems.append(Problem(shard, None, f"index {ip.name} exists but {path} is missing"))

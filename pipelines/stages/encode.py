@@ -142,6 +142,7 @@ class EncodeStage(CutStage):
                     "latent_shape": list(lat.shape), "latent_scaling_factor": info.scaling_factor,
                     "has_trajectory": w["traj"] is not None, "dino_id": None,
                     "pipeline_version": __version__, "config_hash": self.config_hash,
+                    "ego_motion_pct_s": w.get("ego_motion_pct_s"), "stopped": w.get("stopped"),
                 }
                 np.save(stage_dir / f"{key}.latent.npy", stored, allow_pickle=False)
                 (stage_dir / f"{key}.frames.mp4").write_bytes(mp4)

@@ -7,6 +7,9 @@
 * **Trajectory command + 8x(x, y, yaw), where the source has poses**: ego frame at the last history
   frame (``labeling.trajectory_from_poses``), command from ``command_from_trajectory``.
 * **Outcome** (CARLA-like): hazard flag and infraction score come from the episode record.
+* **Standing still** (``labels.still``): a window's ego motion (``ego_motion_pct_s``: the median flow of the
+  textured points over its pairs, % of the frame width per second) below the threshold is ``stopped``:
+  tagged (default), dropped, or kept; never turning (so never over-sampled by the balance stage).
 * **Scene cuts** (uploaded video, ``labels.cuts``): the same decoding pass feeds every source frame to the
   cut detector (``labeling.cuts``, PySceneDetect's HistogramDetector by default); a window that shows frames
   of two shots is dropped (a ``dropped`` quarantine row naming the cut), and the unit's cuts are kept in
@@ -23,6 +26,7 @@ import warnings
 import numpy as np
 
 from labeling.cuts import CutDetector
+from labeling.flow import ego_motion_pct_s
 from pipelines import quarantine
 from media.frames import clip_frames
 from pipelines.stages.base import BadInput
@@ -78,6 +82,8 @@ class LabelStage(CutStage):   # shares the reader cache
         if len(rates) != end - 1:
             raise BadInput(f"decoded {len(rates) + 1} of {end} frames (truncated video or missing frames)")
         cuts = detector.finish() if detector is not None else []       # source frames starting a new shot
+        motion = getattr(self.flow, "last_motion_px", None)
+        still = cfg.labels.still
         state["cuts"] = [{"frame": int(c), "t_s": round(c / e["fps_hz"], 3)} for c in cuts]
         heading = np.concatenate([[0.0], np.cumsum(rates) / fps])      # heading at frame i, deg
         quality = getattr(self.flow, "last_quality", None)
@@ -102,8 +108,12 @@ class LabelStage(CutStage):   # shares the reader cache
                 from labeling.flow import window_quality
 
                 conf_flow *= window_quality(quality[t:last])
+            ego = (ego_motion_pct_s(motion[s:last], size_hw[1], fps)
+                   if motion is not None and len(motion) == len(rates) else float("nan"))
+            stopped = bool(ego < still.max_motion_pct_s) if np.isfinite(ego) else None
             out = {"start": s, "command_flow": cmd_flow, "yaw_deg_flow": yaw_flow, "confidence_flow": conf_flow,
-                   "command_trajectory": None, "yaw_deg_trajectory": None, "traj": None}
+                   "command_trajectory": None, "yaw_deg_trajectory": None, "traj": None,
+                   "ego_motion_pct_s": round(ego, 4) if np.isfinite(ego) else None}
             if poses is not None:
                 win = poses[s:s + N]
                 bad = ~np.isfinite(win).all(axis=1)
@@ -121,8 +131,21 @@ class LabelStage(CutStage):   # shares the reader cache
                            yaw_deg=out["yaw_deg_trajectory"], confidence=1.0)  # ground-truth poses
             else:
                 out.update(command=cmd_flow, command_source="flow", yaw_deg=yaw_flow, confidence=conf_flow)
+            if stopped and out["command"] != FORWARD:
+                if out["command_source"] == "trajectory":
+                    stopped = False     # the poses (ground truth) say the car turned: the flow saw too little
+                else:
+                    # a car that stands still does not turn: a turn read here is a flow error (a vehicle
+                    # crossing); forward keeps it off the balance stage's fine grid (never over-sampled)
+                    out.update(command=FORWARD, confidence=min(out["confidence"], 0.5))
+            if stopped and still.policy == "drop":
+                quarantine.drop_window(state, self.name, s, f"stands still: ego motion {ego:.2f} % of the frame "
+                                                           f"width per s < labels.still.max_motion_pct_s "
+                                                           f"{still.max_motion_pct_s:g}")
+                continue
+            out["stopped"] = stopped if still.policy == "tag" else None
             out["is_turning"] = out["command"] != FORWARD
             labelled.append(out)
         if not labelled:
-            raise BadInput(f"all {len(windows)} windows dropped (NaN poses or scene cuts)")
+            raise BadInput(f"all {len(windows)} windows dropped (NaN poses, scene cuts or standing still)")
         state["windows"] = labelled

@@ -85,32 +85,52 @@ def _run(tmp_path, root, name, *extra):
     return out
 
 
-def test_no_clip_spans_the_hard_cut_of_an_edited_drive(dashcam, tmp_path):
+def _starts(out):
+    """{clip start (10-Hz frame): meta} of every written clip."""
+    from shards.reader import iter_samples
+
+    return {s["meta.json"]["start_frame"]: s["meta.json"] for s in iter_samples(out, decode_video=False,
+                                                                                   attach_prompts=False)}
+
+
+def test_an_edited_drive_with_a_cut_and_a_stop_is_curated(dashcam, tmp_path):
+    """The issue's video: clip A, hard cut, clip B, 6 s frozen (the car stands), A again (a second cut)."""
     a, b = dashcam
     root = tmp_path / "videos"
     (root / "edited").mkdir(parents=True)
-    # written at 20 fps; the OpenDV reader resamples to 10 Hz (every 2nd frame): the second shot starts at
-    # 20-fps frame len(a), i.e. 10-Hz frame ceil(len(a) / 2), the frame the stages see and cut windows in
-    _write(root / "edited" / "drive.mp4", np.concatenate([a, b]), 20.0)
-    cut = -(-len(a) // 2)
+    frozen = np.repeat(b[-1:], 120, axis=0)                           # 6 s at 20 fps
+    video = np.concatenate([a, b, frozen, a])
+    # written at 20 fps; the OpenDV reader resamples to 10 Hz (every 2nd frame), the rate the stages see
+    _write(root / "edited" / "drive.mp4", video, 20.0)
     (root / "videos.csv").write_text("video_id,start_discard_s,end_discard_s\nedited/drive,0,0\n")
+    cuts = [-(-len(a) // 2), -(-(len(a) + len(b) + len(frozen)) // 2)]     # 10-Hz frames starting a new shot
+    still = (-(-(len(a) + len(b)) // 2), (len(a) + len(b) + len(frozen)) // 2)   # [first, end) of the stop
 
     out = _run(tmp_path, root, "out", "--set", "clip.stride_frames=10", "--set", "labels.cuts.method=flow")
     marker = next(iter(json.loads(p.read_text()) for p in (out / "commits").glob("*.json")))
-    assert len(marker["cuts"]) == 1 and abs(marker["cuts"][0]["frame"] - cut) <= 1, marker["cuts"]
+    found = [c["frame"] for c in marker["cuts"]]
+    assert len(found) == 2 and all(abs(f - c) <= 1 for f, c in zip(found, cuts)), (found, cuts)
     stats = json.loads((out / "stats.json").read_text())
-    assert stats["scene_cuts"]["cuts"] == 1 and stats["scene_cuts"]["windows_dropped"] >= 1
+    assert stats["scene_cuts"]["cuts"] == 2 and stats["scene_cuts"]["windows_dropped"] >= 1
 
-    def spanning(root_out):
-        starts = []
-        for p in (root_out / "index").glob("*.json"):
-            starts += [int(k.rsplit("_f", 1)[1]) for k in json.loads(p.read_text())["keys"]]
-        assert starts, "no clips written"
-        return [s for s in starts if s < cut <= s + 48], starts             # 49-frame windows at 10 Hz
-
-    across, kept = spanning(out)
-    assert across == [] and any(s >= cut for s in kept) and any(s + 48 < cut for s in kept)
-    # the same run without cut detection writes clips across it: what the detector is for
-    across_off, _ = spanning(_run(tmp_path, root, "off", "--set", "clip.stride_frames=10",
-                                  "--set", "labels.cuts.method=none"))
-    assert across_off
+    clips = _starts(out)
+    assert clips and not [s for s in clips for c in found if s < c <= s + 48], "a clip spans a cut"
+    inside = {s: m for s, m in clips.items() if still[0] <= s and s + 48 < still[1]}
+    assert inside, "no clip inside the stop"
+    for s, m in inside.items():               # the stop: tagged, forward, never over-sampled
+        assert m["stopped"] is True and m["ego_motion_pct_s"] < 1.0 and not m["is_turning"], m
+        assert m["balance_weight"] == 1.0 and s % 10 == 0
+    moving = [m for s, m in clips.items() if s + 48 < still[0]]
+    assert moving and all(m["stopped"] is False and m["ego_motion_pct_s"] > 2.0 for m in moving)
+    from shards.manifest import read_manifest
+    man = read_manifest(out).to_pydict()
+    tagged = sorted(m["key"] for m in clips.values() if m["stopped"])   # inside, or mostly inside, the stop
+    assert sorted(k for k, st in zip(man["key"], man["stopped"]) if st) == tagged
+    assert {m["key"] for m in inside.values()} <= set(tagged)
+    # the same run without cut detection writes clips across the cut: what the detector is for
+    off = _starts(_run(tmp_path, root, "off", "--set", "clip.stride_frames=10", "--set", "labels.cuts.method=none"))
+    assert [s for s in off if s < cuts[0] <= s + 48]
+    # and with labels.still.policy=drop the stop is left out, with its rows
+    dropped = _run(tmp_path, root, "drop", "--set", "clip.stride_frames=10", "--set", "labels.still.policy=drop")
+    assert not [m for m in _starts(dropped).values() if m["stopped"]]
+    assert json.loads((dropped / "stats.json").read_text())["standing_still"]["windows_dropped"] >= len(inside)

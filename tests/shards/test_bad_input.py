@@ -100,9 +100,17 @@ def test_validator_treats_none_members_as_missing_and_always_names_a_schema_vers
     s = make_dummy_sample(with_dino=False)
     s["dino.npy"] = None
     assert any("optional members ['dino.npy'] are None" in p for p in sample_problems(s))
-    meta = dict(make_dummy_sample()["meta.json"], schema_version=2, ego_speed_mps=3.0)
+    meta = dict(make_dummy_sample()["meta.json"], schema_version=3, ego_speed_mps=3.0)
     probs = meta_problems(meta, "k")
-    assert probs[0].startswith("meta.schema_version = 2") and len(probs) == 2
+    assert probs[0].startswith("meta.schema_version = 3") and len(probs) == 2
+
+
+def test_a_version_1_sample_without_the_ego_motion_fields_is_read_and_a_version_2_one_needs_them():
+    meta = make_dummy_sample()["meta.json"]
+    old = {k: v for k, v in meta.items() if k not in ("ego_motion_pct_s", "stopped")}
+    assert meta_problems(dict(old, schema_version=1), meta["key"]) == []
+    assert any("lacks fields ['ego_motion_pct_s', 'stopped']" in p for p in meta_problems(old, meta["key"]))
+    assert any("not in schema v1" in p for p in meta_problems(dict(meta, schema_version=1), meta["key"]))
 
 
 def test_writer_keeps_shards_within_max_bytes_including_tar_record_padding(tmp_path):
