@@ -56,7 +56,7 @@ def _load(args):
 # What `resim pipeline run` writes in OUT (pipelines.units.OUTPUT_DIRS + its files, the run lock
 # pipelines.out_lock.LOCK_NAME included): a folder holding only these is an earlier (maybe unfinished) run of
 # the pipeline, which a rerun resumes.
-RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging",
+RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging", "dedup",
                     "config.yaml", "config_hash.txt", "stats.json", "report.png", ".lock"}
 
 

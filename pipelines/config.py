@@ -184,6 +184,23 @@ class LabelsConfig:
     still: StillConfig = field(default_factory=StillConfig)  # standing still: tagged, dropped or kept
 
 
+# --------------------------------------------------------------------------------------------- dedup
+@dataclass
+class DedupConfig:
+    """Near-duplicate clips across the dataset (``pipelines/dedup.py``): one pass after every unit committed."""
+
+    enabled: bool = True
+    max_bits: int = 16           # of the 256-bit signature: a copy on the same window grid 0-few (re-encoded);
+    #                              the same road a few frames or seconds apart 16-40; other footage 87-116
+    band_bits: int = 8           # LSH band width (8 or 16): 16 checks ~256x fewer pairs on large datasets
+
+    def __post_init__(self):
+        if not 0 <= self.max_bits <= 128:
+            raise ConfigError(f"dedup.max_bits must be in [0, 128], got {self.max_bits}")
+        if self.band_bits not in (8, 16):
+            raise ConfigError(f"dedup.band_bits must be 8 or 16, got {self.band_bits}")
+
+
 # ------------------------------------------------------------------------------------------- balance
 @dataclass
 class BalanceConfig:
@@ -321,6 +338,7 @@ class PipelineConfig:
     clip: ClipConfig = field(default_factory=ClipConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
     balance: BalanceConfig = field(default_factory=BalanceConfig)
+    dedup: DedupConfig = field(default_factory=DedupConfig)
     encode: EncodeConfig = field(default_factory=EncodeConfig)
     shards: ShardsConfig = field(default_factory=ShardsConfig)
     quarantine: QuarantineConfig = field(default_factory=QuarantineConfig)

@@ -19,7 +19,8 @@ from pathlib import Path
 from pipelines import quarantine
 from shards.fsio import atomic_write_bytes
 
-STAGE_ORDER = ("cut", "label", "balance", "encode", "encode.decode", "encode.vae", "encode.mp4", "write")
+STAGE_ORDER = ("cut", "label", "label.cuts", "balance", "encode", "encode.decode", "encode.vae", "encode.mp4",
+               "encode.signature", "write")
 
 
 def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None) -> dict:
@@ -77,6 +78,9 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
             "by_status": dict(Counter(r["status"] for r in rows)),
             "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in rows[:20]],
         },
+        "duplicates": _duplicates(out),
+        # curation's cost beside the labeler's, in this dataset's runs (docs/pipeline.md: target <= 25 %)
+        "curation_cost": _curation_cost(seconds, this_run),
         "standing_still": {   # labels.still: clips written with stopped: true, and windows dropped as stopped
             "clips_tagged": sum(1 for m in ok for w in m["selected"] if w.get("stopped")),
             "windows_dropped": sum(1 for r in rows if r["reason"].startswith("stands still")),
@@ -96,6 +100,29 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
                      "clips_per_s_per_core": round(run_clips / wall / cpus, 4) if wall > 0 else None},
     }
     return stats
+
+
+def _curation_cost(seconds: Counter, this_run: dict) -> dict:
+    """Seconds of scene-cut detection, signatures and the dedup pass, and their share of the label stage's
+    own time (the label stage's total minus the cut detector's: the flow labeler and the stillness medians)."""
+    cuts, sig, dedup = seconds.get("label.cuts", 0.0), seconds.get("encode.signature", 0.0), this_run.get("dedup_s", 0.0)
+    labeling = seconds.get("label", 0.0) - cuts
+    total = cuts + sig + dedup
+    return {"scene_cuts_s": round(cuts, 3), "signatures_s": round(sig, 3), "dedup_s": round(dedup, 3),
+            "labeling_s": round(labeling, 3), "share_of_labeling": round(total / labeling, 4) if labeling > 0 else None}
+
+
+def _duplicates(out: str | Path) -> dict:
+    """``dedup/duplicates.parquet`` in numbers: clips left out, and the groups they belong to."""
+    import pyarrow.parquet as pq
+
+    from shards.duplicates import duplicates_path
+
+    p = duplicates_path(out)
+    if not p.is_file():
+        return {"clips_left_out": 0, "groups": 0, "checked": False}
+    t = pq.read_table(p).to_pydict()
+    return {"clips_left_out": len(t["key"]), "groups": len(set(t["duplicate_of"])), "checked": True}
 
 
 def write_stats(out: str | Path, stats: dict) -> Path:
@@ -158,6 +185,8 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
     wr = stats.get("warnings") or {"rows": 0}
     sc = stats.get("scene_cuts") or {"cuts": 0}
     st = stats.get("standing_still") or {"clips_tagged": 0, "windows_dropped": 0}
+    du = stats.get("duplicates") or {}
+    cc = stats.get("curation_cost") or {}
     lines = [
         f"clips written     {stats['clips']['total']}  ({', '.join(f'{k}: {v}' for k, v in stats['clips']['by_origin'].items()) or 'none'})",
         f"units             {stats['units']['ok']} ok, {stats['units']['quarantined']} quarantined "
@@ -165,6 +194,8 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
         f"quarantine rows   {q['rows']}" + (f"  e.g. {q['examples'][0]}" if q["examples"] else ""),
         *([f"warnings          {wr['rows']} in {wr['units']} unit(s) (quarantine/*.parquet, status warning)  "
            f"e.g. {wr['examples'][0]}"] if wr["rows"] else []),
+        *([f"duplicates        {du['clips_left_out']} clip(s) left out in {du['groups']} group(s) "
+           "(dedup/duplicates.parquet; training skips them)"] if du.get("clips_left_out") else []),
         *([f"standing still    {st['clips_tagged']} clip(s) tagged stopped, {st['windows_dropped']} window(s) dropped"]
           if st["clips_tagged"] or st["windows_dropped"] else []),
         *([f"scene cuts        {sc['cuts']} in {sc['videos_with_cuts']} video(s): {sc['windows_dropped']} window(s) "
@@ -174,6 +205,9 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
          f"wall {run.get('wall_s', 0):.1f} s" if run.get("units_run", 0) else
          f"throughput        n/a: nothing to run (every unit already committed), wall {run.get('wall_s', 0):.1f} s"),
         f"stage time share  " + ", ".join(f"{k} {v['share']:.0%}" for k, v in stats["stages"].items() if v["share"] is not None),
+        *([f"curation cost     {cc['share_of_labeling']:.0%} of labeling (scene cuts {cc['scene_cuts_s']:.1f} s, "
+           f"signatures {cc['signatures_s']:.1f} s, dedup {cc['dedup_s']:.1f} s; labeling {cc['labeling_s']:.1f} s)"]
+          if cc.get("share_of_labeling") is not None else []),
         f"output            {out}  (stats.json, report: {report_png})",
     ]
     return "\n".join(lines)

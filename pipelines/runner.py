@@ -519,6 +519,13 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
             raise
         raise err from None
     check_committed(out, todo)      # a unit that ran without committing is never counted as done
+    dedup_s = 0.0
+    if cfg.dedup.enabled:           # one pass over the whole dataset's signatures (pipelines/dedup.py)
+        from pipelines.dedup import dedup_dataset
+
+        t_dedup = time.perf_counter()
+        dedup_dataset(out, cfg.dedup.max_bits, cfg.clip.num_frames, cfg.dedup.band_bits)
+        dedup_s = time.perf_counter() - t_dedup
 
     staging = out / "_staging"
     if staging.is_dir() and not any(staging.iterdir()):
@@ -529,7 +536,7 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
     stats = report.compute_stats(out, [m for uid, m in markers.items() if uid in enumerated_ids],
                                  this_run={"units_run": len(todo), "units_skipped": len(skipped), "wall_s": wall,
                                            "executor": cfg.ray.executor,
-                                           "clips_written": done["clips_written"],
+                                           "clips_written": done["clips_written"], "dedup_s": round(dedup_s, 3),
                                            "cpus": cpus},
                                  cfg=cfg)
     report.write_stats(out, stats)

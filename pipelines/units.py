@@ -52,7 +52,7 @@ class SourceSpec:
 
 # What a run writes in OUT as folders (its files are config.yaml, config_hash.txt, stats.json, report.png and
 # the run lock); `runner.prepare_out` removes them all when a run with nothing committed is redone.
-OUTPUT_DIRS = ("commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging")
+OUTPUT_DIRS = ("commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging", "dedup")
 
 
 def out_trees(out) -> tuple[str, ...]:

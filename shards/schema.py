@@ -185,6 +185,9 @@ META_FIELDS: list[MetaField] = [
               "texture to tell.", since=2),
     MetaField("stopped", "bool|null", "-", "The car stands still (ego_motion_pct_s below labels.still's "
               "threshold); null where unknown or not tagged (labels.still.policy).", since=2),
+    MetaField("signature", "str|null", "hex", "Perceptual signature for near-duplicate search: the 64-bit "
+              "difference hash of 4 frames evenly spaced over the clip, 64 hex digits (pipelines/dedup.py).",
+              since=2),
 ]
 META_FIELD_NAMES = tuple(f.name for f in META_FIELDS)
 
@@ -192,8 +195,9 @@ META_FIELD_NAMES = tuple(f.name for f in META_FIELDS)
 MANIFEST_COLUMNS = (
     "key", "shard", "source", "item_id", "start_frame", "command", "command_source", "is_turning",
     "hazard", "infraction_score", "has_trajectory", "prompt_id", "bytes_total", "ego_motion_pct_s", "stopped",
+    "signature",
 )
-MANIFEST_COLUMNS_SINCE = {"ego_motion_pct_s": 2, "stopped": 2}   # absent from older manifests: read as null
+MANIFEST_COLUMNS_SINCE = {"ego_motion_pct_s": 2, "stopped": 2, "signature": 2}   # absent from older manifests: read as null
 
 
 def meta_fields_of(version: int) -> list[MetaField]:

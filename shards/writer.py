@@ -103,7 +103,7 @@ def manifest_schema():
         "start_frame": pa.int64(), "command": pa.string(), "command_source": pa.string(),
         "is_turning": pa.bool_(), "hazard": pa.bool_(), "infraction_score": pa.float64(),
         "has_trajectory": pa.bool_(), "prompt_id": pa.string(), "bytes_total": pa.int64(),
-        "ego_motion_pct_s": pa.float64(), "stopped": pa.bool_(),
+        "ego_motion_pct_s": pa.float64(), "stopped": pa.bool_(), "signature": pa.string(),
     }
     assert tuple(types) == MANIFEST_COLUMNS, "manifest types out of step with schema.MANIFEST_COLUMNS"
     return pa.schema([(k, v) for k, v in types.items()])
@@ -281,7 +281,8 @@ class ShardWriter:
                     start_frame=m["start_frame"], command=m["command"], command_source=m["command_source"],
                     is_turning=m["is_turning"], hazard=m["hazard"], infraction_score=m["infraction_score"],
                     has_trajectory=m["has_trajectory"], prompt_id=m["prompt_id"], bytes_total=nbytes,
-                    ego_motion_pct_s=m.get("ego_motion_pct_s"), stopped=m.get("stopped"))
+                    ego_motion_pct_s=m.get("ego_motion_pct_s"), stopped=m.get("stopped"),
+                    signature=m.get("signature"))
         for c in MANIFEST_COLUMNS:
             self._rows[c].append(vals[c])
         self._shard_keys.append(sample["__key__"])

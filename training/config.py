@@ -95,6 +95,7 @@ class DataConfig:
     max_shape_buckets: int = 16            # distinct sample geometries (latent shape, clip length, ...) per worker
     load_frames: bool = False              # decode frames.mp4 into Batch.frames (reward model)
     load_dino: bool = False                # Batch.dino from dino.npy (reward model)
+    skip_duplicates: bool = True           # skip the clips OUT/dedup/duplicates.parquet lists (pipelines/dedup.py)
     seed: int = 0
     prefetch_factor: int = 2
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from shards.duplicates import duplicate_keys
 from shards.prompts import PromptTable, PromptTableError
 from shards.schema import COMMANDS
 from training.config import DataConfig
@@ -242,7 +243,8 @@ class StreamLoader:
             batches_per_worker=batches_per_worker(spe, cfg.batch_size_per_gpu, world_size, W), num_workers=W,
             world_size=world_size, seed=cfg.seed, open_shards=cfg.open_shards_per_worker, strict=cfg.strict,
             max_consecutive_failures=cfg.max_consecutive_failures, load_frames=cfg.load_frames,
-            load_dino=cfg.load_dino, mixing=share, max_shape_buckets=cfg.max_shape_buckets)
+            load_dino=cfg.load_dino, mixing=share, max_shape_buckets=cfg.max_shape_buckets,
+            exclude_keys=duplicate_keys(root) if cfg.skip_duplicates else frozenset())
         self.cfg, self.rank, self.world_size, self.pin_memory = cfg, rank, world_size, pin_memory
         self.epoch = 0
         self.batches_in_epoch = 0

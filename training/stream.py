@@ -74,6 +74,7 @@ class StreamPlan:
     mixing: dict = field(default_factory=dict)  # source -> effective share of draws (for the log)
     read_unused_members: bool = False      # read frames.mp4/dino.npy bytes even when not loaded (benchmarks)
     max_shape_buckets: int = 16            # distinct batch keys (latent shapes, clip geometries) a worker buffers
+    exclude_keys: frozenset = frozenset()  # near-duplicate clips the dataset's dedup pass left out
 
     @property
     def batches_per_rank(self) -> int:
@@ -275,6 +276,8 @@ class WorkerStream:
             raw, shard = self._next_raw(slot)
             rec = self.cur.slots[slot][2] - 1  # record index in the shard: how a buffered sample is re-read
             self.cur.index += 1
+            if raw.get("__key__") in self.plan.exclude_keys:   # a near-duplicate: its copy is trained on
+                continue
             try:
                 yield self._decode(raw), shard, rec
             except ForbiddenMemberError as e:  # the whole shard is refused

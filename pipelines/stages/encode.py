@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from media.frames import center_crop, clip_frames, cover_size, sliding_windows
+from pipelines.dedup import clip_signature
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
 from pipelines.units import clip_of
@@ -86,7 +87,7 @@ class EncodeStage(CutStage):
         ep = self.open(state)
         first, end = sel[0]["start"], sel[-1]["start"] + N
         decode_hw = cover_size(tuple(e["frame_size_hw"]), out_hw)
-        t_dec = t_vae = t_mp4 = 0.0
+        t_dec = t_vae = t_mp4 = t_sig = 0.0
 
         def frames():
             nonlocal t_dec
@@ -107,7 +108,7 @@ class EncodeStage(CutStage):
         info = self.vae.info
 
         def flush():
-            nonlocal t_vae, t_mp4
+            nonlocal t_vae, t_mp4, t_sig
             if not pending:
                 return
             clips = np.stack([c for _, c in pending])
@@ -121,6 +122,9 @@ class EncodeStage(CutStage):
                     [cv2.resize(f, prev_hw[::-1], interpolation=cv2.INTER_AREA) for f in pix])
                 mp4 = encode_mp4(small, clip.fps_hz)
                 t_mp4 += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                sig = clip_signature(pix)                      # near-duplicate search (pipelines/dedup.py)
+                t_sig += time.perf_counter() - t0
                 stored = to_storage(lat, enc.latent_dtype)
                 meta = {
                     "schema_version": SCHEMA_VERSION, "key": key, "source": e["source"], "item_id": e["item_id"],
@@ -143,6 +147,7 @@ class EncodeStage(CutStage):
                     "has_trajectory": w["traj"] is not None, "dino_id": None,
                     "pipeline_version": __version__, "config_hash": self.config_hash,
                     "ego_motion_pct_s": w.get("ego_motion_pct_s"), "stopped": w.get("stopped"),
+                    "signature": sig,
                 }
                 np.save(stage_dir / f"{key}.latent.npy", stored, allow_pickle=False)
                 (stage_dir / f"{key}.frames.mp4").write_bytes(mp4)
@@ -162,5 +167,6 @@ class EncodeStage(CutStage):
             raise BadInput(f"decoded frames for {len(keys)} of {len(sel)} clips (video ends early)")
         state["clips"] = keys
         state["staging"] = str(stage_dir)
-        for k, v in (("encode.decode", t_dec), ("encode.vae", t_vae), ("encode.mp4", t_mp4)):
+        for k, v in (("encode.decode", t_dec), ("encode.vae", t_vae), ("encode.mp4", t_mp4),
+                     ("encode.signature", t_sig)):
             state["timings_s"][k] = state["timings_s"].get(k, 0.0) + v

@@ -21,6 +21,7 @@ unit's other windows go on.
 """
 from __future__ import annotations
 
+import time
 import warnings
 
 import numpy as np
@@ -66,13 +67,16 @@ class LabelStage(CutStage):   # shares the reader cache
 
         size_hw = self.flow_size_hw(e["frame_size_hw"])
         cut_cfg = cfg.labels.cuts
+        t_cuts = [0.0]                  # seconds in the cut detector (curation cost, beside the labeler's)
         detector = CutDetector(cut_cfg, e["fps_hz"]) if state["kind"] in cut_cfg.kinds else None
         if detector is None:
             frames = clip_frames(ep, 0, end, step, size_hw)
         else:   # one decoding pass: every source frame to the cut detector, every step-th to the flow
             def frames_and_cuts():
                 for i, f in enumerate(ep.frames(0, (end - 1) * step + 1, size_hw=size_hw)):
+                    t0 = time.perf_counter()
                     detector.push(f)
+                    t_cuts[0] += time.perf_counter() - t0
                     if i % step == 0:
                         yield f
             frames = frames_and_cuts()
@@ -81,7 +85,10 @@ class LabelStage(CutStage):   # shares the reader cache
             rates = self.flow.yaw_rates_deg(frames, fps)               # (end-1,) deg/s, left +
         if len(rates) != end - 1:
             raise BadInput(f"decoded {len(rates) + 1} of {end} frames (truncated video or missing frames)")
+        t0 = time.perf_counter()
         cuts = detector.finish() if detector is not None else []       # source frames starting a new shot
+        t_cuts[0] += time.perf_counter() - t0
+        state["timings_s"]["label.cuts"] = state["timings_s"].get("label.cuts", 0.0) + t_cuts[0]
         motion = getattr(self.flow, "last_motion_px", None)
         still = cfg.labels.still
         state["cuts"] = [{"frame": int(c), "t_s": round(c / e["fps_hz"], 3)} for c in cuts]

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from labeling.config import CutConfig
@@ -98,7 +99,10 @@ def test_an_edited_drive_with_a_cut_and_a_stop_is_curated(dashcam, tmp_path):
     a, b = dashcam
     root = tmp_path / "videos"
     (root / "edited").mkdir(parents=True)
-    frozen = np.repeat(b[-1:], 120, axis=0)                           # 6 s at 20 fps
+    # A's second copy starts on the clip grid (a multiple of the 2-s stride): a re-used segment whose windows
+    # line up with the first copy's, which is what a per-window signature finds (see docs/pipeline.md)
+    b = b[:len(b) - (len(a) + len(b) + 120) % 40]
+    frozen = np.repeat(b[-1:], 120, axis=0)                           # 6 s at 20 fps: the car stands
     video = np.concatenate([a, b, frozen, a])
     # written at 20 fps; the OpenDV reader resamples to 10 Hz (every 2nd frame), the rate the stages see
     _write(root / "edited" / "drive.mp4", video, 20.0)
@@ -127,6 +131,20 @@ def test_an_edited_drive_with_a_cut_and_a_stop_is_curated(dashcam, tmp_path):
     tagged = sorted(m["key"] for m in clips.values() if m["stopped"])   # inside, or mostly inside, the stop
     assert sorted(k for k, st in zip(man["key"], man["stopped"]) if st) == tagged
     assert {m["key"] for m in inside.values()} <= set(tagged)
+    # A again at the end: its clips are near-duplicates of the first A's (a few frames apart on the 10-Hz
+    # grid); the dedup pass keeps the first of each group and the training loader skips the others
+    dups = pq.read_table(out / "dedup" / "duplicates.parquet").to_pylist()
+    late_a = {m["key"] for s, m in clips.items() if s >= cuts[1]}
+    first_a = {m["key"] for s, m in clips.items() if s + 48 < cuts[0]}
+    assert dups and {d["key"] for d in dups} <= late_a and {d["duplicate_of"] for d in dups} <= first_a, dups
+    assert stats["duplicates"]["clips_left_out"] == len(dups)
+    from training.config import DataConfig
+    from training.data import StreamLoader
+    from resim.config import from_dict
+    loader = StreamLoader(from_dict(DataConfig, {"shards": str(out), "batch_size_per_gpu": 1, "num_workers": 0,
+                                                 "samples_per_epoch": 3 * len(clips)}), verbose=False)
+    seen = {k for b in loader for k in b.keys}
+    assert seen and not seen & {d["key"] for d in dups} and seen <= set(m["key"] for m in clips.values())
     # the same run without cut detection writes clips across the cut: what the detector is for
     off = _starts(_run(tmp_path, root, "off", "--set", "clip.stride_frames=10", "--set", "labels.cuts.method=none"))
     assert [s for s in off if s < cuts[0] <= s + 48]

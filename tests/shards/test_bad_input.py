@@ -105,11 +105,11 @@ def test_validator_treats_none_members_as_missing_and_always_names_a_schema_vers
     assert probs[0].startswith("meta.schema_version = 3") and len(probs) == 2
 
 
-def test_a_version_1_sample_without_the_ego_motion_fields_is_read_and_a_version_2_one_needs_them():
+def test_a_version_1_sample_without_the_v2_fields_is_read_and_a_version_2_one_needs_them():
     meta = make_dummy_sample()["meta.json"]
-    old = {k: v for k, v in meta.items() if k not in ("ego_motion_pct_s", "stopped")}
+    old = {k: v for k, v in meta.items() if k not in ("ego_motion_pct_s", "stopped", "signature")}
     assert meta_problems(dict(old, schema_version=1), meta["key"]) == []
-    assert any("lacks fields ['ego_motion_pct_s', 'stopped']" in p for p in meta_problems(old, meta["key"]))
+    assert any("lacks fields ['ego_motion_pct_s', 'stopped', 'signature']" in p for p in meta_problems(old, meta["key"]))
     assert any("not in schema v1" in p for p in meta_problems(dict(meta, schema_version=1), meta["key"]))
 
 
