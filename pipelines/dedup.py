@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from shards.duplicates import duplicates_path
+from shards.fsio import atomic_write_bytes
 
 SIGNATURE_FRAMES = 4
 
@@ -101,16 +102,11 @@ def write_duplicates(out: str | Path, dups: list[dict]) -> Path:
     import pyarrow.parquet as pq
 
     path = duplicates_path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
     table = pa.table({"key": [d["key"] for d in dups], "duplicate_of": [d["duplicate_of"] for d in dups],
                       "distance_bits": pa.array([d["distance_bits"] for d in dups], pa.int32())})
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        pq.write_table(table, tmp)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    buf = pa.BufferOutputStream()
+    pq.write_table(table, buf)
+    atomic_write_bytes(path, buf.getvalue().to_pybytes())
     return path
 
 

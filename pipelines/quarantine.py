@@ -25,11 +25,15 @@ marker, so a rerun never loses or duplicates them. Columns (``QUARANTINE_COLUMNS
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
+
+from shards.fsio import atomic_write_bytes
 
 QUARANTINE_COLUMNS = ("item", "unit_id", "source", "stage", "status", "reason", "attempts")
 WARNING = "warning"          # a row that did not keep anything out of the dataset
+# how the label stage's curation reasons start (stats.json counts the windows they dropped by these)
+SPANS_CUT = "spans a scene cut"
+STANDS_STILL = "stands still"
 
 
 def row(state: dict, stage: str, reason: str, *, item: str | None = None, status: str = "quarantined",
@@ -72,16 +76,11 @@ def write_rows(root: str | Path, unit_id: str, rows: list[dict]) -> Path | None:
     if not rows:
         path.unlink(missing_ok=True)
         return None
-    path.parent.mkdir(parents=True, exist_ok=True)
     cols = {c: [r[c] for r in rows] for c in QUARANTINE_COLUMNS}
     table = pa.table({**cols, "attempts": pa.array(cols["attempts"], pa.int32())})
-    tmp = path.with_name(f".{path.name}.{time.time_ns()}.tmp")
-    try:
-        pq.write_table(table, tmp)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)       # a full disk leaves no temporary file behind
-        raise
+    buf = pa.BufferOutputStream()
+    pq.write_table(table, buf)
+    atomic_write_bytes(path, buf.getvalue().to_pybytes())     # a full disk leaves no temporary file behind
     return path
 
 

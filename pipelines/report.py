@@ -83,12 +83,12 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
         "curation_cost": _curation_cost(seconds, this_run),
         "standing_still": {   # labels.still: clips written with stopped: true, and windows dropped as stopped
             "clips_tagged": sum(1 for m in ok for w in m["selected"] if w.get("stopped")),
-            "windows_dropped": sum(1 for r in rows if r["reason"].startswith("stands still")),
+            "windows_dropped": sum(1 for r in rows if r["reason"].startswith(quarantine.STANDS_STILL)),
         },
         "scene_cuts": {       # labeling/cuts.py: per unit in its commit marker, every clip across one dropped
             "cuts": sum(len(m.get("cuts") or []) for m in markers),
             "videos_with_cuts": sum(1 for m in markers if m.get("cuts")),
-            "windows_dropped": sum(1 for r in rows if r["reason"].startswith("spans a scene cut")),
+            "windows_dropped": sum(1 for r in rows if r["reason"].startswith(quarantine.SPANS_CUT)),
         },
         "warnings": {
             "rows": len(warned),

@@ -26,7 +26,7 @@ def read_manifest(root, committed_only: bool = True):
             continue
         try:
             t = pq.read_table(p)
-            for c, since in MANIFEST_COLUMNS_SINCE.items():     # a manifest of an older schema: null columns
+            for c in MANIFEST_COLUMNS_SINCE:                     # a manifest of an older schema: null columns
                 if c not in t.column_names:
                     t = t.append_column(c, pa.nulls(len(t), manifest_schema().field(c).type))
             tables.append(t.select(list(MANIFEST_COLUMNS)).cast(manifest_schema()))

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 SCHEMA_VERSION = 2
-# versions a reader of this code reads: 2 added the optional ego-motion fields (``since=2`` below); a
+# versions a reader of this code reads: 2 added ego_motion_pct_s, stopped and signature (``since=2`` below); a
 # version-1 sample simply lacks them (null in the manifest)
 READABLE_SCHEMA_VERSIONS = (1, 2)
 
@@ -197,12 +197,14 @@ MANIFEST_COLUMNS = (
     "hazard", "infraction_score", "has_trajectory", "prompt_id", "bytes_total", "ego_motion_pct_s", "stopped",
     "signature",
 )
-MANIFEST_COLUMNS_SINCE = {"ego_motion_pct_s": 2, "stopped": 2, "signature": 2}   # absent from older manifests: read as null
+# manifest columns copied from meta fields added after v1: absent from older manifests, read as null
+MANIFEST_COLUMNS_SINCE = {f.name: f.since for f in META_FIELDS if f.since > 1 and f.name in MANIFEST_COLUMNS}
 
 
 def meta_fields_of(version: int) -> list[MetaField]:
     """The meta fields a sample of schema ``version`` carries."""
     return [f for f in META_FIELDS if f.since <= version]
+
 
 _KEY_SAFE = re.compile(r"[^A-Za-z0-9-]+")
 

@@ -19,7 +19,6 @@ from shards.schema import (
     COMMANDS,
     FORBIDDEN_EXTENSIONS,
     MEMBERS,
-    META_FIELDS,
     READABLE_SCHEMA_VERSIONS,
     SCHEMA_VERSION,
     SOURCES,
@@ -77,14 +76,15 @@ def meta_problems(meta: Any, key: str | None = None) -> list[str]:
         return [f"meta.json must be a JSON object, got {type(meta).__name__}"]
     p: list[str] = []
     version = meta.get("schema_version")
-    fields = meta_fields_of(version if version in READABLE_SCHEMA_VERSIONS else SCHEMA_VERSION)
+    version = version if version in READABLE_SCHEMA_VERSIONS else SCHEMA_VERSION   # another: reported below
+    fields = meta_fields_of(version)
     names = {f.name for f in fields}
     missing = [f.name for f in fields if f.name not in meta]
     if missing:
         p.append(f"meta.json lacks fields {missing}")
     unknown = sorted(set(meta) - names)
     if unknown:
-        p.append(f"meta.json has fields not in schema v{version if version in READABLE_SCHEMA_VERSIONS else SCHEMA_VERSION}: {unknown}")
+        p.append(f"meta.json has fields not in schema v{version}: {unknown}")
     for f in fields:
         if f.name in meta and not _type_ok(meta[f.name], f.type):
             p.append(f"meta.{f.name} = {meta[f.name]!r} is not of type {f.type}")

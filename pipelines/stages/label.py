@@ -11,7 +11,7 @@
   textured points over its pairs, % of the frame width per second) below the threshold is ``stopped``:
   tagged (default), dropped, or kept; never turning (so never over-sampled by the balance stage).
 * **Scene cuts** (uploaded video, ``labels.cuts``): the same decoding pass feeds every source frame to the
-  cut detector (``labeling.cuts``, PySceneDetect's HistogramDetector by default); a window that shows frames
+  cut detector (``labeling.cuts``; by default our detector on DIS optical flow at 64 px); a window that shows frames
   of two shots is dropped (a ``dropped`` quarantine row naming the cut), and the unit's cuts are kept in
   ``state["cuts"]`` (commit marker, ``stats.json``).
 
@@ -68,7 +68,8 @@ class LabelStage(CutStage):   # shares the reader cache
         size_hw = self.flow_size_hw(e["frame_size_hw"])
         cut_cfg = cfg.labels.cuts
         t_cuts = [0.0]                  # seconds in the cut detector (curation cost, beside the labeler's)
-        detector = CutDetector(cut_cfg, e["fps_hz"]) if state["kind"] in cut_cfg.kinds else None
+        detector = (CutDetector(cut_cfg, e["fps_hz"]) if state["kind"] in cut_cfg.kinds and cut_cfg.method != "none"
+                    else None)
         if detector is None:
             frames = clip_frames(ep, 0, end, step, size_hw)
         else:   # one decoding pass: every source frame to the cut detector, every step-th to the flow
@@ -106,7 +107,7 @@ class LabelStage(CutStage):   # shares the reader cache
             # the window shows source frames s*step .. last*step: it spans a cut c when frames on both sides
             spans = [c for c in cuts if s * step < c <= last * step]
             if spans:
-                quarantine.drop_window(state, self.name, s, f"spans a scene cut at {spans[0] / e['fps_hz']:.2f} s "
+                quarantine.drop_window(state, self.name, s, f"{quarantine.SPANS_CUT} at {spans[0] / e['fps_hz']:.2f} s "
                                                            f"(source frame {spans[0]})")
                 continue
             yaw_flow = float(heading[last] - heading[t])
@@ -146,7 +147,7 @@ class LabelStage(CutStage):   # shares the reader cache
                     # crossing); forward keeps it off the balance stage's fine grid (never over-sampled)
                     out.update(command=FORWARD, confidence=min(out["confidence"], 0.5))
             if stopped and still.policy == "drop":
-                quarantine.drop_window(state, self.name, s, f"stands still: ego motion {ego:.2f} % of the frame "
+                quarantine.drop_window(state, self.name, s, f"{quarantine.STANDS_STILL}: ego motion {ego:.2f} % of the frame "
                                                            f"width per s < labels.still.max_motion_pct_s "
                                                            f"{still.max_motion_pct_s:g}")
                 continue

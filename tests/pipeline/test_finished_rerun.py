@@ -12,7 +12,7 @@ def test_a_finished_dataset_is_rerun_without_ray(tmp_path, synth_world, monkeypa
     over = [f"sources.synthetic.root={synth_world}", "sources.synthetic.layouts=[opendv,carla]"]
     first = runner.run(make_config(tmp_path / "out", [*over, "ray.executor=local"]))
     cfg = make_config(tmp_path / "out", over)                   # the default executor: Ray
-    assert cfg.ray.executor == "ray" and runner.nothing_to_run(cfg)
+    assert cfg.ray.executor == "ray" and runner.finished_listing(cfg) is not None
 
     def no_ray(cfg):
         raise AssertionError("Ray was started for a finished dataset")
@@ -29,8 +29,8 @@ def test_a_finished_dataset_is_rerun_without_ray(tmp_path, synth_world, monkeypa
     marker = sorted((tmp_path / "out" / "commits").glob("*.json"))[0]
     saved = marker.read_bytes()
     marker.unlink()
-    assert not runner.nothing_to_run(cfg)
+    assert runner.finished_listing(cfg) is None
     marker.write_bytes(saved)
     (tmp_path / "out" / "prompts" / "prompts.json").unlink()      # the prompt table was never written
-    assert not runner.nothing_to_run(cfg)
-    assert not runner.nothing_to_run(make_config(tmp_path / "out", [*over, "clip.stride_frames=20"]))
+    assert runner.finished_listing(cfg) is None
+    assert runner.finished_listing(make_config(tmp_path / "out", [*over, "clip.stride_frames=20"])) is None
