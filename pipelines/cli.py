@@ -198,9 +198,12 @@ def register(subparsers) -> None:
 
     r = sub.add_parser("run", help="run a pipeline config (embedded local Ray by default); resumes after a crash",
                        description=_wrap("Run the data pipeline of a config (+ overrides) into OUT: enumerate the "
-                                         "sources' units, cut 10 Hz clips, label commands, balance turns, encode "
-                                         "VAE latents and prompts, write shards. OUT must be new, empty or an "
-                                         "earlier output of this command (which the run resumes)."),
+                                         "sources' units, cut 10 Hz clips, label commands (dropping clips across "
+                                         "scene cuts, tagging the car standing still), balance turns, measure each "
+                                         "clip's quality (config `quality:` filters), encode VAE latents and "
+                                         "prompts, write shards, mark near-duplicates. OUT gets stats.json, "
+                                         "report.png and curation.png (dropped examples per reason). OUT must be "
+                                         "new, empty or an earlier output of this command (which the run resumes)."),
                        epilog=RUN_EPILOG, formatter_class=_Formatter)
     _common(r)
     r.add_argument("--force", action="store_true",

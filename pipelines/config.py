@@ -6,6 +6,7 @@ Sections (one dataclass each; units in field names):
 * ``clip``     clip geometry (ReSim: 10 Hz, 9 history + 40 future frames) and the window stride;
 * ``labels``   optical-flow and trajectory labelling knobs (turn threshold, flow resolution);
 * ``balance``  ReSim's turn balance: windows extracted ``turn_factor`` x more densely in turning segments;
+* ``dedup``    near-duplicate clips across the dataset; ``quality`` per-clip quality filters (off by default);
 * ``encode``   resolution, VAE + T5 folders (placeholders by default), dtype, slicing/tiling;
 * ``shards``   shard size limits and the shard prefix;
 * ``quarantine`` retry policy for items that fail;
@@ -20,6 +21,7 @@ workers and hashes names the data it read wherever it is read from.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -201,6 +203,42 @@ class DedupConfig:
             raise ConfigError(f"dedup.band_bits must be 8 or 16, got {self.band_bits}")
 
 
+# ------------------------------------------------------------------------------------------- quality
+@dataclass
+class QualityConfig:
+    """Per-clip quality filters (``pipelines/quality.py``): a window outside a bound is dropped before the VAE
+    (a ``dropped`` quarantine row naming the column). Every bound is off (null) by default: the columns are
+    written for every clip, so choose bounds from a dataset's distributions (``resim shards stats DIR --plot``).
+    Values are measured at ``encode.height_px`` x ``encode.width_px``; sharpness depends on that size."""
+
+    min_luma_mean_8bit: Optional[float] = None    # e.g. 25: night footage too dark to read
+    max_luma_mean_8bit: Optional[float] = None    # e.g. 235: blown out
+    min_luma_std_8bit: Optional[float] = None     # e.g. 12: fog, glare, a lens cap
+    min_sharpness_lapvar: Optional[float] = None  # blur; 8-bit levels^2 at the encode size
+    max_static_edge_frac: Optional[float] = None  # e.g. 0.1: dashboard, bonnet or overlays in view
+    min_flow_quality: Optional[float] = None      # 0..1: the labeler's fit kept too few points to trust its command
+
+    def __post_init__(self):
+        for name in ("min_luma_mean_8bit", "max_luma_mean_8bit", "min_luma_std_8bit", "min_sharpness_lapvar",
+                     "max_static_edge_frac", "min_flow_quality"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f"quality.{name} must be a finite number >= 0 or null (off), got {v!r}")
+        for name in ("max_static_edge_frac", "min_flow_quality"):
+            if (getattr(self, name) or 0) > 1:
+                raise ConfigError(f"quality.{name} is a share in [0, 1], got {getattr(self, name)}")
+        for name in ("min_luma_mean_8bit", "max_luma_mean_8bit", "min_luma_std_8bit"):
+            if (getattr(self, name) or 0) > 255:
+                raise ConfigError(f"quality.{name} is in 8-bit levels (0..255), got {getattr(self, name)}")
+        lo, hi = self.min_luma_mean_8bit, self.max_luma_mean_8bit
+        if lo is not None and hi is not None and lo >= hi:
+            raise ConfigError(f"quality.min_luma_mean_8bit ({lo}) must be below quality.max_luma_mean_8bit ({hi})")
+
+    @property
+    def enabled(self) -> bool:
+        return any(v is not None for v in vars(self).values())
+
+
 # ------------------------------------------------------------------------------------------- balance
 @dataclass
 class BalanceConfig:
@@ -339,6 +377,7 @@ class PipelineConfig:
     labels: LabelsConfig = field(default_factory=LabelsConfig)
     balance: BalanceConfig = field(default_factory=BalanceConfig)
     dedup: DedupConfig = field(default_factory=DedupConfig)
+    quality: QualityConfig = field(default_factory=QualityConfig)
     encode: EncodeConfig = field(default_factory=EncodeConfig)
     shards: ShardsConfig = field(default_factory=ShardsConfig)
     quarantine: QuarantineConfig = field(default_factory=QuarantineConfig)

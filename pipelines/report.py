@@ -16,11 +16,11 @@ import json
 from collections import Counter, defaultdict
 from pathlib import Path
 
-from pipelines import quarantine
+from pipelines import curation, quarantine
 from shards.fsio import atomic_write_bytes
 
 STAGE_ORDER = ("cut", "label", "label.cuts", "balance", "encode", "encode.decode", "encode.vae", "encode.mp4",
-               "encode.signature", "write")
+               "encode.signature", "encode.quality", "write")
 
 
 def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None) -> dict:
@@ -79,6 +79,9 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
             "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in rows[:20]],
         },
         "duplicates": _duplicates(out),
+        # hours in -> after discards -> windows dropped per reason -> clips (pipelines/curation.py)
+        "curation": curation.funnel(markers, rows, _duplicates(out)["clips_left_out"],
+                                    cfg.clip.num_frames / cfg.clip.fps_hz if cfg is not None else None),
         # curation's cost beside the labeler's, in this dataset's runs (docs/pipeline.md: target <= 25 %)
         "curation_cost": _curation_cost(seconds, this_run),
         "standing_still": {   # labels.still: clips written with stopped: true, and windows dropped as stopped
@@ -106,10 +109,11 @@ def _curation_cost(seconds: Counter, this_run: dict) -> dict:
     """Seconds of scene-cut detection, signatures and the dedup pass, and their share of the label stage's
     own time (the label stage's total minus the cut detector's: the flow labeler and the stillness medians)."""
     cuts, sig, dedup = seconds.get("label.cuts", 0.0), seconds.get("encode.signature", 0.0), this_run.get("dedup_s", 0.0)
+    qual, sheet = seconds.get("encode.quality", 0.0), this_run.get("curation_sheet_s", 0.0)
     labeling = seconds.get("label", 0.0) - cuts
-    total = cuts + sig + dedup
+    total = cuts + sig + dedup + qual     # per video-hour; the contact sheet is a fixed cost per run (a few frames)
     return {"scene_cuts_s": round(cuts, 3), "signatures_s": round(sig, 3), "dedup_s": round(dedup, 3),
-            "labeling_s": round(labeling, 3), "share_of_labeling": round(total / labeling, 4) if labeling > 0 else None}
+            "quality_s": round(qual, 3), "contact_sheet_s": round(sheet, 3), "labeling_s": round(labeling, 3), "share_of_labeling": round(total / labeling, 4) if labeling > 0 else None}
 
 
 def _duplicates(out: str | Path) -> dict:
@@ -205,10 +209,14 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
          f"wall {run.get('wall_s', 0):.1f} s" if run.get("units_run", 0) else
          f"throughput        n/a: nothing to run (every unit already committed), wall {run.get('wall_s', 0):.1f} s"),
         f"stage time share  " + ", ".join(f"{k} {v['share']:.0%}" for k, v in stats["stages"].items() if v["share"] is not None),
+        *([curation.format_funnel(stats["curation"])] if stats.get("curation") else []),
         *([f"curation cost     {cc['share_of_labeling']:.0%} of labeling (scene cuts {cc['scene_cuts_s']:.1f} s, "
-           f"signatures {cc['signatures_s']:.1f} s, dedup {cc['dedup_s']:.1f} s; labeling {cc['labeling_s']:.1f} s)"]
+           f"signatures {cc['signatures_s']:.1f} s, quality {cc.get('quality_s', 0):.1f} s, dedup "
+           f"{cc['dedup_s']:.1f} s, contact sheet {cc.get('contact_sheet_s', 0):.1f} s; labeling "
+           f"{cc['labeling_s']:.1f} s)"]
           if cc.get("share_of_labeling") is not None else []),
-        f"output            {out}  (stats.json, report: {report_png})",
+        f"output            {out}  (stats.json, report: {report_png}"
+        + (f", dropped examples: {out / 'curation.png'}" if (Path(out) / "curation.png").is_file() else "") + ")",
     ]
     return "\n".join(lines)
 

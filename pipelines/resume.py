@@ -17,7 +17,7 @@ from pipelines import quarantine
 from shards.fsio import atomic_write_bytes
 
 SUMMARY_KEYS = ("unit_id", "kind", "origin", "item_id", "status", "attempts", "balance", "timings_s", "written",
-                "cuts")
+                "cuts", "curation")
 
 
 def marker_path(out: str | Path, unit_id: str) -> Path:

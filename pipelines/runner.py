@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from pipelines import out_lock, quarantine, ray_connect, resume, stage_fit
+from pipelines import curation, out_lock, quarantine, ray_connect, resume, stage_fit
 from pipelines.config import PipelineConfig, absolute_paths, check_synthetic_world, to_dict
 from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
 from pipelines.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
@@ -532,6 +532,12 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
     staging = out / "_staging"
     if staging.is_dir() and not any(staging.iterdir()):
         staging.rmdir()
+    sheet_s = 0.0
+    if todo or not (out / "curation.png").is_file():    # dropped examples per reason (pipelines/curation.py)
+        t_sheet = time.perf_counter()
+        curation.contact_sheet(out, cfg, states, quarantine.problems(quarantine.read_table(out)),
+                               curation.duplicate_pairs(out))
+        sheet_s = time.perf_counter() - t_sheet
     wall = time.perf_counter() - t0
     markers = resume.read_markers(out)
     enumerated_ids = {s["unit_id"] for s in states}
@@ -539,7 +545,7 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
                                  this_run={"units_run": len(todo), "units_skipped": len(skipped), "wall_s": wall,
                                            "executor": cfg.ray.executor,
                                            "clips_written": done["clips_written"], "dedup_s": round(dedup_s, 3),
-                                           "cpus": cpus},
+                                           "curation_sheet_s": round(sheet_s, 3), "cpus": cpus},
                                  cfg=cfg)
     report.write_stats(out, stats)
     png = report.write_report_png(out, stats)

@@ -104,6 +104,11 @@ def _cmd_stats(args) -> int:
 
     st = compute_stats(args.dir)
     print(json.dumps(st, indent=1, default=str) if args.json else format_stats(st))
+    if args.plot:
+        from shards.stats import plot_quality
+
+        p = plot_quality(args.dir, args.plot)
+        print(f"quality histograms: {p}", file=sys.stderr if args.json else sys.stdout)
     return 0
 
 
@@ -269,6 +274,9 @@ def register(subparsers) -> None:
                        epilog=STATS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("dir", help=DATASET_HELP)
     s.add_argument("--json", action="store_true", help="print one machine-readable JSON object (keys below)")
+    s.add_argument("--plot", metavar="PNG", help="also draw the per-clip quality columns' histograms by source "
+                   "(ego motion, brightness, contrast, sharpness, static edges, flow quality) into PNG: choose the "
+                   "pipeline config's quality filters from them")
     s.set_defaults(func=_on_dataset(_cmd_stats))
 
     s = sub.add_parser("show", help="one sample's metadata and field shapes",

@@ -31,10 +31,10 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-SCHEMA_VERSION = 2
-# versions a reader of this code reads: 2 added ego_motion_pct_s, stopped and signature (``since=2`` below); a
-# version-1 sample simply lacks them (null in the manifest)
-READABLE_SCHEMA_VERSIONS = (1, 2)
+SCHEMA_VERSION = 3
+# versions a reader of this code reads: 2 added ego_motion_pct_s, stopped and signature, 3 the per-clip quality
+# columns (``since`` below); an older sample simply lacks them (null in the manifest)
+READABLE_SCHEMA_VERSIONS = (1, 2, 3)
 
 SOURCES = ("opendv", "navsim", "carla", "synthetic")
 COMMANDS = ("Turning left", "Moving forward", "Turning right")
@@ -188,14 +188,25 @@ META_FIELDS: list[MetaField] = [
     MetaField("signature", "str|null", "hex", "Perceptual signature for near-duplicate search: the 64-bit "
               "difference hash of 4 frames evenly spaced over the clip, 64 hex digits (pipelines/dedup.py).",
               since=2),
+    # per-clip quality (pipelines/quality.py), measured on the frames fed to the VAE (height_px x width_px)
+    MetaField("luma_mean_8bit", "float|null", "0..255", "Brightness: mean luma (BT.601) over the clip.", since=3),
+    MetaField("luma_std_8bit", "float|null", "0..127.5", "Contrast: spatial standard deviation of luma, mean over "
+              "frames.", since=3),
+    MetaField("sharpness_lapvar", "float|null", "8-bit levels^2", "Sharpness (low: blur): variance of the 3x3 "
+              "Laplacian of luma, mean over frames; depends on the resolution.", since=3),
+    MetaField("static_edge_frac", "float|null", "0..1", "Share of the frame covered by edges that do not move "
+              "over the clip: dashboard, bonnet, burnt-in overlays (all of a stopped clip's edges).", since=3),
+    MetaField("flow_quality", "float|null", "0..1", "Optical-flow quality over the clip: the labeler's share of "
+              "points its rotation fit kept, / 0.25, capped at 1; null without flow.", since=3),
 ]
 META_FIELD_NAMES = tuple(f.name for f in META_FIELDS)
+QUALITY_META = ("luma_mean_8bit", "luma_std_8bit", "sharpness_lapvar", "static_edge_frac", "flow_quality")
 
 # One manifest row per sample (Parquet), for stats and mixing weights without opening tars.
 MANIFEST_COLUMNS = (
     "key", "shard", "source", "item_id", "start_frame", "command", "command_source", "is_turning",
     "hazard", "infraction_score", "has_trajectory", "prompt_id", "bytes_total", "ego_motion_pct_s", "stopped",
-    "signature",
+    "signature", *QUALITY_META,
 )
 # manifest columns copied from meta fields added after v1: absent from older manifests, read as null
 MANIFEST_COLUMNS_SINCE = {f.name: f.since for f in META_FIELDS if f.since > 1 and f.name in MANIFEST_COLUMNS}

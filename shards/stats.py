@@ -19,6 +19,9 @@ Keys of the returned dict (also ``resim shards stats --json``):
   ``total`` (in_shards + prompt_table_amortised).
 * ``member_presence``: how many samples carry each member.
 * ``latent``: ``shapes`` (``"TxCxhxw"`` -> count) and ``dtypes`` (-> count).
+* ``quality``: for ``ego_motion_pct_s`` and each per-clip quality column (schema v3, ``shards.schema.QUALITY_META``):
+  ``n`` (samples with a value), ``min``, ``p05``, ``p50``, ``p95``, ``max``; ``--plot PNG`` draws their
+  histograms by source.
 * ``prompt_table``: ``num_prompts``, ``bytes`` (embedding files + prompts.json), ``entries`` (id, role, command,
   text, shape, dtype, encoder_id, placeholder, num_tokens, bytes).
 """
@@ -30,7 +33,13 @@ from pathlib import Path
 from shards import layout
 from shards.manifest import read_indexes, read_manifest, read_quarantine
 from shards.prompts import PromptTable
-from shards.schema import MEMBERS
+from shards.schema import MEMBERS, QUALITY_META
+
+# the manifest's per-clip columns a user filters on (pipelines/quality.py, labels.still) and their units
+QUALITY_COLUMNS = {"ego_motion_pct_s": "% of frame width / s", "luma_mean_8bit": "0..255",
+                   "luma_std_8bit": "8-bit levels", "sharpness_lapvar": "8-bit levels²", "static_edge_frac": "0..1",
+                   "flow_quality": "0..1"}
+assert set(QUALITY_META) < set(QUALITY_COLUMNS), "a quality column without its unit"
 
 
 def _counts(values) -> dict:
@@ -112,6 +121,7 @@ def compute_stats(root) -> dict:
         "bytes_per_sample": bps,
         "member_presence": dict(sorted(member_counts.items())),
         "latent": {"shapes": dict(shapes), "dtypes": dict(dtypes)},
+        "quality": {c: _spread(man.get(c, [])) for c in QUALITY_COLUMNS},
         "prompt_table": {
             "num_prompts": len(entries),
             "bytes": ptab_bytes,
@@ -121,6 +131,53 @@ def compute_stats(root) -> dict:
                         for pid, e in sorted(entries.items())],
         },
     }
+
+
+def _spread(values) -> dict:
+    import numpy as np
+
+    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if not len(v):
+        return {"n": 0}
+    q = np.percentile(v, [0, 5, 50, 95, 100])
+    return {"n": int(len(v)), **{k: round(float(x), 4) for k, x in zip(("min", "p05", "p50", "p95", "max"), q)}}
+
+
+def plot_quality(root, path) -> Path:
+    """Histograms of the per-clip columns (``QUALITY_COLUMNS``) by source, one panel each, to ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    man = read_manifest(Path(root)).to_pydict()
+    sources = sorted(set(man["source"]))
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
+    for ax, (col, unit) in zip(axes.ravel(), QUALITY_COLUMNS.items()):
+        vals = man.get(col) or []
+        per = {s: [v for v, src in zip(vals, man["source"]) if src == s and v is not None and np.isfinite(v)]
+               for s in sources}
+        allv = [v for vs in per.values() for v in vs]
+        if not allv:
+            ax.text(0.5, 0.5, "no values\n(written before schema v3?)", ha="center", va="center", fontsize=9)
+        else:
+            lo, hi = min(allv), max(allv)
+            pad = 0.05 * max(abs(hi), 1e-3) if hi - lo < 1e-9 else 0.0    # one value: a visible bar around it
+            bins = np.linspace(lo - pad, hi + pad, 30)
+            ax.hist([per[s] for s in sources if per[s]], bins=bins, stacked=True,
+                    label=[s for s in sources if per[s]])
+            ax.legend(fontsize=7)
+        ax.set_title(f"{col} ({unit})", fontsize=9)
+        ax.set_ylabel("clips", fontsize=8)
+    fig.suptitle(f"per-clip quality — {Path(root).name} ({len(man['key'])} clips); filters: the pipeline "
+                 "config's quality section", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
 
 
 def _h(nbytes: float) -> str:
@@ -170,6 +227,12 @@ def format_stats(st: dict) -> str:
             lines.append(f"  {k:<24} {_h(v):>10}")
     lines.append("latent: " + ", ".join(f"{s} ({c})" for s, c in st["latent"]["shapes"].items())
                  + " | " + ", ".join(f"{d} ({c})" for d, c in st["latent"]["dtypes"].items()))
+    qual = {c: v for c, v in (st.get("quality") or {}).items() if v.get("n")}
+    if qual:
+        lines.append("per-clip quality (min / 5% / median / 95% / max):")
+        for c, v in qual.items():
+            lines.append(f"  {c:<18} {v['min']:>9.3g} {v['p05']:>9.3g} {v['p50']:>9.3g} {v['p95']:>9.3g} "
+                         f"{v['max']:>9.3g}  ({v['n']} clips; {QUALITY_COLUMNS[c]})")
     pt = st["prompt_table"]
     lines.append(f"prompt table: {pt['num_prompts']} prompts, {_h(pt['bytes'])}")
     for e in pt["entries"]:

@@ -100,7 +100,8 @@ def make_dummy_sample(source: str = "synthetic", item_id: str = "dummy/episode-0
         "latent_shape": list(shape), "latent_scaling_factor": 1.15258426, "has_trajectory": with_trajectory,
         "dino_id": "placeholder-dinov2-random" if with_dino else None, "pipeline_version": "test",
         "config_hash": config_hash, "ego_motion_pct_s": 8.0, "stopped": False,
-        "signature": None,
+        "signature": None, "luma_mean_8bit": float(frames.mean()), "luma_std_8bit": float(frames.std()),
+        "sharpness_lapvar": 100.0, "static_edge_frac": 0.0, "flow_quality": 1.0,
     }
     sample = {"__key__": key, "meta.json": meta, "latent.npy": latent, "frames.mp4": encode_mp4(frames, spec.fps_hz)}
     if with_trajectory:

@@ -57,7 +57,7 @@ from typing import Any
 from shards import layout, safejson
 from shards.fsio import atomic_write_bytes, fsync_dir, is_tmp_name, link_no_clobber, sha256_file, tmp_name
 from shards.npy import encode_npy
-from shards.schema import MANIFEST_COLUMNS, MEMBERS, SCHEMA_VERSION
+from shards.schema import MANIFEST_COLUMNS, MEMBERS, QUALITY_META, SCHEMA_VERSION
 from shards.validate import SampleError, sample_problems
 
 TAR_BLOCK = 512
@@ -104,6 +104,8 @@ def manifest_schema():
         "is_turning": pa.bool_(), "hazard": pa.bool_(), "infraction_score": pa.float64(),
         "has_trajectory": pa.bool_(), "prompt_id": pa.string(), "bytes_total": pa.int64(),
         "ego_motion_pct_s": pa.float64(), "stopped": pa.bool_(), "signature": pa.string(),
+        "luma_mean_8bit": pa.float64(), "luma_std_8bit": pa.float64(), "sharpness_lapvar": pa.float64(),
+        "static_edge_frac": pa.float64(), "flow_quality": pa.float64(),
     }
     assert tuple(types) == MANIFEST_COLUMNS, "manifest types out of step with schema.MANIFEST_COLUMNS"
     return pa.schema([(k, v) for k, v in types.items()])
@@ -282,7 +284,8 @@ class ShardWriter:
                     is_turning=m["is_turning"], hazard=m["hazard"], infraction_score=m["infraction_score"],
                     has_trajectory=m["has_trajectory"], prompt_id=m["prompt_id"], bytes_total=nbytes,
                     ego_motion_pct_s=m.get("ego_motion_pct_s"), stopped=m.get("stopped"),
-                    signature=m.get("signature"))
+                    signature=m.get("signature"),
+                    **{c: m.get(c) for c in QUALITY_META})
         for c in MANIFEST_COLUMNS:
             self._rows[c].append(vals[c])
         self._shard_keys.append(sample["__key__"])

@@ -65,6 +65,7 @@ class Episode:
     driving_command: np.ndarray | None = None  # dataset's own per-frame command (NAVSIM one-hot (N, 4))
     timestamps_s: np.ndarray | None = None   # (num_frames,) seconds from the episode's first frame
     warnings: list[str] = field(default_factory=list)  # repaired defects (e.g. NaN compass interpolated)
+    source_duration_s: float | None = None   # the whole recording, before any discard (None: num_frames / fps_hz)
     _loader: FrameLoader | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):

@@ -216,7 +216,8 @@ class OpenDVReader:
             return _decode(path, item_id, src_idx[a:b], src_fps, size_hw, self.cfg.seek_gap_s, count)
 
         return Episode(source="opendv", item_id=item_id, fps_hz=self.cfg.fps_hz, num_frames=n_out,
-                       frame_size_hw=(h, w), timestamps_s=t - start_s, _loader=loader)
+                       frame_size_hw=(h, w), timestamps_s=t - start_s, source_duration_s=duration_s,
+                       _loader=loader)
 
 
 def _refuse_cover_first(path: Path, item_id: str) -> None:

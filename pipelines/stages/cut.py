@@ -78,5 +78,9 @@ class CutStage(Stage):
             "warnings": [str(x) for x in getattr(ep, "warnings", [])],
         }
         state["windows"] = [{"start": s} for s in starts]
+        used_s = ep.num_frames / ep.fps_hz
+        # the curation funnel (pipelines/curation.py): hours in, hours after the reader's discards, candidates
+        state["curation"] = {"source_s": round(float(ep.source_duration_s or used_s), 3), "used_s": round(used_s, 3),
+                             "windows": len(starts)}
         for w in state["episode"]["warnings"]:   # last, so a retried or failed cut adds none
             quarantine.warn(state, self.name, w)

@@ -23,7 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from media.frames import center_crop, clip_frames, cover_size, sliding_windows
+from pipelines import quarantine
 from pipelines.dedup import clip_signature
+from pipelines.quality import clip_quality, quality_problem
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
 from pipelines.units import clip_of
@@ -41,7 +43,7 @@ def data_config_hash(cfg) -> str:
     from resim.config import to_dict
 
     d = to_dict(absolute_paths(cfg))
-    return config_hash({k: d[k] for k in ("sources", "clip", "labels", "balance", "encode", "shards")})
+    return config_hash({k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")})
 
 
 def key_seed(key: str) -> int:
@@ -87,7 +89,7 @@ class EncodeStage(CutStage):
         ep = self.open(state)
         first, end = sel[0]["start"], sel[-1]["start"] + N
         decode_hw = cover_size(tuple(e["frame_size_hw"]), out_hw)
-        t_dec = t_vae = t_mp4 = t_sig = 0.0
+        t_dec = t_vae = t_mp4 = t_sig = t_qual = 0.0
 
         def frames():
             nonlocal t_dec
@@ -147,7 +149,7 @@ class EncodeStage(CutStage):
                     "has_trajectory": w["traj"] is not None, "dino_id": None,
                     "pipeline_version": __version__, "config_hash": self.config_hash,
                     "ego_motion_pct_s": w.get("ego_motion_pct_s"), "stopped": w.get("stopped"),
-                    "signature": sig,
+                    "signature": sig, **w["quality"],
                 }
                 np.save(stage_dir / f"{key}.latent.npy", stored, allow_pickle=False)
                 (stage_dir / f"{key}.frames.mp4").write_bytes(mp4)
@@ -157,16 +159,34 @@ class EncodeStage(CutStage):
                 keys.append(key)
             pending.clear()
 
+        dropped: set[int] = set()
         for start, pix in sliding_windows(frames(), first, list(by_start), N):
             if start in by_start:
-                pending.append((by_start[start], pix))
+                w = by_start[start]
+                t0 = time.perf_counter()
+                w["quality"] = {**clip_quality(pix), "flow_quality": w.get("flow_quality")}
+                why = quality_problem(w["quality"], cfg.quality)
+                t_qual += time.perf_counter() - t0
+                if why is not None:               # quality filters: dropped before the VAE spends anything
+                    quarantine.drop_window(state, self.name, start, why)
+                    dropped.add(start)
+                    continue
+                pending.append((w, pix))
                 if len(pending) >= enc.batch_size:
                     flush()
         flush()
-        if len(keys) != len(sel):
-            raise BadInput(f"decoded frames for {len(keys)} of {len(sel)} clips (video ends early)")
+        if len(keys) + len(dropped) != len(sel):
+            raise BadInput(f"decoded frames for {len(keys) + len(dropped)} of {len(sel)} clips (video ends early)")
+        if dropped:
+            state["selected"] = [w for w in sel if w["start"] not in dropped]
         state["clips"] = keys
         state["staging"] = str(stage_dir)
+        kept = sorted(w["start"] for w in sel if w["start"] not in dropped)
+        covered, end_f = 0, -1                    # frames in the union of the written windows
+        for st in kept:
+            covered += st + N - max(st, end_f)
+            end_f = st + N
+        state.setdefault("curation", {})["covered_s"] = round(covered / clip.fps_hz, 3)
         for k, v in (("encode.decode", t_dec), ("encode.vae", t_vae), ("encode.mp4", t_mp4),
-                     ("encode.signature", t_sig)):
+                     ("encode.signature", t_sig), ("encode.quality", t_qual)):
             state["timings_s"][k] = state["timings_s"].get(k, 0.0) + v

@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 
 from labeling.cuts import CutDetector
-from labeling.flow import ego_motion_pct_s
+from labeling.flow import ego_motion_pct_s, window_quality
 from pipelines import quarantine
 from media.frames import clip_frames
 from pipelines.stages.base import BadInput
@@ -112,16 +112,16 @@ class LabelStage(CutStage):   # shares the reader cache
                 continue
             yaw_flow = float(heading[last] - heading[t])
             cmd_flow, conf_flow = command_from_yaw(yaw_flow, self.lcfg)
+            flow_q = None
             if quality is not None and len(quality) == len(rates):
-                from labeling.flow import window_quality
-
                 conf_flow *= window_quality(quality[t:last])
+                flow_q = round(window_quality(quality[s:last]), 4)    # the clip's column (pipelines/quality.py)
             ego = (ego_motion_pct_s(motion[s:last], size_hw[1], fps)
                    if motion is not None and len(motion) == len(rates) else float("nan"))
             stopped = bool(ego < still.max_motion_pct_s) if np.isfinite(ego) else None
             out = {"start": s, "command_flow": cmd_flow, "yaw_deg_flow": yaw_flow, "confidence_flow": conf_flow,
                    "command_trajectory": None, "yaw_deg_trajectory": None, "traj": None,
-                   "ego_motion_pct_s": round(ego, 4) if np.isfinite(ego) else None}
+                   "ego_motion_pct_s": round(ego, 4) if np.isfinite(ego) else None, "flow_quality": flow_q}
             if poses is not None:
                 win = poses[s:s + N]
                 bad = ~np.isfinite(win).all(axis=1)

@@ -145,9 +145,30 @@ def test_an_edited_drive_with_a_cut_and_a_stop_is_curated(dashcam, tmp_path):
                                                  "samples_per_epoch": 3 * len(clips)}), verbose=False)
     seen = {k for b in loader for k in b.keys}
     assert seen and not seen & {d["key"] for d in dups} and seen <= set(m["key"] for m in clips.values())
-    # the same run without cut detection writes clips across the cut: what the detector is for
-    off = _starts(_run(tmp_path, root, "off", "--set", "clip.stride_frames=10", "--set", "labels.cuts.method=none"))
+    # per-clip quality columns (pipelines/quality.py): the frozen frames' edges stand still and the flow's fit
+    # finds nothing to hold; driving clips of the same video have few static edges and a fully kept fit
+    for m in clips.values():
+        assert 90 < m["luma_mean_8bit"] < 140 and 30 < m["luma_std_8bit"] < 60 and m["sharpness_lapvar"] > 500, m
+    assert min(m["static_edge_frac"] for m in inside.values()) > 2 * max(m["static_edge_frac"] for m in moving)
+    assert max(m["flow_quality"] for m in inside.values()) < 0.5 <= min(m["flow_quality"] for m in moving)
+    # the curation report: the funnel adds up, and the dropped examples are drawn
+    f = stats["curation"]
+    assert abs(f["hours_in"] * 3600 - len(video) / 20.0) < 1.0 and f["units_quarantined"] == 0
+    assert f["windows_dropped"] == {"scene cut": stats["scene_cuts"]["windows_dropped"]}
+    assert f["clips_for_training"] == len(clips) - len(dups) and f["candidate_windows"] >= len(clips) + 48
+    assert (out / "curation.png").stat().st_size > 10_000
+    # the same run without cut detection writes clips across the cut: what the detector is for; with a quality
+    # filter on static edges (in the config, with its unit) the frozen segment's windows are dropped before the VAE
+    out_off = _run(tmp_path, root, "off", "--set", "clip.stride_frames=10", "--set", "labels.cuts.method=none",
+                   "--set", "quality.max_static_edge_frac=0.1")
+    off = _starts(out_off)
     assert [s for s in off if s < cuts[0] <= s + 48]
+    assert not [s for s in off if still[0] <= s and s + 48 < still[1]], "a frozen clip passed the filter"
+    assert all(m["static_edge_frac"] <= 0.1 for m in off.values())
+    rows = [r for r in pq.read_table(out_off / "quarantine").to_pylist() if r["stage"] == "encode"]
+    assert rows and all(r["reason"].startswith("low quality: static_edge_frac") for r in rows), rows
+    f = json.loads((out_off / "stats.json").read_text())["curation"]
+    assert f["windows_dropped"]["low quality: static_edge_frac"] == len(rows)
     # and with labels.still.policy=drop the stop is left out, with its rows
     dropped = _run(tmp_path, root, "drop", "--set", "clip.stride_frames=10", "--set", "labels.still.policy=drop")
     assert not [m for m in _starts(dropped).values() if m["stopped"]]

@@ -100,17 +100,23 @@ def test_validator_treats_none_members_as_missing_and_always_names_a_schema_vers
     s = make_dummy_sample(with_dino=False)
     s["dino.npy"] = None
     assert any("optional members ['dino.npy'] are None" in p for p in sample_problems(s))
-    meta = dict(make_dummy_sample()["meta.json"], schema_version=3, ego_speed_mps=3.0)
+    meta = dict(make_dummy_sample()["meta.json"], schema_version=4, ego_speed_mps=3.0)
     probs = meta_problems(meta, "k")
-    assert probs[0].startswith("meta.schema_version = 3") and len(probs) == 2
+    assert probs[0].startswith("meta.schema_version = 4") and len(probs) == 2
 
 
-def test_a_version_1_sample_without_the_v2_fields_is_read_and_a_version_2_one_needs_them():
+def test_older_samples_without_the_later_fields_are_read_and_a_current_one_needs_them():
+    from shards.schema import QUALITY_META
+
     meta = make_dummy_sample()["meta.json"]
-    old = {k: v for k, v in meta.items() if k not in ("ego_motion_pct_s", "stopped", "signature")}
+    v2 = {k: v for k, v in meta.items() if k not in QUALITY_META}
+    old = {k: v for k, v in v2.items() if k not in ("ego_motion_pct_s", "stopped", "signature")}
     assert meta_problems(dict(old, schema_version=1), meta["key"]) == []
-    assert any("lacks fields ['ego_motion_pct_s', 'stopped', 'signature']" in p for p in meta_problems(old, meta["key"]))
+    assert meta_problems(dict(v2, schema_version=2), meta["key"]) == []
+    assert any("lacks fields ['ego_motion_pct_s', 'stopped', 'signature', " in p for p in meta_problems(old, meta["key"]))
+    assert any(f"lacks fields {list(QUALITY_META)}" in p for p in meta_problems(v2, meta["key"]))
     assert any("not in schema v1" in p for p in meta_problems(dict(meta, schema_version=1), meta["key"]))
+    assert any("not in schema v2" in p for p in meta_problems(dict(meta, schema_version=2), meta["key"]))
 
 
 def test_writer_keeps_shards_within_max_bytes_including_tar_record_padding(tmp_path):

@@ -51,6 +51,18 @@ def test_stats_json(dataset, base_dataset, capsys):
     assert "turning share" in capsys.readouterr().out
 
 
+def test_stats_shows_the_quality_columns_and_plots_them(dataset, base_dataset, tmp_path, capsys):
+    png = tmp_path / "q.png"
+    assert main(["shards", "stats", str(dataset), "--json", "--plot", str(png)]) == 0
+    st = json.loads(capsys.readouterr().out)                     # the JSON stays parseable: the path goes to stderr
+    lum = sorted(x["meta.json"]["luma_mean_8bit"] for x in base_dataset[1])
+    q = st["quality"]["luma_mean_8bit"]
+    assert q["n"] == 10 and q["min"] == pytest.approx(lum[0], abs=1e-3) and q["max"] == pytest.approx(lum[-1], abs=1e-3)
+    assert st["quality"]["flow_quality"]["p50"] == 1.0 and png.stat().st_size > 10_000
+    assert main(["shards", "stats", str(dataset)]) == 0
+    assert "per-clip quality" in capsys.readouterr().out
+
+
 def test_stats_counts_warning_rows_apart_from_quarantined_items(dataset, capsys):
     """Rows with status warning (the unit was used) are not quarantined items; they are reported as warnings."""
     qdir = layout.quarantine_dir(dataset)
