@@ -145,16 +145,6 @@ def bf16_bits_to_float32(bits: np.ndarray) -> np.ndarray:
     return (bits.astype(np.uint32) << 16).view(np.float32)
 
 
-def bf16_bits_to_torch(bits: np.ndarray):
-    """bfloat16 bits (uint16 array) -> ``torch.bfloat16`` tensor, bit-exact (imports torch lazily)."""
-    import torch
-
-    bits = np.ascontiguousarray(bits)
-    if bits.dtype != np.uint16:
-        raise NpyError(f"bfloat16 bits must be uint16, got {bits.dtype}")
-    return torch.from_numpy(bits.view(np.int16).copy()).view(torch.bfloat16)
-
-
 def stored_to_float32(arr: np.ndarray, dtype_name: str) -> np.ndarray:
     """A stored array (per its declared dtype name) as float32: exact for float16 and bfloat16."""
     if dtype_name == "bfloat16":

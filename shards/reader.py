@@ -11,8 +11,8 @@ sample bad (:class:`ShardReadError` naming shard, key and reason); its neighbour
 
 Latents and prompt embeddings come back as exact float32 by default
 (``latent_as="float32"``; float16 and bfloat16 both widen exactly), or as stored
-(``latent_as="stored"``: float16, or uint16 bit patterns for bfloat16 — see
-``shards.npy.bf16_bits_to_torch``).
+(``latent_as="stored"``: float16, or uint16 bit patterns for bfloat16, torch's own bfloat16 bits:
+``torch.from_numpy(bits.view(np.int16)).view(torch.bfloat16)``).
 """
 from __future__ import annotations
 

@@ -41,9 +41,8 @@ def test_bf16_bits_match_torch():
     assert np.array_equal(bf16_bits_to_float32(ours), torch.from_numpy(x).to(torch.bfloat16).float().numpy())
     nan_bits = float32_to_bf16_bits(np.array([np.nan], np.float32))
     assert np.isnan(bf16_bits_to_float32(nan_bits)).all()
-    from shards.npy import bf16_bits_to_torch
-
-    t = bf16_bits_to_torch(ours)
+    # the stored bits are torch's own bfloat16 bits: a reader gets the tensor with a view, no conversion
+    t = torch.from_numpy(ours.view(np.int16).copy()).view(torch.bfloat16)
     assert t.dtype == torch.bfloat16 and torch.equal(t.view(torch.int16), torch.from_numpy(ref.view(np.int16)))
     assert stored_to_float32(np.float16([1.5]), "float16").dtype == np.float32
 
