@@ -40,12 +40,6 @@ def _seeded_init(build, seed: int):
         return build()
 
 
-def pick_device(want_gpu: bool = True) -> str:
-    import torch
-
-    return "cuda" if want_gpu and torch.cuda.is_available() else "cpu"
-
-
 # ----------------------------------------------------------------------------------------------- VAE
 @dataclass
 class VaeInfo:
@@ -70,8 +64,10 @@ class VideoVAE:
         import torch
         from diffusers import AutoencoderKLCogVideoX
 
+        from media.device import resolve_device   # imports torch: lazy as the rest of this module's torch
+
         folder = _resolve(Path(folder), "vae")
-        self.device = device or pick_device()
+        self.device = device or resolve_device()
         self.dtype = getattr(torch, DTYPES[dtype])
         if _has_weights(folder):
             model = AutoencoderKLCogVideoX.from_pretrained(folder, torch_dtype=self.dtype)
@@ -155,10 +151,12 @@ class TextEncoder:
         import torch
         from transformers import AutoTokenizer, T5Config, T5EncoderModel
 
+        from media.device import resolve_device   # imports torch: lazy as the rest of this module's torch
+
         folder = Path(folder)
         enc_dir = _resolve(folder, "text_encoder")
         tok_dir = folder / "tokenizer" if (folder / "tokenizer").is_dir() else enc_dir
-        self.device = device or pick_device()
+        self.device = device or resolve_device()
         self.tokenizer = AutoTokenizer.from_pretrained(tok_dir)
         if _has_weights(enc_dir):
             model = T5EncoderModel.from_pretrained(enc_dir)

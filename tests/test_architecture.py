@@ -15,7 +15,7 @@ FORBIDDEN = {
     "shards": {"torch", "ray", "pipelines", "training", "labeling"},
     "labeling": {"pipelines", "training"},
     "training": {"pipelines"},
-    "media": set(OURS),
+    "media": set(OURS) - {"media"},
 }
 
 # Known violations, each with the reason it is still there; the test fails on any other, and on an entry here

@@ -30,6 +30,7 @@ from typing import Any, Literal, Optional
 import torch
 import torch.nn.functional as F
 
+from media.device import resolve_device
 from resim.config import ConfigError
 from training.eval.fidelity import PSNR_CAP_DB, psnr, ssim, to_unit
 from training.eval.frechet import MIN_SAMPLES_UNBIASED, FeatureStats, frechet_from_stats
@@ -80,12 +81,6 @@ class QualityConfig:
             raise ConfigError(f"resolution_hw must be (0, 0) or both > 0, got {self.resolution_hw}")
         if self.feature_batch_size < 1:
             raise ConfigError("feature_batch_size must be >= 1")
-
-
-def resolve_device(device: str) -> str:
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return device
 
 
 def horizon_bins(num_future_frames: int, fps_hz: float, horizons_s: tuple[float, ...] = ()) -> list[dict]:

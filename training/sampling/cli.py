@@ -124,25 +124,14 @@ class UsageError(Exception):
 
 
 def resolve_device(device: str | None) -> str:
-    """``--device`` (already spelt right, see ``resim.argtypes.torch_device``) → a device this torch build can use;
-    :class:`UsageError` naming it otherwise (was: torch's AssertionError "Torch not compiled with CUDA enabled")."""
-    import torch
+    """``--device`` (already spelt right, see ``resim.argtypes.torch_device``) → a device this torch build can use
+    (``media.device``); :class:`UsageError` naming it otherwise."""
+    from media import device as media_device   # imports torch: this module stays light (see the top)
 
-    from media.encoders import pick_device
-
-    if device is None:
-        return pick_device()
-    kind, _, index = device.partition(":")
-    if kind == "cuda":
-        if not torch.cuda.is_available():
-            why = "this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA GPU is visible"
-            raise UsageError(f"--device {device}: {why}; use --device cpu (or leave --device out)")
-        n = torch.cuda.device_count()
-        if index and int(index) >= n:
-            raise UsageError(f"--device {device}: there are {n} CUDA device(s) here (cuda:0 .. cuda:{n - 1})")
-    elif kind == "mps" and not torch.backends.mps.is_available():
-        raise UsageError("--device mps: MPS is not available here; use --device cpu")
-    return device
+    try:
+        return media_device.resolve_device(device, flag="--device")
+    except media_device.DeviceError as e:
+        raise UsageError(str(e)) from None
 
 
 def _trajectories(specs: list[str] | None) -> list:
