@@ -6,7 +6,8 @@ import torch
 
 from training.diffusion import ObjectiveConfig, training_losses
 from training.diffusion.noise_levels import sample_noise_levels
-from training.diffusion.schedule import add_noise, alphas_cumprod, eps_from_v, v_target, x0_from_v
+from training.diffusion.schedule import add_noise, alphas_cumprod, v_target
+from training.sampling.ddim import v_to_x0_eps
 
 
 def test_schedule_equals_diffusers_cogvideox_ddim():
@@ -41,7 +42,9 @@ def test_v_closed_form_and_inverses():
             a = ac[t[b, f]]
             assert torch.allclose(xt[b, f], a.sqrt() * x0[b, f] + (1 - a).sqrt() * eps[b, f])
             assert torch.allclose(v[b, f], a.sqrt() * eps[b, f] - (1 - a).sqrt() * x0[b, f])
-    assert torch.allclose(x0_from_v(xt, v, t, ac), x0) and torch.allclose(eps_from_v(xt, v, t, ac), eps)
+    # the sampler's one v-prediction conversion inverts the training target
+    x0_hat, eps_hat = v_to_x0_eps(xt, v, ac[t].reshape(2, 3, 1, 1, 1))
+    assert torch.allclose(x0_hat, x0) and torch.allclose(eps_hat, eps)
     assert torch.equal(v[0, 2], -x0[0, 2])  # zero terminal SNR: v = -x0 at t = 999
     with pytest.raises(ValueError, match="noise levels"):
         add_noise(x0, eps, t + 1, ac)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from training.sampling.ddim import DDIMSchedule, add_noise, cogvideox_alphas_cumprod, ddim_step, ddim_timesteps
+from training.sampling.ddim import DDIMSchedule, cogvideox_alphas_cumprod, ddim_step, ddim_timesteps, forward_noise
 
 diffusers = pytest.importorskip("diffusers")
 
@@ -81,7 +81,7 @@ def test_perfect_v_recovers_x0_in_one_step():
     eps = torch.randn_like(x0)
     for t in (999, 500, 10):
         a = float(ac[t])
-        x_t = add_noise(x0, eps, a)
+        x_t = forward_noise(x0, eps, a)
         v = a ** 0.5 * eps - (1 - a) ** 0.5 * x0
         x_prev, x0_hat = ddim_step(x_t, v, a, 1.0)
         torch.testing.assert_close(x0_hat, x0)

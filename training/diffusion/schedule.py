@@ -63,11 +63,3 @@ def v_target(x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor, ac: torch.T
     return sa * noise - s1a * x0
 
 
-def x0_from_v(x_t: torch.Tensor, v: torch.Tensor, t: torch.Tensor, ac: torch.Tensor) -> torch.Tensor:
-    sa, s1a = _coef(ac, t, x_t)
-    return sa * x_t - s1a * v
-
-
-def eps_from_v(x_t: torch.Tensor, v: torch.Tensor, t: torch.Tensor, ac: torch.Tensor) -> torch.Tensor:
-    sa, s1a = _coef(ac, t, x_t)
-    return s1a * x_t + sa * v

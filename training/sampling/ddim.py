@@ -103,13 +103,16 @@ def _f(a, like: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(a, dtype=torch.float64, device=like.device)
 
 
-def v_to_x0_eps(x_t: torch.Tensor, v: torch.Tensor, a_t) -> tuple[torch.Tensor, torch.Tensor]:
-    """Clean estimate and noise from a v-prediction (computed in float64, returned in ``x_t``'s dtype)."""
+def v_to_x0_eps(x_t: torch.Tensor, v: torch.Tensor, a_t, float64: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Clean estimate and noise from a v-prediction at ``alpha_bar = a_t`` (a number or a tensor broadcasting to
+    ``x_t``): ``x0 = sqrt(a) x_t - sqrt(1-a) v``, ``eps = sqrt(a) v + sqrt(1-a) x_t``. Computed in float64;
+    returned in ``x_t``'s dtype, or in float64 with ``float64=True`` (for the next step's arithmetic). The one
+    v-prediction conversion of the code base."""
     a = _f(a_t, x_t)
     x, vv = x_t.double(), v.double()
     x0 = a.sqrt() * x - (1 - a).sqrt() * vv
     eps = a.sqrt() * vv + (1 - a).sqrt() * x
-    return x0.to(x_t.dtype), eps.to(x_t.dtype)
+    return (x0, eps) if float64 else (x0.to(x_t.dtype), eps.to(x_t.dtype))
 
 
 def ddim_step(x_t: torch.Tensor, v: torch.Tensor, a_t, a_prev) -> tuple[torch.Tensor, torch.Tensor]:
@@ -117,15 +120,13 @@ def ddim_step(x_t: torch.Tensor, v: torch.Tensor, a_t, a_prev) -> tuple[torch.Te
 
     ``x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps`` (DDIM eq. 12 with σ = 0).
     """
-    a, ap = _f(a_t, x_t), _f(a_prev, x_t)
-    x, vv = x_t.double(), v.double()
-    x0 = a.sqrt() * x - (1 - a).sqrt() * vv
-    eps = a.sqrt() * vv + (1 - a).sqrt() * x
+    ap = _f(a_prev, x_t)
+    x0, eps = v_to_x0_eps(x_t, v, a_t, float64=True)
     x_prev = ap.sqrt() * x0 + (1 - ap).sqrt() * eps
     return x_prev.to(x_t.dtype), x0.to(x_t.dtype)
 
 
-def add_noise(x0: torch.Tensor, noise: torch.Tensor, a_t) -> torch.Tensor:
+def forward_noise(x0: torch.Tensor, noise: torch.Tensor, a_t) -> torch.Tensor:
     """Forward process ``sqrt(a) x0 + sqrt(1-a) noise`` (used to noise history frames to a small level)."""
     a = _f(a_t, x0)
     return (a.sqrt() * x0.double() + (1 - a).sqrt() * noise.double()).to(x0.dtype)

@@ -44,7 +44,7 @@ from typing import Any, Callable, Literal, Sequence
 import torch
 
 from resim.config import ConfigError
-from training.sampling.ddim import DDIMSchedule, add_noise, cogvideox_alphas_cumprod, ddim_step
+from training.sampling.ddim import DDIMSchedule, cogvideox_alphas_cumprod, ddim_step, forward_noise
 from training.sampling.guidance import GuidanceConfig, combine_branches
 
 
@@ -240,7 +240,7 @@ class _Roller:
         lvl = self.cfg.history_noise_level
         if lvl == 0:
             return x
-        return add_noise(x, self._randn(x.shape), float(self.schedule.alpha(lvl)))
+        return forward_noise(x, self._randn(x.shape), float(self.schedule.alpha(lvl)))
 
     def _two(self, x: torch.Tensor | None) -> torch.Tensor | None:
         return None if x is None or not self.guided else torch.cat([x, x])
