@@ -10,7 +10,7 @@ import yaml
 from resim.cli import main
 from resim.config import ConfigError
 from shards.schema import ClipSpec
-from training.eval.synthetic import SynthConfig, write_synthetic_shards
+from training.eval.synthetic import PlaneWorldConfig, write_synthetic_shards
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def ds(tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("evalinputs")
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
-    write_synthetic_shards(root / "ds", SynthConfig(episodes=2, frames_per_episode=21, seed=1), spec)
+    write_synthetic_shards(root / "ds", PlaneWorldConfig(episodes=2, frames_per_episode=21, seed=1), spec)
     for name, cfg in (("idm-fits", idm_preset("tiny", future_frames=12, num_frames=7)), ("idm-49", idm_preset("tiny"))):
         d = root / name / "final"
         d.mkdir(parents=True)
@@ -117,9 +117,9 @@ def test_synth_refuses_configs_that_write_nothing(tmp_path, capsys):
     _error(capsys, "frames_per_episode 20 is shorter than one clip of 49 frames")
     assert not (tmp_path / "s").exists()
     with pytest.raises(ConfigError, match="clip_stride_frames must be >= 1"):   # was a range() traceback
-        SynthConfig(clip_stride_frames=0)
+        PlaneWorldConfig(clip_stride_frames=0)
     with pytest.raises(ConfigError, match="fps_hz"):
-        SynthConfig(fps_hz=float("nan"))
+        PlaneWorldConfig(fps_hz=float("nan"))
 
 
 def test_idm_configs_validate_without_dividing_by_zero():

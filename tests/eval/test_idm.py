@@ -8,7 +8,7 @@ from resim.config import ConfigError
 from shards.testing import dummy_trajectory
 from training.eval.idm import InverseDynamicsModel, idm_preset
 from training.eval.idm_train import TrajClip, constant_velocity, load_idm, split_by_episode, trajectory_errors
-from training.eval.synthetic import SynthConfig, future_waypoints, make_clips
+from training.eval.synthetic import PlaneWorldConfig, future_waypoints, make_clips
 
 
 def test_windows():
@@ -81,7 +81,7 @@ def test_synthetic_waypoints_match_constant_curvature_closed_form():
 
 
 def test_synthetic_clips_render_and_move():
-    clips = make_clips(SynthConfig(episodes=1, frames_per_episode=49, seed=2))
+    clips = make_clips(PlaneWorldConfig(episodes=1, frames_per_episode=49, seed=2))
     assert len(clips) == 1
     c = clips[0]
     assert c["frames"].shape == (49, 32, 48, 3) and c["frames"].dtype == np.uint8
@@ -157,7 +157,7 @@ def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):
     from training.eval.idm_train import IDMTrainConfig, collate, fit, load_idm, predict
 
     clips = [{"item_id": c["item_id"], "frames": c["frames"], "traj": c["traj"]}
-             for c in make_clips(SynthConfig(episodes=3, frames_per_episode=59, seed=4))]
+             for c in make_clips(PlaneWorldConfig(episodes=3, frames_per_episode=59, seed=4))]
     tc = [TrajClip(f"k{i}", c["item_id"], c["frames"], c["traj"], 9, 10.0) for i, c in enumerate(clips)]
     torch.set_num_threads(1)
     torch.manual_seed(0)

@@ -9,7 +9,7 @@ import yaml
 
 from resim.cli import main
 from shards.schema import ClipSpec
-from training.eval.synthetic import SynthConfig, write_synthetic_shards
+from training.eval.synthetic import PlaneWorldConfig, write_synthetic_shards
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +20,7 @@ def world(tmp_path_factory):
     # short clips keep the (CPU-slow) VAE decode cheap: 9 history + 12 future frames (6 latent frames), the
     # 8 waypoints every 0.15 s spanning the 12 future frames
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
-    write_synthetic_shards(ds, SynthConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1), spec)
+    write_synthetic_shards(ds, PlaneWorldConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1), spec)
     # a world-model "run" in the trainer's export layout (random init: plumbing, not quality)
     from safetensors.torch import save_file
 
@@ -218,7 +218,7 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys):
     # frames at the size the tiny VAE decodes to (8x its latents), as the pipeline stores them
     ds = root / "ds-vae-size"
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
-    write_synthetic_shards(ds, SynthConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1,
+    write_synthetic_shards(ds, PlaneWorldConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1,
                                            frames_hw=(64, 96)), spec)
     out = root / "commands"
     assert main(["eval", "commands", *_common(root, ds, out), "--all-clips"]) == 0

@@ -687,10 +687,10 @@ def _cmd_idm(args) -> int:
 def _cmd_synth(args) -> int:
     from resim.config import ConfigError
     from shards.schema import ClipSpec
-    from training.eval.synthetic import SynthConfig, check_fits, write_synthetic_shards
+    from training.eval.synthetic import PlaneWorldConfig, check_fits, write_synthetic_shards
 
     try:
-        cfg = SynthConfig(episodes=args.episodes, seed=args.seed, frames_hw=args.size,
+        cfg = PlaneWorldConfig(episodes=args.episodes, seed=args.seed, frames_hw=args.size,
                           clip_stride_frames=args.clip_stride, frames_per_episode=args.frames_per_episode)
         per_episode = check_fits(cfg, ClipSpec(fps_hz=cfg.fps_hz))   # "wrote 0 clips" is not a success
     except ConfigError as e:

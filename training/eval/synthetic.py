@@ -1,8 +1,9 @@
-"""A small rendered driving world with exact ego trajectories, written as real shards (for IDM tests/demos).
+"""A small rendered ground-plane world with exact ego trajectories, written as real shards (for IDM tests/demos).
 
-The project's synthetic world (``resim synth``, issue 3) and the pipeline (issue 5) produce shards with
-trajectories from the real layouts; until those are on main this module renders clips itself, small and
-fast, so the IDM can be trained and checked where the ground truth is exact:
+The project's synthetic world (``resim synth`` → ``resim pipeline run``) produces shards with trajectories
+through the real layouts, at the cost of a pipeline run; this module renders clips itself, in a second, so
+the IDM's tests can train and check it where the ground truth is exact (``PlaneWorldConfig``; not the
+road world of ``pipelines/sources/synth``):
 
 * a pinhole camera ``camera_height_m`` above a flat ground plane; every pixel below the horizon is
   intersected with the ground and coloured by a world-fixed texture (random colour per 4 m cell plus irregular
@@ -30,7 +31,7 @@ from shards.schema import ClipSpec
 
 
 @dataclass
-class SynthConfig:
+class PlaneWorldConfig:
     episodes: int = 8
     frames_per_episode: int = 109
     fps_hz: float = 10.0
@@ -64,7 +65,7 @@ class SynthConfig:
             raise ConfigError(f"max_yaw_rate_deg_s must be a finite number >= 0, got {self.max_yaw_rate_deg_s}")
 
 
-def check_fits(cfg: SynthConfig, spec: ClipSpec) -> int:
+def check_fits(cfg: PlaneWorldConfig, spec: ClipSpec) -> int:
     """Clips per episode; ConfigError when an episode is shorter than one clip (it would write 0 clips and
     look like success) or the spec's fps differs from the world's (the waypoints would be misplaced)."""
     if spec.fps_hz != cfg.fps_hz:
@@ -76,7 +77,7 @@ def check_fits(cfg: SynthConfig, spec: ClipSpec) -> int:
     return len(range(0, cfg.frames_per_episode - spec.num_frames + 1, cfg.clip_stride_frames))
 
 
-def episode_poses(cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+def episode_poses(cfg: PlaneWorldConfig, rng: np.random.Generator) -> np.ndarray:
     """(N, 3) world poses x, y, yaw at ``fps_hz``: piecewise-constant yaw rate, smoothly varying speed."""
     n, dt = cfg.frames_per_episode, 1.0 / cfg.fps_hz
     lo, hi = cfg.speed_range_mps
@@ -117,7 +118,7 @@ def future_waypoints(poses: np.ndarray, t_index: int, fps_hz: float, num_waypoin
 class GroundRenderer:
     """Renders (H, W, 3) uint8 RGB views of the textured ground plane + skyline for world poses."""
 
-    def __init__(self, cfg: SynthConfig, texture_seed: int = 0):
+    def __init__(self, cfg: PlaneWorldConfig, texture_seed: int = 0):
         h, w = cfg.frames_hw
         rng = np.random.default_rng(texture_seed)
         self.cells = rng.integers(60, 200, size=(64, 64, 3)).astype(np.float32)   # one colour per 4 m cell
@@ -152,7 +153,7 @@ class GroundRenderer:
         return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def make_clips(cfg: SynthConfig, spec: ClipSpec | None = None) -> list[dict]:
+def make_clips(cfg: PlaneWorldConfig, spec: ClipSpec | None = None) -> list[dict]:
     """Clips ``{"item_id", "start_frame", "frames" (T, H, W, 3) uint8, "traj" (8, 3), "yaw_deg"}``."""
     spec = spec or ClipSpec(fps_hz=cfg.fps_hz)
     rng = np.random.default_rng(cfg.seed)
@@ -174,7 +175,7 @@ def make_clips(cfg: SynthConfig, spec: ClipSpec | None = None) -> list[dict]:
     return clips
 
 
-def write_synthetic_shards(root: str | Path, cfg: SynthConfig, spec: ClipSpec | None = None,
+def write_synthetic_shards(root: str | Path, cfg: PlaneWorldConfig, spec: ClipSpec | None = None,
                            prefix: str = "synth-eval", latent_channels: int = 16, latent_hw: tuple[int, int] = (8, 12),
                            text_len: int = 16, text_dim: int = 64) -> int:
     """Render ``cfg.episodes`` episodes and write their clips as shards (+ a placeholder prompt table).

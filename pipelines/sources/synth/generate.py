@@ -24,7 +24,7 @@ from resim.config import ConfigError, from_dict, to_dict
 from .drivers import EXPLORER_PATTERNS, Trace, simulate
 from .render import Camera, Renderer
 from .score import Score, score_trace
-from .world import LANE_OFFSET_M, World, build_world
+from .world import LANE_OFFSET_M, World, build_road
 from . import writers
 
 PARTS = ("opendv", "navsim", "carla")
@@ -114,7 +114,7 @@ def turn_labels(world: World, route_s: np.ndarray) -> list[str]:
 def _simulate_episode(plan: EpisodePlan, seed: int, cfg: SynthConfig):
     rng = np.random.default_rng([seed, plan.index])
     v_nom = float(rng.uniform(*cfg.nominal_speed_mps))
-    world = build_world(rng, cfg.episode_s, v_nom, first_turn_sign=1 if plan.index % 2 == 0 else -1)
+    world = build_road(rng, cfg.episode_s, v_nom, first_turn_sign=1 if plan.index % 2 == 0 else -1)
     expert = simulate(world, cfg.episode_s, cfg.sim_hz, rng, "expert")
     expert_progress = float(expert.route_s_m[-1] - expert.route_s_m[0])
     trace, pattern = expert, None

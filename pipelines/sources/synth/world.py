@@ -210,7 +210,7 @@ def _segments(rng: np.random.Generator, total_m: float, first_turn_sign: int) ->
     return segs
 
 
-def build_world(rng: np.random.Generator, duration_s: float, nominal_speed_mps: float,
+def build_road(rng: np.random.Generator, duration_s: float, nominal_speed_mps: float,
                 first_turn_sign: int = 1) -> World:
     """Draw one world long enough for ``duration_s`` of driving at up to twice ``nominal_speed_mps``."""
     total = 2.0 * nominal_speed_mps * duration_s + 80.0
