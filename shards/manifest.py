@@ -3,8 +3,9 @@ from __future__ import annotations
 
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
-from shards.reader import ShardReadError
+from shards.errors import ShardReadError
 from shards.schema import MANIFEST_COLUMNS, MANIFEST_COLUMNS_SINCE
+from shards.writer import manifest_schema
 
 
 def read_manifest(root, committed_only: bool = True):
@@ -14,8 +15,6 @@ def read_manifest(root, committed_only: bool = True):
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
-
-    from shards.writer import manifest_schema
 
     d = layout.manifest_dir(root)
     tables = []

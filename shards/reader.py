@@ -16,7 +16,6 @@ Latents and prompt embeddings come back as exact float32 by default
 """
 from __future__ import annotations
 
-import re
 from functools import partial
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -28,26 +27,12 @@ from shards.confine import UnsafePathError, confined
 from shards.npy import decode_npy, decode_npy_view, stored_to_float32
 from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS, REQUIRED_MEMBERS
 from shards.validate import LATENT_DTYPES, is_forbidden_ext
+# the errors and member-name split live in shards.errors so tario and manifest need not import this module
+from shards.errors import BAD_MEMBER, ForbiddenMemberError, ShardReadError
+from shards.manifest import shard_of_key
+from shards.tario import count_records, open_records
 
-_BASE_PLUS_EXT = re.compile(r"^((?:.*/|)[^.]+)[.]([^/]*)$")  # the same split WebDataset uses
 LATENT_AS = ("float32", "stored")
-# raw-sample entry (a ``__*__`` name, like WebDataset's ``__key__``) holding why a member of the sample is unusable:
-# set by ``shards.tario`` on a link or device member, whose bytes are never read (a link could point anywhere)
-BAD_MEMBER = "__bad_member__"
-
-
-class ShardReadError(ValueError):
-    """A shard cannot be read (truncated, not a tar, malformed grouping)."""
-
-
-class ForbiddenMemberError(ShardReadError):
-    """A shard carries a member in a code-executing format (pickle and friends)."""
-
-
-def split_member_name(name: str) -> tuple[str | None, str | None]:
-    """``"dir/KEY.meta.json" -> ("dir/KEY", "meta.json")`` exactly as WebDataset groups members."""
-    m = _BASE_PLUS_EXT.match(name)
-    return (m.group(1), m.group(2)) if m else (None, None)
 
 
 def check_members(raw: dict, shard: str | None = None) -> None:
@@ -135,7 +120,6 @@ def iter_raw_shard(path) -> Iterator[dict]:
     The whole shard's headers are read first (data seeked over), so a shard with a forbidden member, a
     corrupt header or a cut end is refused before any sample is yielded. (``tarfile``, used here before,
     ends quietly at a corrupt header after the first member: a silently short shard.)"""
-    from shards.tario import count_records, open_records   # tario imports this module
 
     path = str(path)
     try:
@@ -183,7 +167,6 @@ def find_sample(root, key: str, *, decode_video: bool = False, latent_as: str = 
     Only the sample asked for is decoded: a corrupt neighbour in the same shard does not hide it. The manifest's
     shard name is a dataset value, so it must name a file inside ``DIR/shards`` (else :class:`ShardReadError`).
     """
-    from shards.manifest import shard_of_key
 
     shard = shard_of_key(root, key)
     if shard:

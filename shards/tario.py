@@ -31,7 +31,7 @@ import os
 import re
 from typing import BinaryIO, Iterator
 
-from shards.reader import BAD_MEMBER, ForbiddenMemberError, ShardReadError, split_member_name
+from shards.errors import BAD_MEMBER, ForbiddenMemberError, ShardReadError, split_member_name
 from shards.schema import FORBIDDEN_EXTENSIONS
 from shards.validate import is_forbidden_ext
 

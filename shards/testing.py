@@ -19,7 +19,7 @@ import numpy as np
 from shards import layout
 from shards.fsio import sha256_file
 from shards.npy import float32_to_bf16_bits
-from shards.reader import split_member_name
+from shards.errors import split_member_name
 from shards.schema import COMMANDS, SCHEMA_VERSION, ClipSpec, make_key, prompt_id, prompt_text
 
 DUMMY_ENCODER_ID = "placeholder-t5-random"

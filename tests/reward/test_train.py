@@ -1,4 +1,4 @@
-"""run_training on small splits: the split is checked before training, undefined held-out metrics are nan
+"""train_reward on small splits: the split is checked before training, undefined held-out metrics are nan
 (not an exception after training), and every JSON the run writes is strict JSON (null, never NaN)."""
 import json
 
@@ -8,7 +8,7 @@ import pytest
 from resim.config import from_dict
 from training.reward.config import RewardTrainConfig
 from training.reward.toy import toy_clips
-from training.reward.train import SplitError, prepare_training, run_training
+from training.reward.train import SplitError, prepare_training, train_reward
 
 TINY_MODEL = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
 
@@ -32,7 +32,7 @@ def test_unsplittable_episodes_are_refused_before_training(monkeypatch):
     clips = toy_clips(2, 1, 8, seed=0)
     assert sorted(c.hazard for c in clips) == [False, True]
     with pytest.raises(SplitError, match=r"1 hazardous and 1 clean episode\(s\) \(need >= 2 of one class\)"):
-        run_training(clips, _cfg())
+        train_reward(clips, _cfg())
 
 
 def test_one_heldout_clip_still_writes_the_checkpoint_with_null_metrics(tmp_path):
@@ -43,7 +43,7 @@ def test_one_heldout_clip_still_writes_the_checkpoint_with_null_metrics(tmp_path
     assert len(prepared.held) == 1
     assert any("Spearman is undefined" in n for n in prepared.notes)
     assert any("hazard AUC is undefined" in n for n in prepared.notes)
-    r = run_training(clips, _cfg(), tmp_path, prepared=prepared)
+    r = train_reward(clips, _cfg(), tmp_path, prepared=prepared)
     assert r["n_heldout"] == 1 and np.isnan(r["metrics"]["spearman"]) and np.isfinite(r["metrics"]["mae"])
     assert (tmp_path / "reward.safetensors").is_file()
     meta = _strict_json(tmp_path / "meta.json")

@@ -132,7 +132,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from shards.reader import ShardReadError, iter_samples
     from training.reward.backbone import BackboneError
     from training.reward.data import ClipError, clips_from_samples
-    from training.reward.train import SplitError, prepare_training, run_training
+    from training.reward.train import SplitError, prepare_training, train_reward
 
     prog = "resim train reward"
     cfg = _train_cfg_or_none(args, prog)
@@ -186,7 +186,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"note: --overwrite: removed {', '.join(removed)} of the reward run in {out}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     rconfig.save(cfg, out / "config.yaml")
-    r = run_training(clips, cfg, out, progress=not args.no_progress, prepared=prepared)
+    r = train_reward(clips, cfg, out, progress=not args.no_progress, prepared=prepared)
     m = r["metrics"]
     print(f"trained on {r['n_train']} clips, held out {r['n_heldout']} clips of {len(r['heldout_items'])} episodes "
           f"({'stored features' if r['used_features'] else 'backbone on pixels'})")

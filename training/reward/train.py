@@ -1,6 +1,6 @@
 """Training and held-out evaluation of Video2Reward.
 
-``run_training`` = split by episode -> (optionally) stored features -> fit -> predict held-out
+``train_reward`` = split by episode -> (optionally) stored features -> fit -> predict held-out
 -> metrics (MAE, Spearman, hazard AUC) -> checkpoint + predictions + plot.
 
 ``fit`` runs the common ``training.trainer.Trainer`` (issue 7) over ``model.loss(batch)``
@@ -167,7 +167,7 @@ def prepare_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> Pre
     return PreparedRun(train, held, skipped, model, notes)
 
 
-def run_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
+def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
                  progress: bool = False, prepared: PreparedRun | None = None) -> dict:
     """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
 
