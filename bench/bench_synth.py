@@ -1,4 +1,4 @@
-"""Synthetic world cost (issue 3): seconds per episode and per rendered frame, 1 vs 2 workers.
+"""Synthetic world cost: seconds per episode and per rendered frame, 1 vs 2 workers.
 
 Prints the ratio of the 2-worker run to the 1-worker baseline in the same process.
 Usage: PYTHONPATH=. python bench/bench_synth.py [--episodes 12]

@@ -1,4 +1,4 @@
-"""Calibrate the flow labeler's turn threshold on the synthetic world and measure it (issue 4).
+"""Calibrate the flow labeler's turn threshold on the synthetic world and measure it.
 
 1. Makes (or reads, --data) a synthetic world (``resim synth``) and reads its video episodes
    back through the real readers: OpenDV (mp4, resampled to 10 Hz) and CARLA (10 Hz jpg).

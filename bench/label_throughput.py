@@ -1,4 +1,4 @@
-"""Throughput of the flow labeler vs decoding alone, same 1280x720 H.264 video, same process (issue 4).
+"""Throughput of the flow labeler vs decoding alone, same 1280x720 H.264 video, same process.
 
 (a) decode with OpenCV: grab every frame, retrieve (to BGR) the frames sampled at 10 Hz -- what
     any OpenCV reader of this video at 10 Hz must pay;
@@ -165,7 +165,7 @@ def main() -> int:
         print(f"{name:<20} {cfg.flow.work_width_px:5d} {b:7.3f} {dur / b:16.1f}x {b / a1:6.3f} {ba2} "
               f"{(b - base) / n_base * 1e3:12.2f} {r.decode.get('frames_decoded', 0):14d}  "
               + " ".join(f"{w.yaw_deg:+.1f}" for w in r.windows))
-    print("b/a2 = b / a'. Targets (issue 4): b/a <= 1.3 against decoding the frames the labeler needs (a' where PyAV "
+    print("b/a2 = b / a'. Targets: b/a <= 1.3 against decoding the frames the labeler needs (a' where PyAV "
           "is used), "
           "and > 20x real time per core")
     return 0

@@ -1,4 +1,4 @@
-"""Diagnostic: how well would the flow labeler read yaw if it knew each frame pair's focus of expansion? (issue 4)
+"""Diagnostic: how well would the flow labeler read yaw if it knew each frame pair's focus of expansion?
 
 The labeler's remaining error on the synthetic world was traced to the yaw / FOE-x trade-off (docs/labeling.md).
 This script replaces the fitted FOE by the *physical* one, computed from the ground-truth poses and the world's

@@ -1,4 +1,4 @@
-"""Pipeline benchmarks (issue 5). Each part prints its numbers and a ratio against a baseline measured in
+"""Pipeline benchmarks. Each part prints its numbers and a ratio against a baseline measured in
 the same process; docs/benchmarks.md (## Pipeline) records a run with the device.
 
     PYTHONPATH=. python bench/pipeline_bench.py throughput   # clips/s per core + per-stage time share

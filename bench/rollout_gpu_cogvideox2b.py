@@ -1,10 +1,10 @@
-"""Seconds to simulate one 4-s 512x896 clip with a CogVideoX-2B-size world model on a GPU (issue 9 benchmark).
+"""Seconds to simulate one 4-s 512x896 clip with a CogVideoX-2B-size world model on a GPU (benchmark).
 
 Random weights (the timing does not depend on them), bf16, 50 DDIM steps, CFG on (both branches batched into
 one forward of 2 samples), ReSim setting: 3 history latent frames (9 px frames) + 10 future latent frames
 (40 px frames = 4 s at 10 Hz) denoised together; KV cache on and off. Optionally frame-by-frame (--chunk 1).
 Anchors: ReSim reports 120 s per 4-s clip on one A100; CogVideoX-2B itself takes ~45 s for a 6-s clip on an
-H100 (diffusers, 50 steps, CFG). Target from issue 9: <= 20 s on an H100/H200.
+H100 (diffusers, 50 steps, CFG). Target: <= 20 s on an H100/H200.
 
 Model forward only (the VAE decode and T5 are not timed; the T5 embedding is random). Needs CUDA.
 

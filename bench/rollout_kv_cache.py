@@ -1,4 +1,4 @@
-"""KV-cached vs uncached rollout time, CPU, tiny world model (issue 9 benchmark).
+"""KV-cached vs uncached rollout time, CPU, tiny world model (benchmark).
 
 Settings (latent frames; CogVideoX: 1 latent frame = 4 pixel frames at 10 Hz):
   * ReSim:        3 history + 10 future, the 10 denoised together, 50 DDIM steps, CFG (2B batch) on;

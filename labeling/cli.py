@@ -1,4 +1,4 @@
-"""`resim label VIDEO`: driving commands from optical flow, one line per window (issue 4).
+"""`resim label VIDEO`: driving commands from optical flow, one line per window.
 
 Light module: cv2/numpy are imported inside the handler.
 """

@@ -1,4 +1,4 @@
-"""Heading change or trajectory -> driving command (pure functions, issue 4).
+"""Heading change or trajectory -> driving command (pure functions).
 
 Commands are the strings of ``shards.schema.COMMANDS``: "Turning left", "Moving
 forward", "Turning right" (ReSim's three text conditions).

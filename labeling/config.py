@@ -1,4 +1,4 @@
-"""Typed configuration of the labeler (issue 4): flow estimator + command rules.
+"""Typed configuration of the labeler: flow estimator + command rules.
 
 Two parts, each validated on load with ``resim.config``:
 
@@ -39,7 +39,7 @@ class FlowConfig:
     #                                  ~ with tan(hfov/2): reads tan(true/2)/tan(80/2) x the truth
     flow_preset: Literal["ultrafast", "fast", "medium"] = "ultrafast"   # cv2.DISOpticalFlow preset
     dis_finest_scale: int | None = 1  # DIS overrides (None = the preset's). ultrafast stops at scale 2 (a
-    #                                   64 px flow field at 256 px); scale 1 halves the yaw error (issue 4)
+    #                                   64 px flow field at 256 px); scale 1 halves the yaw error
     dis_warm_start: bool = True      # each pair's DIS starts from the previous pair's flow (OpenCV's input flow: a
     #                                  candidate per patch at every scale, kept where it matches better); the flow
     #                                  of a car's camera changes little in 0.1 s. Median window error on the

@@ -1,4 +1,4 @@
-"""Ego yaw from monocular video by dense optical flow (issue 4).
+"""Ego yaw from monocular video by dense optical flow.
 
 ReSim pseudo-labels OpenDV's uncalibrated YouTube videos with "Turning left / Moving
 forward / Turning right" from OpenCV flow. This module estimates the per-frame-pair
@@ -24,7 +24,7 @@ yaw rate robustly:
    Linearised in a shift of e, (yaw, pitch, roll, e_x, e_y) is fitted *per frame pair* by
    Gauss-Newton with IRLS (Cauchy weights: other vehicles, bad flow). e must be free per pair:
    in a turn the camera moves along the chord and, ahead of the rear axle, sideways, so the FOE
-   shifts towards the turn with the yaw rate; a fixed e reads that as 5-15 % extra yaw (issue 4).
+   shifts towards the turn with the yaw rate; a fixed e reads that as 5-15 % extra yaw.
    Yaw information comes from points above/below the FOE (road, trees, posts).
    The per-pair FOE is then replaced by a pooled model (``foe_model="pooled"``, default): the car's kinematics put
    it at e_x = a - f k yaw, with a (the FOE of straight driving) and k (1/2 + lever arm / distance per pair)

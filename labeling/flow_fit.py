@@ -47,7 +47,7 @@ class MotionFit:
         The FOE must be free per pair: a car turns on an arc, so between two frames the camera moves
         along the chord (rotated by half the yaw step) and, with the camera ahead of the rear axle, also
         sideways by (lever arm x yaw): the FOE shifts towards the turn by f (dt/2 + L/v) yaw_rate. A FOE
-        held fixed turns that shift into a yaw bias of (d/2 + L) / Z (5-15 % on the road, measured: issue 4).
+        held fixed turns that shift into a yaw bias of (d/2 + L) / Z (5-15 % on the road, measured).
         Where the car barely moves (|T| small) the FOE columns vanish and the prior keeps e near e0.
 
         ``w_start`` (P, N) starts the IRLS from earlier weights (a re-fit), ``iters`` overrides the number of steps.

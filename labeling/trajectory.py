@@ -1,4 +1,4 @@
-"""World poses -> future ego trajectory in the ego frame (issue 4, shard member ``traj.npy``)."""
+"""World poses -> future ego trajectory in the ego frame (shard member ``traj.npy``)."""
 from __future__ import annotations
 
 import numpy as np

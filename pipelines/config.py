@@ -173,7 +173,7 @@ class SourcesConfig:
 # -------------------------------------------------------------------------------------------- labels
 @dataclass
 class LabelsConfig:
-    """Command labelling (issue 4). Flow runs on every clip; the trajectory command where poses exist.
+    """Command labelling. Flow runs on every clip; the trajectory command where poses exist.
 
     ``labeler`` is ``labeling.config.LabelerConfig`` itself (flow estimator + command rules), so every
     labeler knob is a config key here: ``labels.labeler.command.turn_threshold_deg``,

@@ -108,7 +108,7 @@ def _synth_navsim_split(root: Path) -> str:
 
 
 def make_reader(spec: SourceSpec):
-    """The sources package's reader for ``spec`` (issue 3 interface: ``list_items()``, ``open(id)``)."""
+    """The sources package's reader for ``spec`` (the readers' interface: ``list_items()``, ``open(id)``)."""
     if spec.kind == "opendv":
         from pipelines.sources.opendv import OpenDVConfig as C, OpenDVReader as R
     elif spec.kind == "navsim":

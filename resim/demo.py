@@ -49,7 +49,7 @@ class DemoConfig:
     ddim_steps: int = 20
     plan_candidates: tuple[str, ...] = ("keep_lane", "turn_left", "turn_right", "brake", "swerve")
     workers: int = 2
-    # evaluation (issue 10): the IDM trains on the shards' 10 Hz clips with trajectories (CARLA-layout
+    # evaluation: the IDM trains on the shards' 10 Hz clips with trajectories (CARLA-layout
     # episodes), holding out >= 2 whole episodes; `resim eval control|quality` roll the world model out on
     # `eval_clips` of the held-out clips (spread over the held-out episodes) with `ddim_steps` steps
     idm_epochs: int = 15
@@ -202,7 +202,7 @@ def rollout_steps(cfg: DemoConfig, out: Path, key: str) -> list[Step]:
 
 def eval_steps(cfg: DemoConfig, out: Path) -> list[Step]:
     """IDM on the demo's shards, then Trajectory Difference and video quality of the world model on the
-    clips of the episodes the IDM held out (issue 10's done-when: on a tiny trained world model)."""
+    clips of the episodes the IDM held out (on a tiny trained world model)."""
     data, ev = out / "shards", out / "eval"
     wm = ["--checkpoint", str(world_model_dir(cfg.world_model, out)), "--shards", str(data), "--steps",
           str(cfg.ddim_steps), "--seed", str(cfg.seed), "--batch-size", "4"]

@@ -1,4 +1,4 @@
-"""Typed configs of a training run (issue 7): optimiser, trainer loop, data stream, the whole run.
+"""Typed configs of a training run: optimiser, trainer loop, data stream, the whole run.
 
 A run config is ``RunConfig``: which registered model (``model_name``) with its own
 config as a plain mapping (``model``, validated by the model's builder), plus the

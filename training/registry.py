@@ -8,7 +8,7 @@ trainer/launcher use when present: ``fsdp_units()``, ``set_activation_checkpoint
 ``tokens_per_sample(batch)``, ``flops_per_sample(batch)``, ``activation_bytes_per_sample(ac: bool)``.
 
 Entries are ``"module:function"`` strings, imported on first use. To add a model (e.g. the reward
-model, issue 8) add one line to ``BUILDERS`` (or call ``register`` at import time of a plugin).
+model) add one line to ``BUILDERS`` (or call ``register`` at import time of a plugin).
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ over the integers; no RNG object is built per sample, which cost ~0.1-0.3 ms eac
   clip geometry, trajectory shape, ...: what collation and the objective need equal across a batch); a
   bucket that reaches ``batch_size`` is emitted as a batch. Mixed datasets (OpenDV 13 latent frames,
   NAVSIM 3) thus train together, every batch homogeneous, each shape in proportion to its share of the
-  mixed sample stream. Partial buckets at an epoch's end are dropped (issue 7, mixed geometries).
+  mixed sample stream. Partial buckets at an epoch's end are dropped (mixed geometries).
 
 The position of a worker (``Cursor``) is: draws made, raw samples taken, per slot (draw index,
 shard index, samples read), and per partial bucket the (shard, record) of each sample it holds.

@@ -1,4 +1,4 @@
-"""The one training loop: trains any ``nn.Module`` exposing ``loss(batch) -> (loss, logs)`` (issue 7).
+"""The one training loop: trains any ``nn.Module`` exposing ``loss(batch) -> (loss, logs)``.
 
 ``Trainer(model, cfg, run_dir).fit(data)`` does AdamW with warmup + constant/cosine LR, gradient
 accumulation and clipping, bf16 autocast (fp32 where bf16 is unsupported), EMA, activation
@@ -10,7 +10,7 @@ checkpoints with exact resume, and rank-0 logging (metrics.jsonl, TensorBoard, t
 checkpointed; otherwise the trainer counts batches and, on resume, re-iterates and skips them.
 When an iterator ends, a new epoch starts with ``iter(data)`` again.
 
-Exactness (the issue's "exact resume"): every input of step k+1 is restored from the checkpoint
+Exact resume: every input of step k+1 is restored from the checkpoint
 at step k: weights, optimizer moments, EMA, the step (the LR is a pure function of it), each
 rank's python/numpy/torch RNG, and the data position. On a fixed dataset and world size, a run
 killed and resumed logs bitwise-identical losses on CPU in float32 (tests/training/test_resume.py).

@@ -1,1 +1,1 @@
-"""Sources: the episode record, readers for the OpenDV / NAVSIM / CARLA layouts, the synthetic world (issue 3)."""
+"""Sources: the episode record, readers for the OpenDV / NAVSIM / CARLA layouts, the synthetic world."""

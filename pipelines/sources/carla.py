@@ -1,4 +1,4 @@
-"""CARLA / Bench2Drive route-folder reader (issue 3).
+"""CARLA / Bench2Drive route-folder reader.
 
 Layout (Bench2Drive ``tools/data_collect.py``; see docs/sources.md)::
 

@@ -1,4 +1,4 @@
-"""``resim synth``: write a synthetic driving dataset in the OpenDV / NAVSIM / CARLA layouts (issue 3)."""
+"""``resim synth``: write a synthetic driving dataset in the OpenDV / NAVSIM / CARLA layouts."""
 from __future__ import annotations
 
 import argparse

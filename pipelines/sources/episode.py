@@ -1,4 +1,4 @@
-"""The one episode record every source yields (issue 3).
+"""The one episode record every source yields.
 
 An :class:`Episode` is one work unit of a source (an OpenDV video, a NAVSIM
 log, a Bench2Drive route folder): a sequence of front-camera frames at a known

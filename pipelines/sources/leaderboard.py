@@ -1,4 +1,4 @@
-"""CARLA leaderboard results / checkpoint JSON (LB 1.0, LB 2.x, Bench2Drive) (issue 3).
+"""CARLA leaderboard results / checkpoint JSON (LB 1.0, LB 2.x, Bench2Drive).
 
 Top level: ``{"_checkpoint": {"global_record", "progress", "records": [...]},
 "entry_status", "eligible", "sensors", "values", "labels"}``; the Bench2Drive

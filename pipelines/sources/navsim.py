@@ -1,4 +1,4 @@
-"""NAVSIM / OpenScene log reader (issue 3).
+"""NAVSIM / OpenScene log reader.
 
 Layout (navsim docs/install.md; see docs/sources.md)::
 

@@ -1,4 +1,4 @@
-"""OpenDV-YouTube-style reader: a folder of front-camera videos, no poses (issue 3).
+"""OpenDV-YouTube-style reader: a folder of front-camera videos, no poses.
 
 Layout (the OpenDV-YouTube toolkit stores ``<channel>/<video_id>.<ext>``)::
 

@@ -1,4 +1,4 @@
-"""A restricted unpickler for NAVSIM/OpenScene log pickles (issue 3).
+"""A restricted unpickler for NAVSIM/OpenScene log pickles.
 
 NAVSIM ships its logs as ``pickle.dump(list_of_frame_dicts)`` (see
 docs/sources.md). ``pickle.load`` on such a file would run whatever callable

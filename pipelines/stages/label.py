@@ -1,4 +1,4 @@
-"""Stage 3: label every candidate window (issue 4's labeler).
+"""Stage 3: label every candidate window (the flow labeler of ``labeling/``).
 
 * **Flow command, every clip.** One streaming pass over the episode at the labeler's working width
   gives per-pair yaw rates (deg/s); a window's heading change is the sum over its *future* pairs

@@ -1,4 +1,4 @@
-"""Typed config of the diffusion objective (issue 6). Torch-free."""
+"""Typed config of the diffusion objective. Torch-free."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -56,7 +56,7 @@ class ObjectiveConfig:
     action_drop_prob: float = 0.2        # each frame's action independently → null action
     actions_from_trajectory: bool = True # derive per-frame actions from the trajectory when the batch has none
     latent_frame_dt_s: float = 0.4       # duration of one latent frame (4 pixel frames at 10 Hz)
-    # mixed datasets (issue 7): a NAVSIM clip at 2 Hz is 1 + 8 frames = 3 latent frames (1 of history, 2 s each),
+    # mixed datasets: a NAVSIM clip at 2 Hz is 1 + 8 frames = 3 latent frames (1 of history, 2 s each),
     # an OpenDV clip 9 + 40 = 13 (3 of history, 0.4 s each). When a batch states its clip geometry
     # (``Batch.num_history_latent_frames`` / ``latent_frame_dt_s``, from the shard metadata) it wins over
     # ``num_history_frames`` / ``latent_frame_dt_s`` above, which stay the fallback for batches without it.

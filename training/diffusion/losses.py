@@ -1,4 +1,4 @@
-"""``training_losses(model, batch, cfg) -> (loss, logs)``: the world model's diffusion objective (issue 6).
+"""``training_losses(model, batch, cfg) -> (loss, logs)``: the world model's diffusion objective.
 
 The model is an argument (DiT style): anything with ``model(x_t, t, text, trajectory, actions,
 trajectory_keep=..., action_keep=...) -> v`` works, so FSDP/compile wrappers apply from outside.

@@ -1,4 +1,4 @@
-"""Per-frame noise-level sampling for training (issue 6).
+"""Per-frame noise-level sampling for training.
 
 ``sample_noise_levels(cfg, B, T) -> (t (B, T) int64, loss_mask (B, T) bool)``:
 

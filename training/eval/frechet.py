@@ -11,7 +11,7 @@ The matrix square-root term is computed from the eigenvalues of
 ``tr((S_1 S_2)^{1/2})``; tests check it against scipy's ``sqrtm`` in float64.
 
 Estimates from few samples are biased upwards; ``MIN_SAMPLES_UNBIASED`` (1,000) is the
-threshold below which a warning is raised, as the issue asks.
+threshold below which a warning is raised (a score from fewer samples is not comparable to published ones).
 """
 from __future__ import annotations
 

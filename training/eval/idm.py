@@ -1,4 +1,4 @@
-"""Inverse dynamics model (IDM): a driving video clip in, the ego trajectory (8 waypoints) out. Issue 10.
+"""Inverse dynamics model (IDM): a driving video clip in, the ego trajectory (8 waypoints) out.
 
 ReSim measures controllability by running an IDM on generated video and comparing the trajectory it reads
 off with the trajectory the world model was conditioned on ("Trajectory Difference"); its IDM reuses XVO's

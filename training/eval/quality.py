@@ -1,4 +1,4 @@
-"""Streaming video-quality evaluation of (generated, ground truth) clip pairs (issue 10).
+"""Streaming video-quality evaluation of (generated, ground truth) clip pairs.
 
 ``VideoQualityEvaluator(cfg).update(generated, ground_truth)`` takes batches of clips ``(B, T, C, H, W)`` in
 the range ``cfg.value_range`` states (``"uint8"``: integers 0..255, ``"unit"``: floats in [0, 1]; never

@@ -1,4 +1,4 @@
-"""World-model evaluations on held-out clips: controllability, planning, video quality (issue 10).
+"""World-model evaluations on held-out clips: controllability, planning, video quality.
 
 All three roll the world model out with the sampler (``training.sampling.rollout``) from each clip's history
 latents, decode the latents with the VAE (``training.sampling.outputs.decode_rollout``) and compare with the
@@ -8,7 +8,7 @@ clip's recorded frames / trajectory:
   and command (expert action), (b) on the trajectory and command of another clip (non-expert action,
   drawn from another episode with a seeded RNG); the IDM reads the trajectory off each generated video, the
   report gives its L2 to the conditioning trajectory (mean over waypoints, and at 4 s), plus, when the
-  optical-flow labeler (``labeling``, issue 4) is importable, the share of generated videos whose flow
+  optical-flow labeler (``labeling``) is importable, the share of generated videos whose flow
   command equals the conditioning command. The IDM's error on the *recorded* video of the same clips is the
   floor the generated numbers should be read against.
 * :func:`planning_eval` (ReSim's video-prediction policy): rollout with no trajectory and the null prompt
@@ -207,7 +207,7 @@ def flow_labeler_status() -> tuple[Any, str]:
         from labeling.config import preset as labeler_preset
         from labeling.flow import FlowLabeler
     except ImportError as e:
-        return None, f"the optical-flow labeler (labeling/, issue 4) is not importable on this branch: {e}"
+        return None, f"the optical-flow labeler (labeling/) is not importable on this branch: {e}"
     return FlowLabeler(labeler_preset("default")), ""
 
 

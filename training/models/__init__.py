@@ -1,4 +1,4 @@
-"""World model (issue 6): causal, action-conditioned, diffusion-forcing DiT loading CogVideoX weights."""
+"""World model: causal, action-conditioned, diffusion-forcing DiT loading CogVideoX weights."""
 from training.models.attention import KVCache, block_causal_mask
 from training.models.causalize import causalize
 from training.models.conditioning import actions_from_trajectory

@@ -1,4 +1,4 @@
-"""Causalising pretrained non-causal video layers (Vid2World Sec. 4.1 and App. A; issue 6).
+"""Causalising pretrained non-causal video layers (Vid2World Sec. 4.1 and App. A).
 
 Temporal convolutions with symmetric kernels (size k odd, zero padding k//2, output[t] = Σ_o w[o] x[t+o],
 o ∈ {-k//2 … k//2}) become causal convolutions (offsets o ≤ 0 only, zero left padding) by one of three

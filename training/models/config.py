@@ -1,4 +1,4 @@
-"""Typed config of the world model (issue 6), with named presets from ``tiny`` to ``cogvideox-2b``.
+"""Typed config of the world model, with named presets from ``tiny`` to ``cogvideox-2b``.
 
 The DiT fields mirror diffusers' ``CogVideoXTransformer3DModel`` config (same names where they exist) so a
 CogVideoX checkpoint's ``config.json`` maps onto them one to one (:func:`config_from_cogvideox`). The new

@@ -1,4 +1,4 @@
-"""The world model: a causal, action-conditioned, diffusion-forcing DiT with CogVideoX's layout (issue 6).
+"""The world model: a causal, action-conditioned, diffusion-forcing DiT with CogVideoX's layout.
 
 ``WorldModel(cfg)(x, t, text, trajectory=None, actions=None) -> v``
 

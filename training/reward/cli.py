@@ -1,4 +1,4 @@
-"""`resim reward ...`, `resim train reward ...`, `resim reward-features ...` (issue 8).
+"""`resim reward ...`, `resim train reward ...`, `resim reward-features ...`.
 
 Light module: torch/transformers are imported inside the handlers.
 """

@@ -1,4 +1,4 @@
-"""Typed configs for Video2Reward (issue 8; ReSim appendix B.2).
+"""Typed configs for Video2Reward (ReSim appendix B.2).
 
 ``RewardModelConfig`` fixes everything that changes what the model computes
 (backbone, input size, which frames of a clip it sees, head size);
@@ -45,7 +45,7 @@ class RewardModelConfig:
     # frozen random backbone's features otherwise bury (docs/reward.md: stops look like slow scenes).
     temporal_diff: bool = False
     # "sigmoid": the output is sigmoid(logit), in (0, 1) like the infraction score it predicts;
-    # "none": the raw linear output (unbounded; the first runs of issue 8 used it).
+    # "none": the raw linear output (unbounded; the first reward runs used it).
     output_activation: Literal["sigmoid", "none"] = "sigmoid"
 
     def __post_init__(self):

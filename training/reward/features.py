@@ -1,7 +1,6 @@
 """Precomputed DINOv2 features (``dino.npy``) for Video2Reward.
 
-With a frozen backbone, running DINOv2 over every frame every epoch is waste
-(issue 8): features of the frames the model's window takes from a clip are
+With a frozen backbone, running DINOv2 over every frame every epoch is waste: features of the frames the model's window takes from a clip are
 computed once, stored as float16 ``(T, N_tokens, D)`` in the sample's
 ``dino.npy`` member (shards/schema.py), and named by ``meta.dino_id``
 (backbone id | input size | window; see backbone.feature_id). The model rounds

@@ -1,4 +1,4 @@
-"""Video2Reward: a video -> one scalar reward (ReSim appendix B.2, issue 8).
+"""Video2Reward: a video -> one scalar reward (ReSim appendix B.2).
 
 ReSim: "all video frames are first processed separately via the image-based
 DINOv2 backbone. All image features are then passed to the prediction head,

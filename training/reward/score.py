@@ -1,6 +1,6 @@
 """Scoring API of Video2Reward: score pixel videos of any length >= the model's window.
 
-``score_videos(model, videos)`` is what the planner (issue 9) calls to rank
+``score_videos(model, videos)`` is what the planner calls to rank
 imagined futures. A video longer than one window is scored by sliding windows:
 window ``k`` starts at frame ``k * stride`` (stride defaults to the window's
 span, i.e. non-overlapping windows, plus the final window aligned to the end so

@@ -6,7 +6,7 @@ the clip in proportion to (1 - s): hazardous episodes close in on the obstacle,
 clean ones keep it small and far. Noise and a per-episode colour jitter keep
 episodes apart. So the score is visible in the pixels, and a model that learns
 anything at all can rank it; the real test set is the synthetic world of
-``pipelines.sources`` (issue 3).
+``pipelines.sources``.
 """
 from __future__ import annotations
 

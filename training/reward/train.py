@@ -3,7 +3,7 @@
 ``train_reward`` = split by episode -> (optionally) stored features -> fit -> predict held-out
 -> metrics (MAE, Spearman, hazard AUC) -> checkpoint + predictions + plot.
 
-``fit`` runs the common ``training.trainer.Trainer`` (issue 7) over ``model.loss(batch)``
+``fit`` runs the common ``training.trainer.Trainer`` over ``model.loss(batch)``
 (ReSim B.2: AdamW, lr 1e-3), one pass over the training clips per epoch.
 """
 from __future__ import annotations
@@ -31,7 +31,7 @@ def can_use_features(model: Video2Reward, clips: Sequence[RewardClip]) -> bool:
 
 def usable_clips(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> tuple[list[RewardClip], list[dict]]:
     """(clips the model can use, [{"key", "reason"}] of the others): bad clips (shorter than the window,
-    unreadable frames) are reported and left out, the run goes on (issue 8 / brief: bad input is named)."""
+    unreadable frames) are reported and left out, the run goes on (bad input is named, never fatal)."""
     from training.reward.data import ClipError, window_indices
 
     ok, skipped = [], []

@@ -1,1 +1,1 @@
-"""Sampling from the world model: DDIM, guidance, chunked/causal rollout with a KV cache, outputs, planning (issue 9)."""
+"""Sampling from the world model: DDIM, guidance, chunked/causal rollout with a KV cache, outputs, planning."""

@@ -1,5 +1,5 @@
 """`resim sample` (roll the world model out from a history) and `resim plan` (rank candidate trajectories by
-the reward of their imagined futures). Issue 9. Light module: torch and friends are imported in the handlers.
+the reward of their imagined futures). Light module: torch and friends are imported in the handlers.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Loading what a sampling run needs: the trained world model, the history latents, prompt embeddings.
 
-World-model checkpoint (the trainer's export, issue 7): ``RUN_DIR/final/`` (or ``RUN_DIR`` itself, or the
+World-model checkpoint (the trainer's export): ``RUN_DIR/final/`` (or ``RUN_DIR`` itself, or the
 ``final`` folder) holding ``config.yaml`` (the resolved ``RunConfig``: ``model_name`` + ``model`` dict) and
 ``model.safetensors`` (+ ``ema.safetensors``, preferred for sampling when present). The model is built through
 ``training.registry`` by ``model_name`` ("world": ``training.world.build_world``, the same builder training used,

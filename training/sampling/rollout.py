@@ -1,4 +1,4 @@
-"""Chunked, guided, autoregressive rollout of the world model (issue 9), with a history KV cache.
+"""Chunked, guided, autoregressive rollout of the world model, with a history KV cache.
 
 One **round** starts from a window of ``history_frames`` latent frames (ReSim: the last 9 pixel frames = 3
 latent frames) and generates ``frames_per_round`` latent frames (ReSim: 10 = 40 pixel frames = 4 s at 10 Hz)

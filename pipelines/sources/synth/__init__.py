@@ -1,1 +1,1 @@
-"""The synthetic driving world (issue 3): road network, renderer, drivers, infraction score, writers."""
+"""The synthetic driving world: road network, renderer, drivers, infraction score, writers."""

@@ -1,4 +1,4 @@
-"""Contact sheet of synthetic episodes, read back through the real readers (issue 3)."""
+"""Contact sheet of synthetic episodes, read back through the real readers."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""Drivers of the synthetic world: an expert and hazardous explorers (issue 3).
+"""Drivers of the synthetic world: an expert and hazardous explorers.
 
 The ego is a kinematic unicycle driven by a curvature command ``k`` (1/m,
 left +, |k| <= 1/5) and an acceleration; each step integrates exact arcs, so

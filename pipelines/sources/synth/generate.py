@@ -1,4 +1,4 @@
-"""``resim synth``: generate a synthetic driving dataset in the three real layouts (issue 3).
+"""``resim synth``: generate a synthetic driving dataset in the three real layouts.
 
 Episode i (of N) gets its own ``numpy`` generator seeded with ``(seed, i)``, so a
 seed fixes every byte written. Episodes are split round-robin over the parts

@@ -1,4 +1,4 @@
-"""Reading the synthetic world's ground truth (``ground_truth.json``) (issue 3).
+"""Reading the synthetic world's ground truth (``ground_truth.json``).
 
 ``ground_truth.json`` has one entry per episode with simulation-rate arrays
 ``t_s, x_m, y_m, yaw_rad`` (unwrapped, CCW, left +), ``speed_mps``, the outcome,

@@ -1,4 +1,4 @@
-"""A cheap pinhole-camera renderer for the synthetic world (issue 3).
+"""A cheap pinhole-camera renderer for the synthetic world.
 
 Per frame (numpy + OpenCV, no GPU):
 

@@ -1,4 +1,4 @@
-"""The synthetic world's infraction score, in the spirit of the CARLA leaderboard (issue 3).
+"""The synthetic world's infraction score, in the spirit of the CARLA leaderboard.
 
 ``score_penalty`` (our *infraction score*) starts at 1.0 and is multiplied per
 infraction, with the Leaderboard-2.0 coefficients where one exists:

@@ -1,4 +1,4 @@
-"""The synthetic road network and its scenery (issue 3).
+"""The synthetic road network and its scenery.
 
 One *world* per episode: a route (the road the ego follows, built from a
 curvature profile of straights, gentle curves and 90-degree intersection turns,

@@ -1,4 +1,4 @@
-"""Write synthetic episodes into the three real layouts (issue 3).
+"""Write synthetic episodes into the three real layouts.
 
 * OpenDV:  ``opendv/synth/<episode>.mp4`` (OpenCV ``mp4v``, deterministic bytes) and
   ``opendv/videos.csv`` (video_id, start_discard_s = 0, end_discard_s = 0, notes).
