@@ -2,7 +2,7 @@
 
 Baselines (same process, same files, warm page cache, every member's bytes read, nothing decoded):
 
-* ``tarfile``: the standard library streams every shard, member bytes grouped by key (the issue's
+* ``tarfile``: the standard library streams every shard, member bytes grouped by key (the
   "plain Python" reader, and what WebDataset itself runs on);
 * ``raw``: the least any Python reader can do: per member one 512-byte header read, the size parsed,
   one data read (no checksum, no grouping checks). A lower bound, not a tar reader.
