@@ -5,7 +5,8 @@ run config), builds ``training.models.dit.WorldModel`` from a preset (random ini
 weights from a local folder with ``pretrained``), optionally loads the previous stage's weights
 (``init_weights``: a run's ``final/model.safetensors``), applies LoRA and sets which parameters train
 (ReSim Table S.1: stage 1 the DiT; stage 2 LoRA + trajectory/action encoders with the DiT frozen;
-stage 3 everything). The objective is ``training.diffusion.training_losses`` via ``WorldModel.loss``.
+stage 3 everything). The objective is ``training.diffusion.training_losses``, bound by
+``TrainableWorldModel.loss`` (the network itself, ``WorldModel``, knows no objective).
 
 ``TrainableWorldModel`` adds the trainer/launcher hooks: ``fsdp_units`` (the transformer blocks),
 ``set_activation_checkpointing``, ``tokens_per_sample``, ``flops_per_sample`` (for MFU) and
@@ -20,6 +21,9 @@ from typing import Any, Literal, Optional
 import torch
 
 from resim.config import ConfigError, from_dict
+from training.diffusion.config import ObjectiveConfig
+from training.diffusion.losses import training_losses
+from training.models.config import check_noise_levels
 from training.models.dit import NEW_MODULE_PREFIXES, WorldModel
 
 
@@ -45,7 +49,28 @@ class WorldTrainConfig:
 
 
 class TrainableWorldModel(WorldModel):
-    """``WorldModel`` plus the hooks the trainer and the launcher's dry run use (same parameter names)."""
+    """``WorldModel`` bound to its diffusion objective for the trainer (``loss(batch)``), plus the hooks the trainer
+    and the launcher's dry run use. Same parameter names and state dict as ``WorldModel``: the objective is
+    configuration (the run's ``model.objective``), not weights."""
+
+    def __init__(self, cfg, objective: ObjectiveConfig | None = None):
+        super().__init__(cfg)
+        self.objective = objective if objective is not None else ObjectiveConfig()
+        check_noise_levels(cfg, self.objective.schedule.num_train_timesteps)
+
+    @classmethod
+    def from_cogvideox(cls, src: Any, causal: bool = True, objective: ObjectiveConfig | None = None,
+                       **overrides: Any) -> "TrainableWorldModel":
+        objective = objective if objective is not None else ObjectiveConfig()
+        model = super().from_cogvideox(src, causal=causal,
+                                       num_train_timesteps=objective.schedule.num_train_timesteps, **overrides)
+        model.objective = objective
+        check_noise_levels(model.cfg, objective.schedule.num_train_timesteps)
+        return model
+
+    def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
+        """The diffusion objective on one batch (``training.diffusion.training_losses``)."""
+        return training_losses(self, batch, self.objective)
 
     def fsdp_units(self):
         return list(self.transformer_blocks)
@@ -105,7 +130,6 @@ class TrainableWorldModel(WorldModel):
 
 
 def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> TrainableWorldModel:
-    from training.diffusion.config import ObjectiveConfig
     from training.lora import apply_lora
     from training.models.config import preset as model_preset
 

@@ -138,29 +138,35 @@ def test_missing_null_text_is_named():
 
 
 def test_world_model_loss_trains(tiny_model):
-    """WorldModel.loss(batch) → finite loss with logs; a few Adam steps on one batch lower it."""
+    """training_losses(model, batch, objective) → finite loss with logs; a few Adam steps on one batch lower it. The
+    trainer's entry point is TrainableWorldModel.loss (the network bound to its objective)."""
+    from training.world import TrainableWorldModel
+
     torch.manual_seed(0)
     model = tiny_model.train()
-    model.objective = ObjectiveConfig(noise_mode="diffusion_forcing", num_history_frames=1)
+    objective = ObjectiveConfig(noise_mode="diffusion_forcing", num_history_frames=1)
+    assert not hasattr(model, "objective") and not hasattr(model, "loss")   # the network knows no objective
     batch = {"latents": torch.randn(2, 3, 16, 8, 12), "text": torch.randn(2, 16, 64),
              "null_text": torch.randn(2, 16, 64), "trajectory": torch.randn(2, 8, 3), "source": ["carla", "opendv"]}
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     first = None
     for _ in range(25):
         g = torch.Generator().manual_seed(1)  # same draws each step: the loss must go down
-        loss, logs = training_losses(model, batch, model.objective, g)
+        loss, logs = training_losses(model, batch, objective, g)
         first = first if first is not None else float(loss.detach())
         opt.zero_grad()
         loss.backward()
         opt.step()
     assert torch.isfinite(loss) and {"loss", "t_mean", "text_kept", "trajectory_kept", "actions_kept"} <= set(logs)
     assert float(loss.detach()) < 0.8 * first
-    loss2, _ = model.loss(batch)  # the Trainer's entry point
+    trainable = TrainableWorldModel(model.cfg, objective)
+    trainable.load_state_dict(model.state_dict())        # same parameters: the objective is configuration
+    loss2, _ = trainable.loss(batch)  # the Trainer's entry point
     assert torch.isfinite(loss2)
 
 
 def test_batch_clip_geometry_overrides_config():
-    """Mixed datasets (issue 7): a NAVSIM-style batch (T=3 latent frames, 1 of history, 2 s each) under a config
+    """Mixed datasets: a NAVSIM-style batch (T=3 latent frames, 1 of history, 2 s each) under a config
     written for OpenDV (3 history latent frames, 0.4 s) takes its history and frame duration from the batch."""
     from training.models.conditioning import actions_from_trajectory
     from training.models.config import preset
@@ -187,14 +193,14 @@ def test_batch_clip_geometry_overrides_config():
 def test_world_model_trains_on_alternating_clip_lengths(tiny_model):
     """T_latent changes from step to step (13 then 3): sin-cos positions per T, gradients everywhere finite."""
     torch.manual_seed(0)
+    objective = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3)
     model = tiny_model.train()
-    model.objective = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     for nf, hist, dt in ((13, 3, 0.4), (3, 1, 2.0), (13, 3, 0.4)):
         batch = {"latents": torch.randn(2, nf, 16, 8, 12), "text": torch.randn(2, 16, 64),
                  "null_text": torch.randn(2, 16, 64), "trajectory": torch.randn(2, 8, 3), "source": ["navsim"] * 2,
                  "num_history_latent_frames": hist, "latent_frame_dt_s": dt}
-        loss, _ = model.loss(batch)
+        loss, _ = training_losses(model, batch, objective)
         opt.zero_grad()
         loss.backward()
         assert torch.isfinite(loss)

@@ -14,6 +14,7 @@ from training.diffusion.noise_levels import sample_noise_levels
 from training.diffusion.schedule import alphas_cumprod
 from training.models.config import preset
 from training.models.dit import WorldModel
+from training.world import TrainableWorldModel
 from training.sampling.ddim import DDIMSchedule, ddim_step, ddim_timesteps
 from training.sampling.guidance import guidance_preset
 from training.sampling.rollout import Condition, RolloutConfig, rollout
@@ -97,7 +98,7 @@ def test_objective_defaults_follow_n():
 def test_loss_logs_bin_thirds_of_n(n):
     torch.manual_seed(0)
     obj = _objective(n, cond_aug_max_t=n - 1, text_drop_prob=0.0)
-    model = WorldModel(preset("tiny"), objective=obj).eval()
+    model = WorldModel(preset("tiny")).eval()
     c = model.cfg
     batch = {"latents": torch.randn(4, 6, c.in_channels, 4, 4), "text": torch.randn(4, 3, c.text_embed_dim)}
     seen: dict[str, int] = {}
@@ -112,9 +113,9 @@ def test_loss_logs_bin_thirds_of_n(n):
 
 
 def test_model_text_level_checked_against_n():
-    WorldModel(preset("tiny", text_timestep_value=1500), objective=_objective(2000))
+    TrainableWorldModel(preset("tiny", text_timestep_value=1500), objective=_objective(2000))
     with pytest.raises(ConfigError, match=r"text_timestep_value=700 not in \[0, 500\)"):
-        WorldModel(preset("tiny", text_timestep_value=700), objective=_objective(500))
+        TrainableWorldModel(preset("tiny", text_timestep_value=700), objective=_objective(500))
     with pytest.raises(ConfigError, match="text_timestep_value"):
         preset("tiny", text_timestep_value=-1)
 
@@ -130,24 +131,27 @@ def test_pretrained_cogvideox_refuses_other_n(tmp_path):
     (tmp_path / "pipe" / "scheduler" / "scheduler_config.json").write_text(json.dumps({"num_train_timesteps": 1000}))
     for folder in (tmp_path / "pipe", tmp_path / "pipe" / "transformer"):
         with pytest.raises(ConfigError, match="pretrained weights were trained with 1000 noise levels"):
-            WorldModel.from_cogvideox(folder, objective=_objective(500))
-        model = WorldModel.from_cogvideox(folder, objective=_objective(1000))
+            TrainableWorldModel.from_cogvideox(folder, objective=_objective(500))
+        with pytest.raises(ConfigError, match="pretrained weights were trained with 1000 noise levels"):
+            WorldModel.from_cogvideox(folder, num_train_timesteps=500)    # the network alone checks it too
+        model = TrainableWorldModel.from_cogvideox(folder, objective=_objective(1000))
         assert model.objective.schedule.num_train_timesteps == 1000
     src.save_pretrained(tmp_path / "bare")                           # no scheduler saved with it: nothing to check
-    WorldModel.from_cogvideox(tmp_path / "bare", objective=_objective(500))
+    TrainableWorldModel.from_cogvideox(tmp_path / "bare", objective=_objective(500))
 
 
 # ---------------------------------------------------------------------------------------------- sampling
 def _rollout(n: int, **rc):
     torch.manual_seed(0)
-    model = WorldModel(preset("tiny"), objective=_objective(n)).eval()
+    model = WorldModel(preset("tiny")).eval()
     levels: list[torch.Tensor] = []
     model.register_forward_pre_hook(lambda m, args: levels.append(args[1].detach().clone()))
     c = model.cfg
     hist = torch.randn(1, 2, c.in_channels, 4, 4, generator=torch.Generator().manual_seed(1))
     cfg = RolloutConfig(history_frames=2, frames_per_round=1, chunk_frames=1, guidance=guidance_preset("none"), **rc)
     with torch.no_grad():
-        res = rollout(model, hist, Condition(text=torch.randn(1, 3, c.text_embed_dim)), 1, cfg)
+        res = rollout(model, hist, Condition(text=torch.randn(1, 3, c.text_embed_dim)), 1, cfg,
+                      schedule=_objective(n).schedule)   # the run's schedule, not the model's
     return res, levels
 
 

@@ -37,6 +37,7 @@ import torch
 from training.diffusion.config import ObjectiveConfig
 from training.diffusion.noise_levels import sample_noise_levels
 from training.diffusion.schedule import add_noise, alphas_cumprod, v_target
+from training.models.conditioning import actions_from_trajectory
 
 _AC_CACHE: dict[tuple, torch.Tensor] = {}
 
@@ -122,7 +123,6 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
         valid = _get(batch, "action_valid")
         keep_act = torch.ones(b, nf, dtype=torch.bool, device=dev) if valid is None else valid.to(dev).bool()
     elif traj is not None and cfg.actions_from_trajectory and _wants_ego_motion(model):
-        from training.models.conditioning import actions_from_trajectory
         actions, keep_act = actions_from_trajectory(traj, nf, hist, frame_dt, cfg.waypoint_dt_s)
         keep_act = keep_act.to(dev) & keep_traj[:, None]
         derived = True

@@ -119,8 +119,10 @@ class WorldRollouts:
     """
 
     def __init__(self, model: Any, vae: Any, rollout_cfg: Any, text_for: Callable[[str | None], torch.Tensor],
-                 device: str = "cpu", seed: int = 0, batch_size: int = 4):
+                 device: str = "cpu", seed: int = 0, batch_size: int = 4, schedule: Any = None):
+        """``schedule``: the run's noise schedule (``load_world_model``'s ``info["objective"].schedule``)."""
         self.model, self.vae, self.cfg, self.text_for = model, vae, rollout_cfg, text_for
+        self.schedule = schedule
         self.device, self.seed, self.batch_size = device, seed, batch_size
         self.rollouts = 0
 
@@ -163,7 +165,7 @@ class WorldRollouts:
             traj = torch.from_numpy(np.stack(trajs)).float().to(self.device)
         cond = Condition(text=text, null_text=null, trajectory=traj)
         res = rollout(self.model, hist, cond, t_lat - h if num_future_latents is None else num_future_latents,
-                      self.cfg, seed=seed)
+                      self.cfg, seed=seed, schedule=self.schedule)
         self.rollouts += len(clips)
         return decode_rollout(self.vae, res.latents, res.num_history_frames, self.cfg.frames_per_round,
                               self.cfg.history_frames)

@@ -9,7 +9,10 @@
 * ``trajectory``: ``(B, 8, 3)`` ego-frame waypoints or None (→ the null trajectory);
 * ``actions``: ``(B, T, A)`` float or ``(B, T)`` int ids, or None (→ the null action at every frame).
 
-Returns the v-prediction with ``x``'s shape and dtype.
+Returns the v-prediction with ``x``'s shape and dtype. The model is the network only: the diffusion objective
+(``training.diffusion.training_losses(model, batch, objective)``) and the sampler (``training.sampling``) take it
+as an argument, with the noise schedule from the run's config (``training.world.TrainableWorldModel`` binds the
+two for the trainer).
 
 Noise-level rule for the text tokens. Video tokens of frame f are modulated (AdaLN) by the embedding of
 t[:, f] (+ frame f's action). The text tokens need one embedding too. With ``causal=True`` we use the
@@ -33,8 +36,7 @@ from torch.utils.checkpoint import checkpoint
 from training.models.attention import KVCache, block_causal_block_mask, block_causal_mask
 from training.models.blocks import DiTBlock
 from training.models.conditioning import ActionEncoder, TextPooler, TrajectoryEncoder
-from training.models.config import (WorldModelConfig, check_attention_backend, check_noise_levels,
-                                     check_pretrained_noise_levels)
+from training.models.config import WorldModelConfig, check_attention_backend, check_pretrained_noise_levels
 from training.models.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
 
 NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.", "text_pooler.")
@@ -60,7 +62,7 @@ class AdaNormOut(nn.Module):
 class WorldModel(nn.Module):
     """See the module docstring. Parameter names of the DiT part equal diffusers' CogVideoX ones."""
 
-    def __init__(self, cfg: WorldModelConfig, objective: Any = None):
+    def __init__(self, cfg: WorldModelConfig):
         super().__init__()
         self.cfg = cfg
         d, dt = cfg.hidden_dim, cfg.time_embed_dim
@@ -75,37 +77,28 @@ class WorldModel(nn.Module):
         self.trajectory_encoder = TrajectoryEncoder(cfg.trajectory, d) if cfg.trajectory.enabled else None
         self.action_encoder = ActionEncoder(cfg.actions, dt) if cfg.actions.kind != "none" else None
         self.text_pooler = TextPooler(cfg.text_pool, cfg.text_embed_dim, dt) if cfg.text_pool.enabled else None
-        if objective is None:
-            from training.diffusion.config import ObjectiveConfig  # light, torch-free dataclass
-            objective = ObjectiveConfig()
-        schedule = getattr(objective, "schedule", None)
-        if schedule is not None:
-            check_noise_levels(cfg, schedule.num_train_timesteps)
-        self.objective = objective
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_cogvideox(cls, src: Any, causal: bool = True, objective: Any = None, **overrides: Any) -> "WorldModel":
+    def from_cogvideox(cls, src: Any, causal: bool = True, num_train_timesteps: int | None = None,
+                       **overrides: Any) -> "WorldModel":
         """Build from a diffusers ``CogVideoXTransformer3DModel`` (instance) or a local folder it was saved to
         (``save_pretrained``; a pipeline folder with a ``transformer/`` subfolder also works).
 
         All DiT weights are copied; the trajectory/action encoders start at zero output, so with
         ``causal=False``, one shared noise level and no trajectory/actions the output equals the source model's.
         ``overrides`` are :class:`WorldModelConfig` fields (nested dicts for ``trajectory``/``actions``).
-        A pipeline folder's ``scheduler/`` must have ``objective.schedule.num_train_timesteps`` levels (CogVideoX:
-        1000): the timestep embedding is tied to them (ConfigError otherwise).
+        ``num_train_timesteps``: the noise levels the model will be trained or sampled with (the objective's
+        ``schedule``); a pipeline folder's ``scheduler/`` must have as many (CogVideoX: 1000): the timestep
+        embedding is tied to them (ConfigError otherwise, before any weight is read).
         """
         from training.models.cogvideox import cogvideox_num_train_timesteps, load_cogvideox_state
         from training.models.config import config_from_cogvideox
-        if objective is None:
-            from training.diffusion.config import ObjectiveConfig
-            objective = ObjectiveConfig()
-        schedule = getattr(objective, "schedule", None)
-        if schedule is not None:   # before reading any weights
-            check_pretrained_noise_levels(schedule.num_train_timesteps, cogvideox_num_train_timesteps(src))
+        if num_train_timesteps is not None:
+            check_pretrained_noise_levels(num_train_timesteps, cogvideox_num_train_timesteps(src))
         config, state = load_cogvideox_state(src)
         cfg = config_from_cogvideox(config, causal=causal, **overrides)
-        model = cls(cfg, objective=objective)
+        model = cls(cfg)
         model.load_pretrained_dit(state)
         return model
 
@@ -251,12 +244,6 @@ class WorldModel(nn.Module):
         if return_kv_cache:
             return out, KVCache(keys, values, text_len, n, prefix + nf, text_cond)
         return out
-
-    # ------------------------------------------------------------------ training
-    def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
-        """The diffusion objective on one batch (see ``training.diffusion.training_losses``)."""
-        from training.diffusion.losses import training_losses
-        return training_losses(self, batch, self.objective)
 
 
 def save_config(model: WorldModel, path: str | Path) -> Path:

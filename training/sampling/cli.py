@@ -225,18 +225,19 @@ class _Setup:
         from training.sampling.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
                                             history_from_video, load_world_model, trained_size_hw,
                                             video_clip_fps_hz)
-        from training.sampling.rollout import model_ddim_schedule, rollout_num_future_frames
+        from training.sampling.rollout import ddim_schedule, rollout_num_future_frames
 
         self.device = device
         dtype = getattr(torch, args.dtype)
         self.model, self.model_info = load_world_model(args.checkpoint, self.device, dtype)
+        self.objective = self.model_info.pop("objective")   # the run's: its schedule is what DDIM steps over
         if args.attention is not None:
             self.model.set_attention_backend(args.attention)
         self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend}
         mcfg = self.model.cfg
         self.vae = VideoVAE(args.vae or encoded_with(args.checkpoint, args.shards), device=self.device)
         self.cfg = cfg
-        model_ddim_schedule(self.model, self.cfg)   # --steps / --history-noise-level vs the model's schedule, now
+        ddim_schedule(self.cfg, self.objective.schedule)   # --steps / --history-noise-level vs the run's schedule, now
         if Path(args.history).is_file():
             # the size the model's training clips were encoded at (its data's encode section), else its sample size
             trained = trained_size_hw(args.checkpoint, args.shards)
@@ -254,7 +255,7 @@ class _Setup:
                                  f"{sc}x downsampling times the model's patch size), e.g. the model's sample size "
                                  f"{mcfg.sample_height * sc}x{mcfg.sample_width * sc}")
             self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size,
-                                              video_clip_fps_hz(self.model, self.vae.info.temporal_compression))
+                                              video_clip_fps_hz(self.objective, self.vae.info.temporal_compression))
         else:
             try:
                 self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)
@@ -376,7 +377,8 @@ def _cmd_sample(args) -> int:
     t0 = time.perf_counter()
     with s.progress(total, "sampling") as bar:
         res = rollout(s.model, s.history.latents.to(s.device), cond_at, s.num_future, s.cfg, seed=args.seed,
-                      policy=s.policy_for(traj_at), progress=bar, actions_from_trajectory=s.actions_from_trajectory)
+                      policy=s.policy_for(traj_at), progress=bar, actions_from_trajectory=s.actions_from_trajectory,
+                      schedule=s.objective.schedule)
     t_setup = t0 - t_start
     _say("sample")("decoding the rollout with the VAE, writing the video ...")
     frames = decode_rollout(s.vae, res.latents, res.num_history_frames, s.cfg.frames_per_round,
@@ -453,7 +455,8 @@ def _cmd_plan(args) -> int:
         policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if args.actions_from_trajectory else None
         res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), texts.__getitem__, cands, s.cfg,
                    s.num_future, seed=args.seed, policy_for=policy_for, progress=bar,
-                   actions_from_trajectory=args.actions_from_trajectory, log=_say("plan", bar))
+                   actions_from_trajectory=args.actions_from_trajectory, log=_say("plan", bar),
+                   schedule=s.objective.schedule)
     table = res.table()
     (out / "ranking.md").write_text(table + "\n")
     (out / "ranking.json").write_text(json.dumps(

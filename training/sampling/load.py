@@ -24,7 +24,8 @@ import torch
 import yaml
 
 from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
-from resim.config import safe_yaml
+from resim.config import from_dict, safe_yaml
+from training.diffusion.config import ObjectiveConfig
 
 
 class SamplingInputError(ValueError):
@@ -37,10 +38,11 @@ class SamplingInputError(ValueError):
 VIDEO_CLIP_FPS_HZ = 10.0
 
 
-def video_clip_fps_hz(model: Any, temporal_compression: int = 4) -> float:
+def video_clip_fps_hz(objective: Any, temporal_compression: int = 4) -> float:
     """The pixel frame rate the world model was trained at for video histories: ``temporal_compression /
-    objective.latent_frame_dt_s`` from the checkpoint's config (4 / 0.4 s = 10 Hz), else 10 Hz."""
-    dt = getattr(getattr(model, "objective", None), "latent_frame_dt_s", None)
+    objective.latent_frame_dt_s`` of the run's objective (``load_world_model``'s ``info["objective"]``;
+    4 / 0.4 s = 10 Hz), else 10 Hz."""
+    dt = getattr(objective, "latent_frame_dt_s", None)
     return temporal_compression / float(dt) if dt else VIDEO_CLIP_FPS_HZ
 
 
@@ -57,7 +59,9 @@ def _checkpoint_dir(ckpt: str | Path) -> Path:
 
 def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32,
                      prefer_ema: bool = True) -> tuple[Any, dict]:
-    """Build + load the world model of a training run; returns (model in eval mode, info dict)."""
+    """Build + load the world model of a training run; returns (model in eval mode, info dict). ``info["objective"]``
+    is the run's diffusion objective (``ObjectiveConfig``; its ``schedule`` is what the sampler steps over), read
+    from the run's saved config, not from the model object."""
     from safetensors.torch import load_file
 
     from training import registry
@@ -82,7 +86,9 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
         raise SamplingInputError(f"checkpoint {weights}: does not fit the model built from its config "
                                  f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
     model = model.to(device=device, dtype=dtype).eval().requires_grad_(False)
-    return model, {"checkpoint": str(d), "weights": weights.name, "builder": builder, "model_name": name}
+    objective = from_dict(ObjectiveConfig, model_cfg.get("objective") or {}, prefix="model.objective")
+    return model, {"checkpoint": str(d), "weights": weights.name, "builder": builder, "model_name": name,
+                   "objective": objective}
 
 
 @dataclass

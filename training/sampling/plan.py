@@ -98,7 +98,7 @@ class PlanResult:
 def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
          text_for: Callable[[str | None], torch.Tensor], candidates: Sequence[Candidate],
          cfg: RolloutConfig, num_future_frames: int, *, seed: int = 0, policy_for: Callable | None = None,
-         progress: Any = None, actions_from_trajectory: bool = False,
+         progress: Any = None, actions_from_trajectory: bool = False, schedule: Any = None,
          log: Callable[[str], None] | None = None) -> PlanResult:
     """Roll out every candidate from ``history`` (1, H, C, h, w), decode, score the futures, rank.
 
@@ -123,7 +123,7 @@ def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
     cond = Condition(text=text, null_text=null, trajectory=trajs, label="plan")
     res = rollout(world_model, history.expand(k, -1, -1, -1, -1), cond, num_future_frames, cfg, seed=seed,
                   policy=policy_for(trajs) if policy_for else None, progress=progress, same_noise=True,
-                  actions_from_trajectory=actions_from_trajectory)
+                  actions_from_trajectory=actions_from_trajectory, schedule=schedule)
     say = log or (lambda _m: None)
     say(f"decoding {k} imagined futures with the VAE ...")
     frames = decode_rollout(vae, res.latents, res.num_history_frames, cfg.frames_per_round,

@@ -74,7 +74,7 @@ class RolloutConfig:
 
     def check_schedule(self, num_train_timesteps: int) -> None:
         """The steps and levels this config asks for must exist in a schedule of ``num_train_timesteps`` levels
-        (the model's ``objective.schedule``; CogVideoX: 1000)."""
+        (the run's ``model.objective.schedule``; CogVideoX: 1000)."""
         n = int(num_train_timesteps)
         if self.num_steps > n:
             raise ConfigError(f"num_steps={self.num_steps} > the model's num_train_timesteps={n} "
@@ -143,11 +143,11 @@ def _model_dtype(model: Any) -> torch.dtype:
     return torch.float32
 
 
-def model_ddim_schedule(model: Any, cfg: RolloutConfig) -> DDIMSchedule:
-    """The DDIM steps of ``cfg`` over the schedule the model was trained with (``model.objective.schedule``;
-    CogVideoX's default for a model without one), after :meth:`RolloutConfig.check_schedule` against it."""
-    sched_cfg = getattr(getattr(model, "objective", None), "schedule", None)
-    ac = cogvideox_alphas_cumprod(sched_cfg)
+def ddim_schedule(cfg: RolloutConfig, schedule: Any = None) -> DDIMSchedule:
+    """The DDIM steps of ``cfg`` over the noise schedule the model was trained with: ``schedule`` is the run's
+    ``model.objective.schedule`` (``training.diffusion.config.ScheduleConfig``; ``load_world_model`` returns it
+    in its info), None = CogVideoX's; checked first with :meth:`RolloutConfig.check_schedule`."""
+    ac = cogvideox_alphas_cumprod(schedule)
     cfg.check_schedule(int(ac.shape[0]))
     return DDIMSchedule(cfg.num_steps, ac)
 
@@ -173,11 +173,11 @@ class _Roller:
     """State of one rollout; see :func:`rollout` (split out to keep each method about one thing)."""
 
     def __init__(self, model, history, cfg: RolloutConfig, generator, history_actions, use_cache, progress,
-                 same_noise: bool = False, actions_from_trajectory: bool = False):
+                 same_noise: bool = False, actions_from_trajectory: bool = False, schedule: Any = None):
         self.model, self.cfg, self.gen = model, cfg, generator
         self.same_noise = same_noise
         self.device, self.mdtype = history.device, _model_dtype(model)
-        self.schedule = model_ddim_schedule(model, cfg)
+        self.schedule = ddim_schedule(cfg, schedule)
         self.latents = history.float()                         # (B, T, C, h, w), grows
         # the fed version of each frame (noised once to history_noise_level when it became history)
         self.fed = self._noise_history(self.latents)
@@ -356,7 +356,7 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
             num_future_frames: int, cfg: RolloutConfig | None = None, *, seed: int = 0,
             actions: torch.Tensor | None = None, history_actions: torch.Tensor | None = None,
             policy: Policy | None = None, progress: Any = None, same_noise: bool = False,
-            actions_from_trajectory: bool = False) -> RolloutResult:
+            actions_from_trajectory: bool = False, schedule: Any = None) -> RolloutResult:
     """Roll the world model out for ``num_future_frames`` latent frames after ``history``.
 
     Args:
@@ -373,6 +373,8 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
             a guidance branch that drops the trajectory then drops them too (null action), as in training.
         progress: an object with ``update(n)`` (e.g. tqdm), advanced once per DDIM step.
         same_noise: every batch element gets the same noise draws (compare conditions, not noise).
+        schedule: the noise schedule the model was trained with (the run's ``model.objective.schedule``, as
+            ``load_world_model`` returns it); None = CogVideoX's (1000 levels).
     Returns:
         :class:`RolloutResult` with all latents (history + generated), float32.
     """
@@ -395,7 +397,8 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
         raise ValueError(f"actions must be (B, num_future_frames, A) = ({b}, {num_future_frames}, A), "
                          f"got {tuple(actions.shape)}")
     gen = torch.Generator().manual_seed(seed)
-    r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress, same_noise, actions_from_trajectory)
+    r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress, same_noise, actions_from_trajectory,
+                schedule)
     acting = actions is not None or policy is not None
     h0 = history.shape[1]
     labels: list[str] = []
