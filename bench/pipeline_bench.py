@@ -48,7 +48,7 @@ def _world(tmp: Path, episodes: int = 6) -> Path:
 
 def _run(out: Path, overrides: list[str], base: Path = SYNTH) -> dict:
     from pipelines import runner
-    from pipelines.config import load_config
+    from pipelines.load import load_config
 
     cfg = load_config(base, ["ray.progress_bars=false", *overrides], out=out)
     t0 = time.perf_counter()

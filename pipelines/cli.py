@@ -48,7 +48,7 @@ def _overrides(args) -> list[str]:
 
 
 def _load(args):
-    from pipelines.config import load_config
+    from pipelines.load import load_config
 
     return load_config(args.config, _overrides(args), out=args.out)
 

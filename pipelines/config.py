@@ -13,14 +13,15 @@ Sections (one dataclass each; units in field names):
 * ``ray``      where to run and the resources of every stage, declared once here.
 
 Every error names the dotted key (``clip.stride_frames: ...``); paths that must exist, every reader's own
-options and a reused synthetic world are checked in :func:`check_paths` before Ray starts.
+options and a reused synthetic world are checked by ``pipelines.load.check_paths`` before Ray starts
+(``pipelines.load.load_config`` = this module's dataclasses + those checks; the checks build the readers, which
+import this module, so they live apart).
 ``--set key.sub=value`` overrides any value (YAML-parsed). Relative paths are relative to the working
 directory and are made absolute on load (:func:`absolute_paths`), so the config a run saves, ships to its
 workers and hashes names the data it read wherever it is read from.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -28,8 +29,7 @@ from pathlib import Path
 from typing import Literal, Optional
 
 from labeling.config import CutConfig, LabelerConfig, StillConfig
-from resim.config import ConfigError, check_positive, from_dict, load, to_dict
-from resim.folders import folder_problem
+from resim.config import ConfigError, check_positive, from_dict, to_dict
 from resim.models import shipped_dir, shipped_model
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -451,86 +451,9 @@ def absolute_paths(cfg: PipelineConfig) -> PipelineConfig:
     return replace(cfg, out=_absolute(cfg.out), sources=sources, encode=enc)
 
 
-def load_config(path: str | Path | None, overrides=(), out: str | Path | None = None) -> PipelineConfig:
-    """YAML + ``--set`` overrides (+ ``--out``) → validated :class:`PipelineConfig`, paths made absolute
-    (:func:`absolute_paths`; the YAML file itself is only read) and checked."""
-    extra = list(overrides or ())
-    if out is not None:
-        extra.append(f"out={Path(out)}")
-    cfg = absolute_paths(load(PipelineConfig, path, extra))
-    check_paths(cfg)
-    return cfg
-
-
-def check_paths(cfg: PipelineConfig) -> None:
-    """Existence checks, each naming its key, before any work starts."""
-    if cfg.out is None:
-        raise ConfigError("out: no output folder (set `out:` in the config or pass --out DIR)")
-    for kind in ("opendv", "navsim", "carla"):
-        root = getattr(cfg.sources, kind).root
-        problem = folder_problem(root) if root is not None else None
-        if problem:
-            raise ConfigError(f"sources.{kind}.root: {root} {problem}")
-    for key, p in (("encode.vae", cfg.encode.vae_path), ("encode.text_encoder", cfg.encode.text_encoder_path)):
-        problem = folder_problem(p)
-        if problem:
-            raise ConfigError(f"{key}: {p} {problem} (a model folder is expected)")
-        if not any((Path(p) / sub / "config.json").is_file() for sub in ("", "vae", "text_encoder")):
-            raise ConfigError(f"{key}: {p} has no config.json (expected a diffusers/transformers folder)")
-    check_synthetic_world(cfg)
-    # Build every reader's own config now (cheap: no listing, no decoding), so a value only a reader
-    # checks (e.g. `sources.navsim.split: synth/x`) fails here and in `resim pipeline check`, not at
-    # enumerate time after OUT was prepared.
-    from pipelines.units import make_reader, source_specs
-
-    for spec in source_specs(cfg):
-        make_reader(spec)
-
-
-def check_synthetic_world(cfg: PipelineConfig) -> None:
-    """A synthetic world already in ``sources.synthetic.root`` must be the one the config describes.
-
-    The world is reused when present (generating it again would overwrite it), and ``episodes``, ``seed``
-    and ``preset`` are part of the dataset's config hash, so reusing a different world would label the
-    data with a config that did not make it. Compared with the ``synth_config.json`` the generator writes.
-    """
-    s = cfg.sources.synthetic
-    if s.root is None:
-        return
-    from pipelines.sources.synth.generate import preset
-
-    try:
-        made_with = preset(s.preset)
-    except ConfigError as e:
-        raise ConfigError(f"sources.synthetic.preset: {e}") from None
-    root = Path(s.root)
-    if not (root / "ground_truth.json").exists():
-        return                                  # generated on the first run (runner.ensure_synthetic)
-    p = root / "synth_config.json"
-    try:
-        have = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"sources.synthetic.root: {root} holds a synthetic world without {p.name}, so it cannot "
-                          "be checked against episodes/seed/preset; regenerate it (resim synth) or use "
-                          "another root") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"sources.synthetic.root: {p} is unreadable ({type(e).__name__}: {e})") from None
-    if not isinstance(have, dict):
-        raise ConfigError(f"sources.synthetic.root: {p} is not a JSON object")
-    want = json.loads(json.dumps({"episodes": s.episodes, "seed": s.seed, **to_dict(made_with)}))
-    diff = [k for k in sorted(want) if have.get(k) != want[k]]
-    if diff:
-        raise ConfigError(
-            f"sources.synthetic: the world in {root} was not made with this config's episodes/seed/preset ("
-            + ", ".join(f"{k}: {have.get(k)!r} on disk, {want[k]!r} by the config" for k in diff)
-            + "); set sources.synthetic.episodes/seed/preset to the world's values, or point "
-              "sources.synthetic.root at a new folder (the world is generated there)")
-
-
 def config_from_dict(data: dict) -> PipelineConfig:
     """Rebuild a config shipped to Ray actors as a plain dict (no path checks: they ran on the driver)."""
     return from_dict(PipelineConfig, data)
 
 
-__all__ = ["PipelineConfig", "load_config", "absolute_paths", "check_paths", "check_synthetic_world",
-           "config_from_dict", "to_dict", "ConfigError"]
+__all__ = ["PipelineConfig", "absolute_paths", "config_from_dict", "to_dict", "ConfigError"]

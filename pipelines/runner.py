@@ -23,7 +23,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from pipelines import curation, out_lock, quarantine, ray_connect, resume, stage_fit
-from pipelines.config import PipelineConfig, absolute_paths, check_synthetic_world, to_dict
+from pipelines.config import PipelineConfig, absolute_paths, to_dict
+from pipelines.load import check_synthetic_world
 from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
 from pipelines.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save

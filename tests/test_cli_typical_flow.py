@@ -26,7 +26,7 @@ def test_every_flow_line_parses():
 def test_the_pipeline_reads_the_world_synth_wrote_and_has_enough_episodes(tmp_path):
     """synth's world must be the config's (else: config error "not made with this config's episodes/seed/preset"),
     and `train reward` needs >= 12 episodes to split hazardous and clean held-out episodes."""
-    from pipelines.config import load_config
+    from pipelines.load import load_config
     from pipelines.sources.synth.generate import SYNTH_PRESETS
 
     cmds = flow_commands()

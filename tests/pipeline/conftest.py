@@ -56,7 +56,7 @@ def synth_world(tmp_path_factory) -> Path:
 
 
 def make_config(out: Path, overrides=(), base: str = "configs/pipeline/synthetic.yaml"):
-    from pipelines.config import load_config
+    from pipelines.load import load_config
 
     return load_config(REPO / base, [*FAST, *overrides], out=out)
 

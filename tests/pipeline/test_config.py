@@ -1,7 +1,8 @@
 """Config validation: every error names its key, before any work starts."""
 import pytest
 
-from pipelines.config import PipelineConfig, config_from_dict, load_config, to_dict
+from pipelines.config import PipelineConfig, config_from_dict, to_dict
+from pipelines.load import load_config
 from resim.config import ConfigError, from_dict
 
 from .conftest import REPO

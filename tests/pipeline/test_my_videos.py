@@ -3,7 +3,7 @@ warnings about videos a config would make nothing from (pipelines/video_prefligh
 import numpy as np
 import pytest
 
-from pipelines.config import load_config
+from pipelines.load import load_config
 from pipelines.runner import pool_names
 from resim.cli import main
 

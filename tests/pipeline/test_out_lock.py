@@ -30,7 +30,7 @@ CONFIG = str(REPO / "configs/pipeline/synthetic.yaml")
 HOLDER = """
 import sys, time
 from pipelines import runner
-from pipelines.config import load_config
+from pipelines.load import load_config
 cfg = load_config(sys.argv[1], [f"sources.synthetic.root={sys.argv[3]}", "shards.max_samples_per_shard=7"],
                   out=sys.argv[2])
 def pause(cfg):
