@@ -42,11 +42,18 @@ class VaeTrainConfig:
     temporal_compression_ratio: int = 4
     clip_frames: int = 17                 # frames per training crop (1 + 8k)
     kl_weight: float = 1e-6
+    # detail terms (0 = off): L1 on the pixels (CogVideoX trains its VAE with L1, sharper than MSE's mean) and L1 on
+    # the spatial gradients (the edges and texture the optical-flow labeler tracks; MSE alone averages them away)
+    l1_weight: float = 0.0
+    gradient_weight: float = 0.0
     init_weights: Optional[Path] = None   # a run's final/model.safetensors to start from
 
     def __post_init__(self):
-        if len(self.block_out_channels) != 4:
-            raise ConfigError("model.block_out_channels needs 4 widths (8x spatial compression, as CogVideoX)")
+        # 4 levels: 8x spatial compression, as CogVideoX. 3 levels (4x) for the synthetic world's 64x96 clips:
+        # at 8x its 8x12 latent grid could not keep the texture the optical flow reads (docs/models/synth-vae.md)
+        if len(self.block_out_channels) not in (3, 4):
+            raise ConfigError("model.block_out_channels needs 4 widths (8x spatial compression, as CogVideoX) "
+                              "or 3 (4x)")
         if any(c % self.norm_num_groups for c in self.block_out_channels):
             raise ConfigError(f"model.block_out_channels {self.block_out_channels} must be multiples of "
                               f"norm_num_groups={self.norm_num_groups}")
@@ -55,6 +62,8 @@ class VaeTrainConfig:
                               f"got {self.clip_frames}")
         if self.kl_weight < 0 or self.latent_channels < 1 or self.layers_per_block < 1:
             raise ConfigError("model.kl_weight must be >= 0, latent_channels and layers_per_block >= 1")
+        if not (self.l1_weight >= 0 and self.gradient_weight >= 0):
+            raise ConfigError("model.l1_weight and model.gradient_weight must be >= 0")
 
 
 def diffusers_config(cfg: VaeTrainConfig) -> dict[str, Any]:
@@ -71,6 +80,13 @@ def frames_to_input(frames: torch.Tensor) -> torch.Tensor:
     return frames.permute(0, 2, 1, 3, 4).float() / 127.5 - 1.0
 
 
+def gradient_l1(rec: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Mean |∇rec − ∇x| over horizontal and vertical neighbour differences of ``(B, C, T, H, W)`` video."""
+    dx = (rec[..., :, 1:] - rec[..., :, :-1]) - (x[..., :, 1:] - x[..., :, :-1])
+    dy = (rec[..., 1:, :] - rec[..., :-1, :]) - (x[..., 1:, :] - x[..., :-1, :])
+    return 0.5 * (dx.abs().mean() + dy.abs().mean())
+
+
 def psnr_db(mse: torch.Tensor) -> torch.Tensor:
     """PSNR of images in [0, 1] from an MSE measured in [-1, 1] (the range is twice as wide: 4 / mse)."""
     return 10.0 * torch.log10(4.0 / mse.clamp_min(1e-12))
@@ -82,7 +98,8 @@ class TrainableVAE(AutoencoderKLCogVideoX):
     train_cfg: VaeTrainConfig
 
     def loss(self, batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """``batch.frames`` uint8 ``(B, T, 3, H, W)`` (``data.load_frames``) → (MSE + kl_weight * KL, logs)."""
+        """``batch.frames`` uint8 ``(B, T, 3, H, W)`` (``data.load_frames``) → (MSE + kl_weight * KL [+ l1_weight *
+        L1 + gradient_weight * gradient L1], logs)."""
         frames = batch.frames if not isinstance(batch, dict) else batch["frames"]
         if frames is None:
             raise ConfigError("resim train vae needs the clips' frames: set data.load_frames=true")
@@ -97,9 +114,19 @@ class TrainableVAE(AutoencoderKLCogVideoX):
         rec = self.decode(z).sample
         mse = F.mse_loss(rec, x)
         kl = 0.5 * (post.mean.pow(2) + post.var - 1.0 - post.logvar).mean()
-        loss = mse + self.train_cfg.kl_weight * kl
-        return loss, {"mse": mse.detach(), "psnr_db": psnr_db(mse.detach()), "kl": kl.detach(),
-                      "latent_std": post.mean.detach().std()}
+        c = self.train_cfg
+        loss = mse + c.kl_weight * kl
+        logs = {"mse": mse.detach(), "psnr_db": psnr_db(mse.detach()), "kl": kl.detach(),
+                "latent_std": post.mean.detach().std()}
+        if c.l1_weight:
+            l1 = (rec - x).abs().mean()
+            loss = loss + c.l1_weight * l1
+            logs["l1"] = l1.detach()
+        if c.gradient_weight:
+            g = gradient_l1(rec, x)
+            loss = loss + c.gradient_weight * g
+            logs["gradient_l1"] = g.detach()
+        return loss, logs
 
     def export_run(self, run_dir: str | Path, data: Iterable) -> Path:
         """After training (rank 0): the diffusers folder ``RUN/final/vae`` (:func:`export_vae`)."""

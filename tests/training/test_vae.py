@@ -59,6 +59,26 @@ def test_config_checked():
         vae.loss({"frames": None})
 
 
+def test_detail_terms_and_three_levels():
+    """The optional L1 and gradient terms add to the loss and are logged; a 3-level VAE compresses 4x in space."""
+    torch.manual_seed(0)
+    base = {"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "clip_frames": 9}
+    batch = {"frames": _smooth_video()}
+    torch.manual_seed(0)
+    plain, logs = build_vae(base).loss(batch)
+    torch.manual_seed(0)
+    more, logs2 = build_vae({**base, "l1_weight": 1.0, "gradient_weight": 2.0}).loss(batch)
+    assert float(more) > float(plain) and {"l1", "gradient_l1"} <= set(logs2) and "l1" not in logs
+    assert abs(float(more) - float(plain) - float(logs2["l1"]) - 2 * float(logs2["gradient_l1"])) < 1e-5
+    with pytest.raises(ConfigError, match="gradient_weight"):
+        build_vae({**base, "gradient_weight": -1})
+    vae3 = build_vae({**base, "block_out_channels": [8, 8, 8]})
+    x = torch.zeros(1, 3, 9, 32, 48)
+    assert tuple(vae3.encode(x).latent_dist.mean.shape) == (1, 16, 3, 8, 12)     # 4x spatial, 4x temporal
+    with pytest.raises(ConfigError, match="4 widths"):
+        build_vae({**base, "block_out_channels": [8, 8]})
+
+
 def test_psnr_of_mse_in_minus_one_one():
     # an error of 0.1 in [-1, 1] is 0.05 in [0, 1]: 26.02 dB
     assert abs(float(psnr_db(torch.tensor(0.01))) - 26.0206) < 1e-3
