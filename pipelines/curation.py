@@ -24,6 +24,7 @@ import numpy as np
 from media.frames import cover_size, rate_step
 from pipelines import quarantine
 from pipelines.quality import LOW_QUALITY
+from pipelines.sources.episode import SourceError
 from pipelines.stages.cut import CutStage
 from pipelines.units import clip_of
 from shards.duplicates import duplicates_path
@@ -108,7 +109,8 @@ class _Frames:
             tiles = []
             for i in (start * step, min((start + num_frames - 1) * step, ep.num_frames - 1)):
                 tiles.append(next(iter(ep.frames(i, i + 1, size_hw=hw))))
-        except Exception as e:          # a picture we cannot make is a missing tile, not a failed run
+        except (SourceError, OSError, IndexError, StopIteration) as e:
+            # the source changed or went away since the run (bad input, not our bug): a missing tile, not a failed run
             log.info("curation sheet: no frames for %s@%d (%s)", unit_id, start, e)
             return None
         sep = np.full((hw[0], 2, 3), 255, np.uint8)
