@@ -5,7 +5,7 @@ should and nothing else. Per run (the whole dataset, from the commit markers, th
 dedup table, so a resumed run reports on everything):
 
 * ``funnel`` (``stats.json`` ``curation``): hours of source video, hours after the readers' discards (OpenDV's
-  intros and outros), hours in units quarantined whole, candidate windows, windows dropped per reason (scene
+  intros and outros), units quarantined whole, candidate windows, windows dropped per reason (scene
   cut, standing still, each quality column, NaN poses), clips written, clips left out as near-duplicates, and
   the hours the written clips cover;
 * ``contact_sheet`` (``OUT/curation.png``): up to ``per_reason`` dropped examples per reason, each the first
@@ -60,15 +60,12 @@ def funnel(markers: list[dict], rows: list[dict], num_duplicates: int, clip_s: f
     ok = [m for m in markers if m["status"] == "ok"]
     written = sum((m.get("written") or {}).get("num_samples", 0) for m in ok)
     dropped = Counter(reason_group(r) for r in rows if r["status"] == "dropped")
-    quarantined = [m for m in markers if m["status"] != "ok"]
     h = 3600.0
     return {
         "hours_in": round(sum(c.get("source_s", 0.0) for c in cur) / h, 4),
-        "hours_after_discards": round(sum(c.get("used_s", 0.0) for c in cur if c) / h, 4),
+        "hours_after_discards": round(sum(c.get("used_s", 0.0) for c in cur) / h, 4),
         "units": len(markers),
-        "units_quarantined": len(quarantined),
-        "units_quarantined_hours_known": round(sum((m.get("curation") or {}).get("source_s", 0.0)
-                                                   for m in quarantined) / h, 4),
+        "units_quarantined": len(markers) - len(ok),
         "candidate_windows": sum(c.get("windows", 0) for c in cur),
         "windows_dropped": dict(sorted(dropped.items(), key=lambda kv: -kv[1])),
         "clips_written": written,
@@ -117,8 +114,7 @@ class _Frames:
         return np.concatenate([tiles[0], sep, tiles[1]], axis=1)
 
 
-def contact_sheet(out: str | Path, cfg, states: list[dict], rows: list[dict], duplicates: list[dict],
-                  per_reason: int = 6) -> Path:
+def contact_sheet(out: str | Path, cfg, states: list[dict], rows: list[dict], per_reason: int = 6) -> Path:
     """``OUT/curation.png``: one row of examples per reason (see the module docstring)."""
     import matplotlib
 
@@ -142,13 +138,13 @@ def contact_sheet(out: str | Path, cfg, states: list[dict], rows: list[dict], du
                                                            f"{r['reason'][:60]}"))
         lines.append((g, len(rs), ex))
     man = read_manifest(out).to_pydict()
+    unit_of = {s["item_id"]: s["unit_id"] for s in states}
     if any(man["stopped"]):       # labels.still.policy tag: kept, but a user should see what was tagged
-        unit_of = {s["item_id"]: s["unit_id"] for s in states}
         tagged = [(i, st) for i, st, stop in zip(man["item_id"], man["start_frame"], man["stopped"]) if stop]
         ex = [(frames.pair(unit_of.get(i, ""), int(st), N), f"{i[-28:]} @{st}") for i, st in _spread(tagged, per_reason)]
         lines.append(("stopped\n(tagged, kept)", len(tagged), ex))
+    duplicates = duplicate_pairs(out, man)
     if duplicates:
-        unit_of = {(s["item_id"]): s["unit_id"] for s in states}
         ex = []
         for d in _spread(duplicates, per_reason):
             a = frames.pair(unit_of.get(d["item_id"], ""), int(d["start_frame"]), N)
@@ -189,14 +185,14 @@ def contact_sheet(out: str | Path, cfg, states: list[dict], rows: list[dict], du
     return p
 
 
-def duplicate_pairs(out: str | Path) -> list[dict]:
-    """The dedup table joined with the manifest: ``item_id``/``start_frame`` of each copy and of the clip kept."""
+def duplicate_pairs(out: str | Path, man: dict) -> list[dict]:
+    """The dedup table joined with the manifest (``man``, as a dict of columns): ``item_id``/``start_frame`` of each
+    copy and of the clip kept."""
     import pyarrow.parquet as pq
 
     p = duplicates_path(out)
     if not p.is_file():
         return []
-    man = read_manifest(out).to_pydict()
     where = {k: (i, s) for k, i, s in zip(man["key"], man["item_id"], man["start_frame"])}
     pairs = []
     for d in pq.read_table(p).to_pylist():

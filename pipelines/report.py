@@ -53,6 +53,7 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
     table = quarantine.read_table(out)
     rows = quarantine.problems(table)
     warned = [r for r in table if r["status"] == quarantine.WARNING]
+    dups = _duplicates(out)
     wall = float(this_run.get("wall_s", 0.0))
     run_clips = int(this_run.get("clips_written", 0))
     cpus = float(this_run.get("cpus", 1.0)) or 1.0
@@ -78,9 +79,9 @@ def compute_stats(out: str | Path, markers: list[dict], this_run: dict, cfg=None
             "by_status": dict(Counter(r["status"] for r in rows)),
             "examples": [f"{r['item']} [{r['stage']}]: {r['reason']}" for r in rows[:20]],
         },
-        "duplicates": _duplicates(out),
+        "duplicates": dups,
         # hours in -> after discards -> windows dropped per reason -> clips (pipelines/curation.py)
-        "curation": curation.funnel(markers, rows, _duplicates(out)["clips_left_out"],
+        "curation": curation.funnel(markers, rows, dups["clips_left_out"],
                                     cfg.clip.num_frames / cfg.clip.fps_hz if cfg is not None else None),
         # curation's cost beside the labeler's, in this dataset's runs (docs/pipeline.md: target <= 25 %)
         "curation_cost": _curation_cost(seconds, this_run),

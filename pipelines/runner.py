@@ -536,8 +536,7 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
     sheet_s = 0.0
     if todo or not (out / "curation.png").is_file():    # dropped examples per reason (pipelines/curation.py)
         t_sheet = time.perf_counter()
-        curation.contact_sheet(out, cfg, states, quarantine.problems(quarantine.read_table(out)),
-                               curation.duplicate_pairs(out))
+        curation.contact_sheet(out, cfg, states, quarantine.problems(quarantine.read_table(out)))
         sheet_s = time.perf_counter() - t_sheet
     wall = time.perf_counter() - t0
     markers = resume.read_markers(out)

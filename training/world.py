@@ -62,11 +62,8 @@ class TrainableWorldModel(WorldModel):
     def from_cogvideox(cls, src: Any, causal: bool = True, objective: ObjectiveConfig | None = None,
                        **overrides: Any) -> "TrainableWorldModel":
         objective = objective if objective is not None else ObjectiveConfig()
-        model = super().from_cogvideox(src, causal=causal,
-                                       num_train_timesteps=objective.schedule.num_train_timesteps, **overrides)
-        model.objective = objective
-        check_noise_levels(model.cfg, objective.schedule.num_train_timesteps)
-        return model
+        return super().from_cogvideox(src, causal=causal, num_train_timesteps=objective.schedule.num_train_timesteps,
+                                      init_kwargs={"objective": objective}, **overrides)
 
     def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
         """The diffusion objective on one batch (``training.diffusion.training_losses``)."""

@@ -58,16 +58,16 @@ def _runner():
     from resim.config import from_dict
     from training.eval.worldeval import WorldRollouts
     from training.sampling.guidance import guidance_preset
-    from training.sampling.load import PromptSource, encoded_with, load_world_model
+    from training.sampling.load import PromptSource, encoded_with, load_world_model, run_objective
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
 
     ckpt = shipped_dir(SYNTH_WORLD)
-    model, info = load_world_model(ckpt, "cpu", torch.float32)
+    model, _ = load_world_model(ckpt, "cpu", torch.float32)
     vae = VideoVAE(encoded_with(ckpt), device="cpu")
     assert not vae.info.placeholder
     cfg = from_dict(RolloutConfig, {**ROLLOUT_PRESETS["resim"], "num_steps": 20, "guidance": guidance_preset("resim")})
     prompts = PromptSource(HELDOUT, shipped_dir(PLACEHOLDER_T5), device="cpu", max_tokens=model.cfg.max_text_seq_length)
-    return WorldRollouts(model, vae, cfg, prompts, seed=0, batch_size=3, schedule=info["objective"].schedule)
+    return WorldRollouts(model, vae, cfg, prompts, seed=0, batch_size=3, schedule=run_objective(ckpt).schedule)
 
 
 def test_world_model_rollouts_look_like_the_heldout_future():

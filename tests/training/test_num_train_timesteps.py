@@ -138,6 +138,9 @@ def test_pretrained_cogvideox_refuses_other_n(tmp_path):
         assert model.objective.schedule.num_train_timesteps == 1000
     src.save_pretrained(tmp_path / "bare")                           # no scheduler saved with it: nothing to check
     TrainableWorldModel.from_cogvideox(tmp_path / "bare", objective=_objective(500))
+    # built with its own objective from the start: a text level valid only under N = 2000 is accepted
+    m = TrainableWorldModel.from_cogvideox(tmp_path / "bare", objective=_objective(2000), text_timestep_value=1500)
+    assert m.objective.schedule.num_train_timesteps == 2000 and m.cfg.text_timestep_value == 1500
 
 
 # ---------------------------------------------------------------------------------------------- sampling

@@ -308,7 +308,7 @@ def _runner(args):
     from media.encoders import VideoVAE
     from resim.config import from_dict
     from training.sampling.guidance import guidance_preset
-    from training.sampling.load import PromptSource, encoded_with, load_world_model
+    from training.sampling.load import PromptSource, encoded_with, load_world_model, run_objective
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, ddim_schedule
     from training.eval.worldeval import WorldRollouts
 
@@ -317,6 +317,7 @@ def _runner(args):
     device = args.device
     try:
         model, info = load_world_model(args.checkpoint, device, torch.float32)
+        schedule = run_objective(args.checkpoint).schedule
     except SamplingInputError as e:
         raise SystemExit(f"resim eval: --checkpoint: {e}") from None
     try:
@@ -329,12 +330,12 @@ def _runner(args):
     overrides = {} if args.guidance_scale is None or args.no_guidance else {"scale_start": args.guidance_scale}
     rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **overrides)
     cfg = from_dict(RolloutConfig, rc)
-    ddim_schedule(cfg, info["objective"].schedule)   # --steps vs the run's schedule, before any rollout
+    ddim_schedule(cfg, schedule)   # --steps vs the run's schedule, before any rollout
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
                            max_tokens=model.cfg.max_text_seq_length)
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,
-                           batch_size=args.batch_size, schedule=info["objective"].schedule)
-    meta = {**{k: v for k, v in info.items() if k != "objective"}, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
+                           batch_size=args.batch_size, schedule=schedule)
+    meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
             "rollout": {k: v for k, v in rc.items() if k != "guidance"},
             "guidance": "none" if args.no_guidance else args.preset, "guidance_scale_start": args.guidance_scale,
             "seed": args.seed}

@@ -120,7 +120,7 @@ class WorldRollouts:
 
     def __init__(self, model: Any, vae: Any, rollout_cfg: Any, text_for: Callable[[str | None], torch.Tensor],
                  device: str = "cpu", seed: int = 0, batch_size: int = 4, schedule: Any = None):
-        """``schedule``: the run's noise schedule (``load_world_model``'s ``info["objective"].schedule``)."""
+        """``schedule``: the run's noise schedule (``run_objective(checkpoint).schedule``)."""
         self.model, self.vae, self.cfg, self.text_for = model, vae, rollout_cfg, text_for
         self.schedule = schedule
         self.device, self.seed, self.batch_size = device, seed, batch_size

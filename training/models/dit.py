@@ -81,7 +81,7 @@ class WorldModel(nn.Module):
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_cogvideox(cls, src: Any, causal: bool = True, num_train_timesteps: int | None = None,
-                       **overrides: Any) -> "WorldModel":
+                       init_kwargs: dict | None = None, **overrides: Any) -> "WorldModel":
         """Build from a diffusers ``CogVideoXTransformer3DModel`` (instance) or a local folder it was saved to
         (``save_pretrained``; a pipeline folder with a ``transformer/`` subfolder also works).
 
@@ -90,7 +90,8 @@ class WorldModel(nn.Module):
         ``overrides`` are :class:`WorldModelConfig` fields (nested dicts for ``trajectory``/``actions``).
         ``num_train_timesteps``: the noise levels the model will be trained or sampled with (the objective's
         ``schedule``); a pipeline folder's ``scheduler/`` must have as many (CogVideoX: 1000): the timestep
-        embedding is tied to them (ConfigError otherwise, before any weight is read).
+        embedding is tied to them (ConfigError otherwise, before any weight is read). ``init_kwargs``: further
+        arguments of the (sub)class's constructor.
         """
         from training.models.cogvideox import cogvideox_num_train_timesteps, load_cogvideox_state
         from training.models.config import config_from_cogvideox
@@ -98,7 +99,7 @@ class WorldModel(nn.Module):
             check_pretrained_noise_levels(num_train_timesteps, cogvideox_num_train_timesteps(src))
         config, state = load_cogvideox_state(src)
         cfg = config_from_cogvideox(config, causal=causal, **overrides)
-        model = cls(cfg)
+        model = cls(cfg, **(init_kwargs or {}))
         model.load_pretrained_dit(state)
         return model
 

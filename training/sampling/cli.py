@@ -223,14 +223,14 @@ class _Setup:
 
         from media.encoders import VideoVAE
         from training.sampling.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
-                                            history_from_video, load_world_model, trained_size_hw,
+                                            history_from_video, load_world_model, run_objective, trained_size_hw,
                                             video_clip_fps_hz)
         from training.sampling.rollout import ddim_schedule, rollout_num_future_frames
 
         self.device = device
         dtype = getattr(torch, args.dtype)
         self.model, self.model_info = load_world_model(args.checkpoint, self.device, dtype)
-        self.objective = self.model_info.pop("objective")   # the run's: its schedule is what DDIM steps over
+        self.objective = run_objective(args.checkpoint)   # the run's: its schedule is what DDIM steps over
         if args.attention is not None:
             self.model.set_attention_backend(args.attention)
         self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend}

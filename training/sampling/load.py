@@ -40,7 +40,7 @@ VIDEO_CLIP_FPS_HZ = 10.0
 
 def video_clip_fps_hz(objective: Any, temporal_compression: int = 4) -> float:
     """The pixel frame rate the world model was trained at for video histories: ``temporal_compression /
-    objective.latent_frame_dt_s`` of the run's objective (``load_world_model``'s ``info["objective"]``;
+    objective.latent_frame_dt_s`` of the run's objective (``run_objective(checkpoint)``;
     4 / 0.4 s = 10 Hz), else 10 Hz."""
     dt = getattr(objective, "latent_frame_dt_s", None)
     return temporal_compression / float(dt) if dt else VIDEO_CLIP_FPS_HZ
@@ -59,9 +59,7 @@ def _checkpoint_dir(ckpt: str | Path) -> Path:
 
 def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32,
                      prefer_ema: bool = True) -> tuple[Any, dict]:
-    """Build + load the world model of a training run; returns (model in eval mode, info dict). ``info["objective"]``
-    is the run's diffusion objective (``ObjectiveConfig``; its ``schedule`` is what the sampler steps over), read
-    from the run's saved config, not from the model object."""
+    """Build + load the world model of a training run; returns (model in eval mode, info dict)."""
     from safetensors.torch import load_file
 
     from training import registry
@@ -86,9 +84,14 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
         raise SamplingInputError(f"checkpoint {weights}: does not fit the model built from its config "
                                  f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
     model = model.to(device=device, dtype=dtype).eval().requires_grad_(False)
-    objective = from_dict(ObjectiveConfig, model_cfg.get("objective") or {}, prefix="model.objective")
-    return model, {"checkpoint": str(d), "weights": weights.name, "builder": builder, "model_name": name,
-                   "objective": objective}
+    return model, {"checkpoint": str(d), "weights": weights.name, "builder": builder, "model_name": name}
+
+
+def run_objective(ckpt: str | Path) -> ObjectiveConfig:
+    """The diffusion objective a checkpoint's run trained with, from its saved config (not from the model object):
+    its ``schedule`` is what the sampler steps over, its ``latent_frame_dt_s`` the time between latent frames."""
+    run_cfg = safe_yaml((_checkpoint_dir(ckpt) / "config.yaml").read_text()) or {}
+    return from_dict(ObjectiveConfig, (run_cfg.get("model") or {}).get("objective") or {}, prefix="model.objective")
 
 
 @dataclass

@@ -145,8 +145,8 @@ def _model_dtype(model: Any) -> torch.dtype:
 
 def ddim_schedule(cfg: RolloutConfig, schedule: Any = None) -> DDIMSchedule:
     """The DDIM steps of ``cfg`` over the noise schedule the model was trained with: ``schedule`` is the run's
-    ``model.objective.schedule`` (``training.diffusion.config.ScheduleConfig``; ``load_world_model`` returns it
-    in its info), None = CogVideoX's; checked first with :meth:`RolloutConfig.check_schedule`."""
+    ``model.objective.schedule`` (``training.diffusion.config.ScheduleConfig``, read from its saved config by
+    ``training.sampling.load.run_objective``), None = CogVideoX's; checked first with :meth:`RolloutConfig.check_schedule`."""
     ac = cogvideox_alphas_cumprod(schedule)
     cfg.check_schedule(int(ac.shape[0]))
     return DDIMSchedule(cfg.num_steps, ac)
@@ -374,7 +374,7 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
         progress: an object with ``update(n)`` (e.g. tqdm), advanced once per DDIM step.
         same_noise: every batch element gets the same noise draws (compare conditions, not noise).
         schedule: the noise schedule the model was trained with (the run's ``model.objective.schedule``, as
-            ``load_world_model`` returns it); None = CogVideoX's (1000 levels).
+            ``run_objective(checkpoint).schedule``); None = CogVideoX's (1000 levels).
     Returns:
         :class:`RolloutResult` with all latents (history + generated), float32.
     """
