@@ -41,6 +41,10 @@ class VaeTrainConfig:
     norm_num_groups: int = 8
     temporal_compression_ratio: int = 4
     clip_frames: int = 17                 # frames per training crop (1 + 8k)
+    # random spatial crop [height, width] px per step (None: whole frames). CogVideoX trains its VAE on crops of
+    # its videos: the network is convolutional, so a crop costs its share of the pixels and teaches the same
+    # weights; it is what lets a wider first level (the width the encoder averages frame pairs at) train on a CPU
+    crop_hw: Optional[tuple[int, int]] = None
     kl_weight: float = 1e-6
     # detail terms (0 = off): L1 on the pixels (CogVideoX trains its VAE with L1, sharper than MSE's mean) and L1 on
     # the spatial gradients (the edges and texture the optical-flow labeler tracks; MSE alone averages them away)
@@ -60,6 +64,12 @@ class VaeTrainConfig:
         if self.clip_frames < 9 or (self.clip_frames - 1) % 8:
             raise ConfigError(f"model.clip_frames must be 1 + 8k with k >= 1 (the encoder's frame chunks), "
                               f"got {self.clip_frames}")
+        if self.crop_hw is not None:
+            f = 2 ** (len(self.block_out_channels) - 1)
+            if len(self.crop_hw) != 2 or any(int(v) < f or int(v) % f for v in self.crop_hw):
+                raise ConfigError(f"model.crop_hw must be [height, width] in multiples of the spatial compression "
+                                  f"{f}, got {self.crop_hw}")
+            self.crop_hw = (int(self.crop_hw[0]), int(self.crop_hw[1]))
         if self.kl_weight < 0 or self.latent_channels < 1 or self.layers_per_block < 1:
             raise ConfigError("model.kl_weight must be >= 0, latent_channels and layers_per_block >= 1")
         if not (self.l1_weight >= 0 and self.gradient_weight >= 0):
@@ -108,7 +118,15 @@ class TrainableVAE(AutoencoderKLCogVideoX):
         if t < n:
             raise ConfigError(f"clips have {t} frames, fewer than model.clip_frames={n}")
         start = int(torch.randint(0, t - n + 1, ()).item())          # global RNG: checkpointed, exact resume
-        x = frames_to_input(frames[:, start:start + n])
+        clip = frames[:, start:start + n]
+        if self.train_cfg.crop_hw is not None:
+            (ch, cw), (h, w) = self.train_cfg.crop_hw, clip.shape[-2:]
+            if ch > h or cw > w:
+                raise ConfigError(f"model.crop_hw={list(self.train_cfg.crop_hw)} is larger than the clips' {h}x{w}")
+            top = int(torch.randint(0, h - ch + 1, ()).item())
+            left = int(torch.randint(0, w - cw + 1, ()).item())
+            clip = clip[..., top:top + ch, left:left + cw]
+        x = frames_to_input(clip)
         post = self.encode(x).latent_dist
         z = post.mean + post.std * torch.randn_like(post.mean)
         rec = self.decode(z).sample

@@ -79,6 +79,29 @@ def test_detail_terms_and_three_levels():
         build_vae({**base, "block_out_channels": [8, 8]})
 
 
+def test_spatial_crop_trains_on_a_window_of_the_frames(monkeypatch):
+    """model.crop_hw: each step sees one random [h, w] window of the clip (drawn from the global RNG, so exact
+    resume holds); the loss is the loss of that window; crops must fit the spatial compression and the clips."""
+    base = {"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "clip_frames": 9}
+    video = _smooth_video(t=9, h=32, w=48)
+    monkeypatch.setattr(torch, "randn_like", torch.zeros_like)      # the posterior mean: only the crop is random
+    torch.manual_seed(0)
+    vae = build_vae({**base, "crop_hw": [16, 24]})
+    torch.manual_seed(1)
+    cropped, _ = vae.loss({"frames": video})
+    # the same draws by hand: temporal start, top, left
+    torch.manual_seed(1)
+    start = int(torch.randint(0, 1, ()).item())
+    top, left = int(torch.randint(0, 17, ()).item()), int(torch.randint(0, 25, ()).item())
+    vae.train_cfg = build_vae(base).train_cfg
+    by_hand, _ = vae.loss({"frames": video[:, start:, :, top:top + 16, left:left + 24].contiguous()})
+    assert abs(float(cropped) - float(by_hand)) < 1e-6
+    with pytest.raises(ConfigError, match="multiples of the spatial compression 8"):
+        build_vae({**base, "crop_hw": [12, 24]})
+    with pytest.raises(ConfigError, match="larger than the clips"):
+        build_vae({**base, "crop_hw": [64, 24]}).loss({"frames": video})
+
+
 def test_psnr_of_mse_in_minus_one_one():
     # an error of 0.1 in [-1, 1] is 0.05 in [0, 1]: 26.02 dB
     assert abs(float(psnr_db(torch.tensor(0.01))) - 26.0206) < 1e-3
