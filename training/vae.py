@@ -64,12 +64,10 @@ class VaeTrainConfig:
         if self.clip_frames < 9 or (self.clip_frames - 1) % 8:
             raise ConfigError(f"model.clip_frames must be 1 + 8k with k >= 1 (the encoder's frame chunks), "
                               f"got {self.clip_frames}")
-        if self.crop_hw is not None:
-            f = 2 ** (len(self.block_out_channels) - 1)
-            if len(self.crop_hw) != 2 or any(int(v) < f or int(v) % f for v in self.crop_hw):
-                raise ConfigError(f"model.crop_hw must be [height, width] in multiples of the spatial compression "
-                                  f"{f}, got {self.crop_hw}")
-            self.crop_hw = (int(self.crop_hw[0]), int(self.crop_hw[1]))
+        f = 2 ** (len(self.block_out_channels) - 1)    # the loader has checked two integers
+        if self.crop_hw is not None and any(v < f or v % f for v in self.crop_hw):
+            raise ConfigError(f"model.crop_hw must be [height, width] in multiples of the spatial compression "
+                              f"{f}, got {list(self.crop_hw)}")
         if self.kl_weight < 0 or self.latent_channels < 1 or self.layers_per_block < 1:
             raise ConfigError("model.kl_weight must be >= 0, latent_channels and layers_per_block >= 1")
         if not (self.l1_weight >= 0 and self.gradient_weight >= 0):
