@@ -67,7 +67,7 @@ class TrainableWorldModel(WorldModel):
 
     def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
         """The diffusion objective on one batch (``training.diffusion.training_losses``)."""
-        return training_losses(self, batch, self.objective)
+        return training_losses(self, batch, self.objective, ego_motion_actions=self.cfg.actions.takes_ego_motion)
 
     def fsdp_units(self):
         return list(self.transformer_blocks)

@@ -76,12 +76,12 @@ def test_noise_level_modes():
 
 
 class _Spy(torch.nn.Module):
-    """Records what the objective passes to the model; predicts zeros via a trainable scalar."""
+    """Records what the objective passes to the model; predicts zeros via a trainable scalar. No ``cfg``: the
+    objective must not read the network's configuration."""
 
-    def __init__(self, cfg=None):
+    def __init__(self):
         super().__init__()
         self.w = torch.nn.Parameter(torch.zeros(()))
-        self.cfg = cfg
         self.calls = []
 
     def forward(self, x, t, text, trajectory=None, actions=None, trajectory_keep=None, action_keep=None):
@@ -98,9 +98,8 @@ def _batch(b=400, nf=4, sources=None):
 
 
 def test_condition_dropout_rates_and_carla():
-    from training.models.config import preset
-    spy = _Spy(preset("tiny"))
-    training_losses(spy, _batch(), ObjectiveConfig(), torch.Generator().manual_seed(0))
+    spy = _Spy()
+    training_losses(spy, _batch(), ObjectiveConfig(), torch.Generator().manual_seed(0), ego_motion_actions=True)
     c = spy.calls[-1]
     kept_text = (c["text"][:, 0, 0] == 1).float()
     assert 0.4 < kept_text.mean() < 0.6                         # p = 0.5, prefix (null_text) otherwise
@@ -112,6 +111,27 @@ def test_condition_dropout_rates_and_carla():
     assert not ka[:, 0].any()                                    # history frame: no action
     assert not ka[1::2][~keep[1::2]].any()                       # dropped trajectory → dropped actions
     assert 0.7 < ka[0::2, 1:].float().mean() < 0.9               # p = 0.2 per frame otherwise
+
+
+def test_actions_are_derived_only_when_the_caller_says_the_model_takes_them():
+    """The objective does not look inside the network: without ``ego_motion_actions`` a trajectory gives no
+    actions (a model without an ego-motion encoder gets none), with it they are derived; TrainableWorldModel
+    says so from its own config."""
+    from training.models.config import ActionConfig, preset
+    from training.world import TrainableWorldModel
+
+    spy = _Spy()
+    training_losses(spy, _batch(8), ObjectiveConfig(), torch.Generator().manual_seed(0))
+    assert spy.calls[-1]["actions"] is None
+    training_losses(spy, _batch(8), ObjectiveConfig(), torch.Generator().manual_seed(0), ego_motion_actions=True)
+    assert spy.calls[-1]["actions"].shape == (8, 4, 3)
+    assert ActionConfig().takes_ego_motion and not ActionConfig(kind="none").takes_ego_motion
+    assert not ActionConfig(kind="discrete", num_actions=4).takes_ego_motion
+    m = TrainableWorldModel(preset("tiny"), ObjectiveConfig(noise_mode="diffusion_forcing", num_history_frames=1))
+    batch = {"latents": torch.randn(2, 3, 16, 8, 12), "text": torch.randn(2, 16, 64), "null_text": torch.randn(2, 16, 64),
+             "trajectory": torch.randn(2, 8, 3), "source": ["carla", "carla"]}
+    _, logs = m.loss(batch)
+    assert logs["actions_derived"] == 1.0
 
 
 def test_loss_masks_history_in_cond_aug():
@@ -152,7 +172,7 @@ def test_world_model_loss_trains(tiny_model):
     first = None
     for _ in range(25):
         g = torch.Generator().manual_seed(1)  # same draws each step: the loss must go down
-        loss, logs = training_losses(model, batch, objective, g)
+        loss, logs = training_losses(model, batch, objective, g, ego_motion_actions=model.cfg.actions.takes_ego_motion)
         first = first if first is not None else float(loss.detach())
         opt.zero_grad()
         loss.backward()
@@ -169,12 +189,11 @@ def test_batch_clip_geometry_overrides_config():
     """Mixed datasets: a NAVSIM-style batch (T=3 latent frames, 1 of history, 2 s each) under a config
     written for OpenDV (3 history latent frames, 0.4 s) takes its history and frame duration from the batch."""
     from training.models.conditioning import actions_from_trajectory
-    from training.models.config import preset
     cfg = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3, text_drop_prob=0.0,
                           trajectory_drop_prob=0.0, action_drop_prob=0.0)
     batch = {**_batch(8, 3), "num_history_latent_frames": 1, "latent_frame_dt_s": 2.0}
-    spy = _Spy(preset("tiny"))
-    loss, _ = training_losses(spy, batch, cfg, torch.Generator().manual_seed(0))
+    spy = _Spy()
+    loss, _ = training_losses(spy, batch, cfg, torch.Generator().manual_seed(0), ego_motion_actions=True)
     c = spy.calls[-1]
     t = c["t"]
     assert bool((t[:, 1] == t[:, 2]).all())  # one future level; history = frame 0 only
@@ -200,7 +219,7 @@ def test_world_model_trains_on_alternating_clip_lengths(tiny_model):
         batch = {"latents": torch.randn(2, nf, 16, 8, 12), "text": torch.randn(2, 16, 64),
                  "null_text": torch.randn(2, 16, 64), "trajectory": torch.randn(2, 8, 3), "source": ["navsim"] * 2,
                  "num_history_latent_frames": hist, "latent_frame_dt_s": dt}
-        loss, _ = training_losses(model, batch, objective)
+        loss, _ = training_losses(model, batch, objective, ego_motion_actions=model.cfg.actions.takes_ego_motion)
         opt.zero_grad()
         loss.backward()
         assert torch.isfinite(loss)

@@ -13,7 +13,8 @@ Batch (a mapping or an object with these attributes; tensors already on the mode
   ``cfg.trajectory_keep_sources`` (CARLA) never drop the trajectory – their hazardous behaviour cannot be
   inferred from the history (ReSim App. B.2);
 * ``actions`` (B, T, A) / (B, T) optional, ``action_valid`` (B, T) bool optional. Without actions but with a
-  trajectory (and ``cfg.actions_from_trajectory``) per-frame ego motion is derived from the trajectory.
+  trajectory (with ``cfg.actions_from_trajectory`` and ``ego_motion_actions``) per-frame ego motion is derived
+  from the trajectory.
 * ``num_history_latent_frames`` (int) and ``latent_frame_dt_s`` (float) optional: the batch's clip geometry
   (``training.data.Batch`` derives them from the shard metadata). With ``cfg.geometry_from_batch`` they
   replace ``cfg.num_history_frames`` / ``cfg.latent_frame_dt_s``, so batches of different clip lengths (NAVSIM
@@ -67,9 +68,13 @@ def _bernoulli_keep(p_drop: float, shape: tuple[int, ...], generator, device) ->
     return (torch.rand(shape, generator=generator) >= p_drop).to(device)
 
 
-def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
-                    generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """One stochastic estimate of the objective; ``generator`` (CPU) makes the draws reproducible."""
+def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig, generator: torch.Generator | None = None, *,
+                    ego_motion_actions: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """One stochastic estimate of the objective; ``generator`` (CPU) makes the draws reproducible.
+
+    ``ego_motion_actions``: the model takes per-frame (dx, dy, dyaw) actions, so a batch with a trajectory and no
+    actions gets them derived from the trajectory. The caller says so (``wants_ego_motion(model_cfg)``): the
+    objective does not look inside the network."""
     x0 = _get(batch, "latents")
     if x0 is None or x0.dim() != 5:
         raise ValueError("batch.latents must be (B, T, C, h, w)")
@@ -122,7 +127,7 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
     if actions is not None:
         valid = _get(batch, "action_valid")
         keep_act = torch.ones(b, nf, dtype=torch.bool, device=dev) if valid is None else valid.to(dev).bool()
-    elif traj is not None and cfg.actions_from_trajectory and _wants_ego_motion(model):
+    elif traj is not None and cfg.actions_from_trajectory and ego_motion_actions:
         actions, keep_act = actions_from_trajectory(traj, nf, hist, frame_dt, cfg.waypoint_dt_s)
         keep_act = keep_act.to(dev) & keep_traj[:, None]
         derived = True
@@ -148,11 +153,3 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig,
             if sel.any():
                 logs[name] = float(per_frame.detach()[sel].mean())
     return loss, logs
-
-
-def _wants_ego_motion(model: Any) -> bool:
-    """True if the model has a continuous 3-D action encoder (dx, dy, dyaw), the form trajectories give."""
-    inner = getattr(model, "module", model)  # DDP/FSDP wrappers
-    cfg = getattr(inner, "cfg", None)
-    acts = getattr(cfg, "actions", None)
-    return acts is not None and acts.kind == "continuous" and acts.action_dim == 3

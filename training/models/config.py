@@ -74,6 +74,11 @@ class ActionConfig:
         if any(not s > 0 for s in self.input_scale):
             raise ConfigError(f"actions.input_scale must be positive numbers, got {tuple(self.input_scale)}")
 
+    @property
+    def takes_ego_motion(self) -> bool:
+        """Continuous (dx, dy, dyaw) actions: the form a trajectory gives (``actions_from_trajectory``)."""
+        return self.kind == "continuous" and self.action_dim == 3
+
 
 @dataclass
 class TextPoolConfig:
