@@ -73,7 +73,7 @@ def training_losses(model: Any, batch: Any, cfg: ObjectiveConfig, generator: tor
     """One stochastic estimate of the objective; ``generator`` (CPU) makes the draws reproducible.
 
     ``ego_motion_actions``: the model takes per-frame (dx, dy, dyaw) actions, so a batch with a trajectory and no
-    actions gets them derived from the trajectory. The caller says so (``wants_ego_motion(model_cfg)``): the
+    actions gets them derived from the trajectory. The caller says so (``model_cfg.actions.takes_ego_motion``): the
     objective does not look inside the network."""
     x0 = _get(batch, "latents")
     if x0 is None or x0.dim() != 5:
