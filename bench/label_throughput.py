@@ -2,7 +2,7 @@
 
 (a) decode with OpenCV: grab every frame, retrieve (to BGR) the frames sampled at 10 Hz -- what
     any OpenCV reader of this video at 10 Hz must pay;
-(a') decode with PyAV the way the labeler does (labeling/video.py): luma plane only, non-reference
+(a') decode with PyAV the way the labeler does (media/video.py): luma plane only, non-reference
     frames skipped where that still leaves >= 10 frames/s, the frames sampled at 10 Hz kept;
 (b) the full labeler: ``labeling.windows.label_video`` (decode, shrink, DIS flow, robust fit, windows),
     with the configured decoder (PyAV when installed), once per preset given (default: default, fast),
@@ -76,13 +76,14 @@ def decode_only(path: str, sample_hz: float) -> int:
 
 
 def decode_pyav(path: str, sample_hz: float) -> int:
-    from labeling.video import iter_grey_samples, probe
+    from media.video import iter_samples
+    from media.video_probe import probe
 
     info = probe(path)
     n = 0
-    # work_width = full width: prepare_frame hands back the decoder's luma plane as it is (no copy, no resize),
-    # so this is the decode of exactly the frames the labeler samples, and nothing else
-    for _ in iter_grey_samples(path, sample_hz, info.width_px, info, decoder="pyav"):
+    # plain frames: the decoder's luma plane as it is (no copy, no resize), so this is the decode of exactly the
+    # frames the labeler samples, and nothing else
+    for _ in iter_samples(path, sample_hz, info=info, decoder="pyav"):
         n += 1
     return n
 
@@ -105,8 +106,8 @@ def main() -> int:
         ap.error("--repeats must be >= 1")
     sys.path.insert(0, str(REPO))
     from labeling.config import preset
-    from labeling.video import probe
     from labeling.windows import label_video
+    from media.video_probe import probe
 
     cv2.setNumThreads(1)
     tmp = tempfile.TemporaryDirectory()

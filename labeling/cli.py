@@ -44,7 +44,7 @@ examples:
 def _run(args: argparse.Namespace) -> int:
     from resim.config import ConfigError, apply_overrides, check_positive, from_dict, to_dict
     from labeling.config import LabelerConfig, PRESETS
-    from labeling.video import VideoError
+    from media.video_probe import VideoError
     from labeling.windows import label_video
 
     try:
@@ -98,7 +98,7 @@ def _run(args: argparse.Namespace) -> int:
                                      for x in dict.fromkeys(src))
         if fc.camera_ahead_m is None and fc.foe_model == "pooled" and "per_pair" in src:
             rig += f" (per pair until {fc.foe_min_straight_s:g} s of straight driving is seen)"
-    # the video is not the file's first video stream: that one is a still picture (a cover), labeling/video.py
+    # the video is not the file's first video stream: that one is a still picture (a cover), media/video_probe.py
     stream = f" (video stream {info.stream_index}; the first is a still picture)" if info.opencv_problem else ""
     print(f"# {info.path}: {info.width_px}x{info.height_px} @ {info.fps_hz:g} fps{stream}, sampled at "
           f"{res.sample_hz:g} Hz, {len(res.times_s)} samples, {len(res.windows)} windows{note}, total heading change "

@@ -33,7 +33,7 @@ class FlowConfig:
 
     sample_hz: float = 10.0          # frames are sampled at this rate before flow (ReSim: 10 Hz)
     decoder: Literal["auto", "pyav", "opencv"] = "auto"   # video files (resim label): PyAV when installed
-    #                                  (luma plane, no deblocking, non-reference frames skipped; labeling/video.py)
+    #                                  (luma plane, no deblocking, non-reference frames skipped; media/video.py)
     work_width_px: int = 256         # frames are resized to this width (display aspect kept) before flow
     hfov_deg: float = 80.0           # ASSUMED horizontal field of view (OpenDV is uncalibrated); yaw scales
     #                                  ~ with tan(hfov/2): reads tan(true/2)/tan(80/2) x the truth

@@ -1,6 +1,7 @@
 """Flow sampling for the yaw labeler (labeling/flow.py, steps 1-2): frames -> flow samples of each frame pair.
 
-Frames are resized to the working width with square pixels (``prepare_frame``); DIS optical flow (OpenCV; a new
+Frames are read by media's video reader (media/video.py) and resized to the working width with square pixels as each
+one is decoded (``prepare_frame``, ``iter_grey_samples``); DIS optical flow (OpenCV; a new
 object per video, each pair warm-started from the previous pair's flow) is read on a grid that leaves out the masked
 top and bottom bands, and points are dropped where the image is flat (Shi-Tomasi texture), nothing moves, the flow is
 implausibly large or the photometric check fails. ``FlowSampling`` is a mixin of ``FlowLabeler`` (labeling/flow.py):
@@ -10,9 +11,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
+
+from media.video import iter_samples
+from media.video_probe import VideoInfo
 
 _PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -44,6 +50,19 @@ def prepare_frame(frame: np.ndarray, work_width_px: int, pixel_aspect: float = 1
     if small.ndim == 3:
         small = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY if bgr else cv2.COLOR_RGB2GRAY)
     return small
+
+
+def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
+                      info: VideoInfo | None = None, use_luma: bool = True,
+                      decoder: str = "auto", stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """Yield (t_s, grey uint8 at working width, square pixels) for frames sampled at ``sample_hz``: media's reader
+    (``media.video.iter_samples``: decoders, sampling, ``stats``; raises VideoError on undecodable input), each
+    sample shrunk by ``prepare_frame`` as it is decoded."""
+    def prepare(frame: np.ndarray, pixel_aspect: float) -> np.ndarray:
+        # the reader's frame: the luma plane (H, W), or BGR (H, W, 3) where OpenCV cannot hand over the plane
+        return prepare_frame(frame, work_width_px, pixel_aspect, bgr=True)
+
+    return iter_samples(path, sample_hz, prepare, info, use_luma, decoder, stats)
 
 
 @dataclass

@@ -13,7 +13,8 @@ from labeling.commands import command_from_yaw
 from labeling.config import LabelerConfig
 from resim.config import check_positive
 from labeling.flow import FlowLabeler, window_quality
-from labeling.video import VideoError, VideoInfo, iter_grey_samples, probe
+from labeling.flow_sampling import iter_grey_samples
+from media.video_probe import VideoError, VideoInfo, probe
 
 
 # Frames are decoded in blocks of this many samples, then the flow runs over the block: decoder and flow
@@ -46,7 +47,7 @@ class VideoLabels:
     yaw_inc_deg: np.ndarray   # (S-1,) yaw change per sample pair, degrees, left +
     quality: np.ndarray       # (S-1,) per-pair share of grid points kept
     windows: list[WindowLabel]
-    decode: dict              # decoder, frames_decoded, nonref_skipped, incomplete, ... (labeling/video.py)
+    decode: dict              # decoder, frames_decoded, nonref_skipped, incomplete, ... (media/video.py)
     foe_sources: list[str] = field(default_factory=list)   # per chunk of pairs: "rig" / "pooled" / "per_pair"
 
 

@@ -3,7 +3,7 @@
 Two mistakes that the config alone cannot show, and that a run reports only as quarantine rows after it has
 decoded everything: discards (``start_discard_s + end_discard_s``, or a ``videos.csv`` row) that leave less than
 one clip of a video, and a ``min_height_px`` above every video (``opendv.yaml``'s 720 against 540p dashcams).
-Only the first few files are probed (``labeling.video_probe.probe``: one open and one decoded frame each), so the
+Only the first few files are probed (``media.video_probe.probe``: one open and one decoded frame each), so the
 check stays cheap on a root of thousands of videos. Warnings only: the config is valid either way.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ MAX_PROBED = 8          # files probed per source
 
 def opendv_warnings(cfg: PipelineConfig, max_probed: int = MAX_PROBED) -> list[str]:
     """One line per problem found in the first ``max_probed`` videos of ``sources.opendv`` (none: [])."""
-    from labeling.video_probe import VideoError, probe
+    from media.video_probe import VideoError, probe
     from pipelines.sources.episode import SourceError
     from pipelines.units import make_reader, source_specs
 

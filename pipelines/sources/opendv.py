@@ -16,8 +16,8 @@ the source frame nearest to ``t_k``.
 
 Frames are read with OpenCV, which always decodes the file's first video stream. A file whose first video
 stream is a cover picture stored before the video (an MP4 ``covr`` box ahead of the tracks, a Matroska PNG
-track) is quarantined with that reason rather than cut into clips of the picture: ``open`` asks the labeler's
-probe (``labeling.video_probe.probe``, PyAV) which stream is the video (``VideoInfo.opencv_problem``). Resampling
+track) is quarantined with that reason rather than cut into clips of the picture: ``open`` asks media's
+probe (``media.video_probe.first_stream_not_video``, PyAV) which stream is the video. Resampling
 by frame index needs a constant frame rate that the container states: a variable or implausible rate is
 quarantined with that reason (``frame_timing.frame_timing_problem``).
 """
@@ -222,9 +222,9 @@ class OpenDVReader:
 
 def _refuse_cover_first(path: Path, item_id: str) -> None:
     """``SourceError`` where OpenCV would decode a cover picture instead of the video: the first video stream is
-    an attached or still picture stored before the video (``labeling.video_probe``; needs PyAV, without it nothing
+    an attached or still picture stored before the video (``media.video_probe``; needs PyAV, without it nothing
     is checked here). Every other problem is left to ``open``'s own checks, which name it as before."""
-    from labeling.video_probe import first_stream_not_video
+    from media.video_probe import first_stream_not_video
 
     found = first_stream_not_video(path)
     if found is None:

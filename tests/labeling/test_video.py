@@ -1,4 +1,5 @@
-"""The labeler's two decoder paths (labeling/video.py) on an H.264 stream with B-frames."""
+"""The labeler's two decoder paths (media/video.py, read through labeling.flow_sampling.iter_grey_samples) on an
+H.264 stream with B-frames."""
 import shutil
 import subprocess
 import sys
@@ -7,10 +8,17 @@ import numpy as np
 import pytest
 
 from labeling.config import FlowConfig, LabelerConfig
-from labeling.video import VideoError, iter_grey_samples, probe
+from labeling.flow_sampling import iter_grey_samples, prepare_frame
 from labeling.windows import label_video
+from media.video import _iter_pyav, _pyav_samples, iter_samples
+from media.video_probe import VideoError, probe
 
 pytest.importorskip("av")
+
+
+def _grey128(frame, pixel_aspect):
+    """What ``iter_grey_samples(..., 128)`` makes of each of the reader's frames."""
+    return prepare_frame(frame, 128, pixel_aspect, bgr=True)
 
 
 @pytest.fixture(scope="module")
@@ -55,8 +63,7 @@ def test_pyav_probe_on_a_clip_shorter_than_the_probe(h264_30fps):
     info = probe(path)
     st = {}
     # probe window longer than the 3-s clip: the held-back samples must still all come out, once
-    from labeling.video import _iter_pyav
-    ts = [t for t, _ in _iter_pyav(info, 10.0, 128, probe_s=10.0, stats=st)]
+    ts = [t for t, _ in _iter_pyav(info, 10.0, _grey128, probe_s=10.0, stats=st)]
     ref = [t for t, _ in iter_grey_samples(path, 10.0, 128, info, decoder="pyav")]
     assert ts == ref and st["nonref_skipped"]
 
@@ -240,8 +247,6 @@ def test_pyav_keeps_every_tick_when_reference_frames_thin_out_after_the_check(re
     only: here reference frames come 0.16 s apart from 3 s on, and the old reader gave 45 samples for 51 ticks
     (two ticks sharing one frame, ~6 Hz). Now a gap found later seeks back to the key frame before it and decodes
     every frame from there: one sample per tick, as OpenCV's reader gives."""
-    from labeling.video import _pyav_samples
-
     path = refs_thin_out_after_3s[ext]
     info = probe(path)
     st, stcv = {}, {}
@@ -253,11 +258,27 @@ def test_pyav_keeps_every_tick_when_reference_frames_thin_out_after_the_check(re
     assert np.all(d >= -1e-6) and np.all(d <= 2 / 25 + 1e-6), np.round(d, 3)
     assert st["nonref_skipped"] and st["nonref_skipped_until_s"] == pytest.approx(3.04) and st["nonref_gap_s"] > 0.15
     # from the gap on, exactly what a decode of every frame gives (same frames, bit for bit)
-    full = [x for x in _pyav_samples(info, 10.0, 128, False, 0.0, {}) if x[0] > 3.04 + 1e-6]
+    full = [x for x in _pyav_samples(info, 10.0, _grey128, False, 0.0, {}) if x[0] > 3.04 + 1e-6]
     after = [x for x in got if x[0] > 3.04 + 1e-6]
     assert [x[0] for x in after] == [x[0] for x in full]
     assert all(np.array_equal(a[1], b[1]) for a, b in zip(after, full))
     assert st["incomplete"] is None and st["frames_decoded"] < stcv["frames_decoded"]   # still skipped up to 3 s
+
+
+@pytest.mark.parametrize("decoder", ["pyav", "opencv"])
+def test_the_media_reader_yields_stored_frames_and_the_labeler_shrinks_them(refs_thin_out_after_3s, decoder):
+    """media/video.py knows nothing of the labeler: without ``prepare`` it yields each sample as decoded (the luma
+    plane at the stored size); the labeler's grey samples are exactly those, shrunk by ``prepare_frame``."""
+    path = refs_thin_out_after_3s["mp4"]
+    info = probe(path)
+    st_plain, st_grey = {}, {}
+    plain = list(iter_samples(path, 10.0, info=info, decoder=decoder, stats=st_plain))
+    grey = list(iter_grey_samples(path, 10.0, 128, info, decoder=decoder, stats=st_grey))
+    assert len(plain) == len(grey) == 51 and [t for t, _ in plain] == [t for t, _ in grey]
+    assert all(f.dtype == np.uint8 and f.shape == (info.height_px, info.width_px) for _, f in plain)
+    assert all(g.shape == (72, 128) and np.array_equal(prepare_frame(f, 128, info.pixel_aspect), g)
+               for (_, f), (_, g) in zip(plain, grey))
+    assert st_plain == st_grey
 
 
 def test_the_labeler_and_the_cli_report_the_switch(refs_thin_out_after_3s, capsys):

@@ -1,4 +1,9 @@
-"""Read a video file for labeling: decode only what is needed, shrink as early as possible.
+"""Read a video file at a sampling rate: decode only what is needed, hand each sample on as soon as it is decoded.
+
+``iter_samples`` yields ``(t_s, frame)``: the frame as stored (the 8-bit luma plane, or BGR where OpenCV's reader
+cannot give the plane; not square pixels), passed first through the caller's ``prepare(frame, pixel_aspect)``. The
+labeler (labeling/flow_sampling.py, ``iter_grey_samples``) shrinks it there to its working width, so that the samples
+the PyAV reader holds back (below) are small ones.
 
 Two decoder paths (``decoder="auto"`` takes PyAV when it is installed):
 
@@ -19,9 +24,9 @@ Two decoder paths (``decoder="auto"`` takes PyAV when it is installed):
 YUV, OpenCV is asked not to convert to BGR (``CAP_PROP_CONVERT_RGB = 0``) and the
 luma plane it returns *is* the greyscale image the flow needs; this is verified on
 the first frame against a normal BGR decode, and the reader falls back to BGR
-otherwise. The sample aspect ratio (anamorphic video) is applied when resizing.
+otherwise. The sample aspect ratio (anamorphic video) goes to ``prepare`` (the labeler applies it when resizing).
 
-Both read the video stream that ``probe`` (labeling/video_probe.py) picks: never a cover picture stored first (the
+Both read the video stream that ``probe`` (media/video_probe.py) picks: never a cover picture stored first (the
 OpenCV reader, which cannot pick a stream, refuses such a file).
 
 Both readers end a truncated or damaged file where it stops decoding (the first packet FFmpeg rejects; PyAV
@@ -32,14 +37,19 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
 
-from labeling.flow_sampling import prepare_frame
-# VideoError, VideoInfo and probe are imported from here too (labeling/windows.py, cli.py, bench/, tests/)
-from labeling.video_probe import VideoError, VideoInfo, _open, _pick_video_stream, probe
+from media.video_probe import VideoError, VideoInfo, _open, _pick_video_stream, probe
+
+# prepare(frame, pixel_aspect) -> what ``iter_samples`` yields for that sample
+Prepare = Callable[[np.ndarray, float], np.ndarray]
+
+
+def _plain(frame: np.ndarray, pixel_aspect: float) -> np.ndarray:
+    return frame
 
 
 def _luma_plane_ok(path: str, h: int, w: int) -> bool:
@@ -64,10 +74,14 @@ def _luma_plane_ok(path: str, h: int, w: int) -> bool:
         or float(np.mean(np.abs(ya[:h].astype(np.float32) - grey.astype(np.float32)))) < 12.0
 
 
-def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
-                      info: VideoInfo | None = None, use_luma: bool = True,
-                      decoder: str = "auto", stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
-    """Yield (t_s, grey uint8 at working width, square pixels) for frames sampled at ``sample_hz``.
+def iter_samples(path: str | Path, sample_hz: float, prepare: Prepare | None = None,
+                 info: VideoInfo | None = None, use_luma: bool = True,
+                 decoder: str = "auto", stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """Yield (t_s, ``prepare(frame, info.pixel_aspect)``) for frames sampled at ``sample_hz``.
+
+    ``frame`` is the decoded picture, upright, at its stored size (``info.pixel_aspect`` says how wide one stored
+    pixel is): uint8 (H, W), the luma plane, or uint8 (H, W, 3) BGR where the OpenCV reader cannot hand over the
+    plane (not 8-bit YUV, or ``use_luma=False``). ``prepare`` None yields ``frame`` itself.
 
     Frames are taken at the first decoded frame at or after each tick k / sample_hz (all
     frames when the video is slower than ``sample_hz``). Raises VideoError on undecodable input.
@@ -79,6 +93,7 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
     the container's duration (a truncated or damaged file: the samples before are yielded, ``_check_complete``).
     """
     stats = {} if stats is None else stats
+    prepare = prepare or _plain
     info = info or probe(path)
     if decoder not in ("auto", "pyav", "opencv"):
         raise ValueError(f"decoder must be auto, pyav or opencv, got {decoder!r}")
@@ -90,13 +105,13 @@ def iter_grey_samples(path: str | Path, sample_hz: float, work_width_px: int,
                 raise VideoError(info.path, "decoder='pyav' but PyAV is not installed (pip install av)") from None
         else:
             stats["decoder"] = "pyav"
-            yield from _iter_pyav(info, sample_hz, work_width_px, stats=stats)
+            yield from _iter_pyav(info, sample_hz, prepare, stats=stats)
             _check_complete(info, sample_hz, stats)
             return
     if info.opencv_problem:
         raise VideoError(info.path, info.opencv_problem)
     stats.update(decoder="opencv", nonref_skipped=False, timestamps="stream")
-    yield from _iter_opencv(info, sample_hz, work_width_px, use_luma, stats)
+    yield from _iter_opencv(info, sample_hz, prepare, use_luma, stats)
     _check_complete(info, sample_hz, stats)
 
 
@@ -210,9 +225,9 @@ def _ffmpeg_reason(e, what: str, at_s: float | None) -> str:
     return f"FFmpeg stopped {what} the stream" + (f" at {at_s:.2f} s" if at_s is not None else "") + f": {msg}"
 
 
-def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_nonref: bool,
+def _pyav_samples(info: VideoInfo, sample_hz: float, prepare: Prepare, skip_nonref: bool,
                   probe_s: float, stats: dict, count_frames: bool = False) -> Iterator[tuple[float, np.ndarray]]:
-    """One decode: yield (t_s, grey) at the first decoded frame at or after each tick.
+    """One decode: yield (t_s, prepare(luma, pixel_aspect)) at the first decoded frame at or after each tick.
 
     Within the first ``probe_s`` seconds (nothing is yielded from there before it passes, ``_iter_pyav``):
     with ``skip_nonref``, raises ``_RefsTooSparse`` if two decoded frames are further apart than
@@ -300,7 +315,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
                 if t + half < nxt:
                     continue
                 rot = _rot90_of(fr) if rot is None else rot
-                yield t, prepare_frame(_luma(fr, rot), work_width_px, info.pixel_aspect)
+                yield t, prepare(_luma(fr, rot), info.pixel_aspect)
                 while nxt <= t + half:
                     nxt += period
             else:
@@ -317,7 +332,7 @@ def _pyav_samples(info: VideoInfo, sample_hz: float, work_width_px: int, skip_no
         raise VideoError(info.path, "no decodable video frame" + (f" ({err})" if err else ""))
 
 
-def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: float = 2.0,
+def _iter_pyav(info: VideoInfo, sample_hz: float, prepare: Prepare, probe_s: float = 2.0,
                stats: dict | None = None) -> Iterator[tuple[float, np.ndarray]]:
     """PyAV path: non-reference frames are skipped where reference frames alone still come at least
     every 1 / sample_hz s, and the stream's frame times are used where they increase. Both are checked on
@@ -332,7 +347,7 @@ def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: f
     while True:   # at most three decodes: skip -> every frame -> counted; each failure only narrows the next try
         stats.update(nonref_skipped=skip, timestamps="frame count / fps" if count else "stream")
         held: list[tuple[float, np.ndarray]] = []
-        gen = _pyav_samples(info, sample_hz, work_width_px, skip, probe_s, stats, count_frames=count)
+        gen = _pyav_samples(info, sample_hz, prepare, skip, probe_s, stats, count_frames=count)
         try:
             for t, g in gen:
                 if t < probe_s:
@@ -354,7 +369,7 @@ def _iter_pyav(info: VideoInfo, sample_hz: float, work_width_px: int, probe_s: f
         return
 
 
-def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
+def _iter_opencv(info: VideoInfo, sample_hz: float, prepare: Prepare,
                  use_luma: bool, stats: dict) -> Iterator[tuple[float, np.ndarray]]:
     luma = use_luma and _luma_plane_ok(info.path, info.height_px, info.width_px)
     prev_level = cv2.utils.logging.getLogLevel()
@@ -393,7 +408,7 @@ def _iter_opencv(info: VideoInfo, sample_hz: float, work_width_px: int,
                 raise VideoError(info.path, f"frame {i - 1} could not be decoded")
             if luma:
                 img = img[: info.height_px]
-            yield t, prepare_frame(img, work_width_px, info.pixel_aspect, bgr=True)
+            yield t, prepare(img, info.pixel_aspect)
             while nxt <= t + half:
                 nxt += period
         if i == 0:

@@ -1,4 +1,7 @@
-"""What a video file holds, for the labeler's readers (labeling/video.py): ``probe(path)`` -> ``VideoInfo``.
+"""What a video file holds, for the video readers (media/video.py): ``probe(path)`` -> ``VideoInfo``.
+
+Used by the labeler (labeling/windows.py), the pipeline's checks (pipelines/video_preflight.py) and its OpenDV
+reader (``first_stream_not_video``, pipelines/sources/opendv.py).
 
 The video stream is the first one that is not a still picture (``_pick_video_stream``): a cover picture stored as
 the first video stream (an attached picture, or FFmpeg 5.1's Matroska PNG track) is skipped by the PyAV reader, and
@@ -18,7 +21,7 @@ import cv2
 
 
 class VideoError(Exception):
-    """A video that cannot be labeled: ``path`` and ``reason``."""
+    """A video that cannot be read or labelled: ``path`` and ``reason``."""
 
     def __init__(self, path: str | Path, reason: str):
         self.path, self.reason = str(path), reason
@@ -34,7 +37,7 @@ class VideoInfo:
     height_px: int
     pixel_aspect: float      # sample aspect ratio (1.0 = square pixels)
     # the video stream's own duration as the container states it (None = unknown): what a complete decode must
-    # reach (``iter_grey_samples`` reports a decode that stops short of it, e.g. a truncated download)
+    # reach (``iter_samples`` reports a decode that stops short of it, e.g. a truncated download)
     video_duration_s: float | None = None
     # the container's index of the video stream labelled (``_pick_video_stream``; None where PyAV is not installed:
     # OpenCV decodes the first video stream)
