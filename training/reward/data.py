@@ -1,4 +1,4 @@
-"""Labelled clips for Video2Reward, the held-out split by episode, and batching.
+"""Labelled clips for Video2Reward, its stratified held-out split by episode, and its batches.
 
 A ``RewardClip`` is one training example: pixels (uint8 RGB, (T, H, W, 3)) and/or
 stored DINOv2 features (``dino.npy``), its episode id and its infraction score.
@@ -8,11 +8,12 @@ build the dataclass. Only clips with an infraction score are labelled (ReSim:
 CARLA samples with their recorded Infraction Score).
 
 The split is by episode (``item_id``), never by clip: overlapping clips of one
-episode on both sides would leak.
+episode on both sides would leak. The split itself, the epoch shuffling and the
+batched prediction are the small-model harness's (``training.smallfit``), shared
+with the IDM; the reward's own parts are its targets, its window and ``collate``.
 """
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Sequence
 
@@ -20,11 +21,11 @@ import numpy as np
 import torch
 
 from shards import safejson
+from training import smallfit
 from training.reward.config import RewardModelConfig
-
-
-class ClipError(ValueError):
-    """A clip cannot be used (too short, unreadable frames, bad features); names the clip."""
+# ClipError and frames_to_tensor are the small-model harness's (the IDM uses them too); imported under these
+# names because the reward code, its CLI and benches use them from here
+from training.smallfit import ClipError, frames_to_tensor
 
 
 @dataclass
@@ -69,33 +70,12 @@ def window_indices(num_clip_frames: int, cfg: RewardModelConfig, where: str = "e
     return start + cfg.frame_step * np.arange(cfg.num_frames)
 
 
-def frames_to_tensor(frames: np.ndarray) -> torch.Tensor:
-    """(T, H, W, 3) uint8 RGB -> (T, 3, H, W) float32 in [0, 1]."""
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-        raise ClipError(f"frames must be (T, H, W, 3) uint8 RGB, got {frames.shape} {frames.dtype}")
-    return torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float().div_(255.0)
-
-
 def split_by_episode(clips: Sequence[RewardClip], heldout_fraction: float, seed: int = 0
                      ) -> tuple[list[RewardClip], list[RewardClip]]:
-    """(train, held-out): whole episodes go to one side. Stratified by the episode's hazard flag
-    so both sides hold hazardous and clean episodes when there are >= 2 of each.
-
-    Deterministic: episodes are ordered by a seeded hash of their id, not by input order.
-    """
-    ep_hazard: dict[str, bool] = {}
-    for c in clips:
-        ep_hazard[c.item_id] = ep_hazard.get(c.item_id, False) or bool(c.hazard)
-    held: set[str] = set()
-    for flag in (True, False):
-        eps = sorted((e for e, h in ep_hazard.items() if h == flag),
-                     key=lambda e: hashlib.sha256(f"{seed}\0{e}".encode()).hexdigest())
-        if len(eps) >= 2:
-            k = min(len(eps) - 1, max(1, int(np.floor(heldout_fraction * len(eps) + 0.5))))  # round half up
-            held.update(eps[:k])
-    train = [c for c in clips if c.item_id not in held]
-    heldout = [c for c in clips if c.item_id in held]
-    return train, heldout
+    """(train, held-out): whole episodes go to one side (``training.smallfit.split_by_episode``), stratified
+    by the episode's hazard flag (hazardous when any of its clips is), so both sides hold hazardous and clean
+    episodes when there are >= 2 of each; a class with fewer than 2 episodes is held out from not at all."""
+    return smallfit.split_by_episode(clips, heldout_fraction, seed, stratum=lambda c: bool(c.hazard))
 
 
 def collate(clips: Sequence[RewardClip], cfg: RewardModelConfig, use_features: bool, where: str = "end"
@@ -129,15 +109,6 @@ def collate(clips: Sequence[RewardClip], cfg: RewardModelConfig, use_features: b
             vids = [torch.nn.functional.interpolate(v, size=size, mode="bilinear", antialias=True) for v in vids]
         batch["video"] = torch.stack(vids)
     return batch
-
-
-def iter_batches(clips: Sequence[RewardClip], batch_size: int, cfg: RewardModelConfig, use_features: bool,
-                 shuffle_seed: int | None = None, where: str = "end") -> Iterator[dict[str, Any]]:
-    order = np.arange(len(clips))
-    if shuffle_seed is not None:
-        order = np.random.default_rng(shuffle_seed).permutation(len(clips))
-    for i in range(0, len(clips), batch_size):
-        yield collate([clips[j] for j in order[i:i + batch_size]], cfg, use_features, where)
 
 
 # ---- sources of clips ---------------------------------------------------------------------------

@@ -4,12 +4,14 @@
 -> metrics (MAE, Spearman, hazard AUC) -> checkpoint + predictions + plot.
 
 ``fit`` runs the common ``training.trainer.Trainer`` over ``model.loss(batch)``
-(ReSim B.2: AdamW, lr 1e-3), one pass over the training clips per epoch.
+(ReSim B.2: AdamW, lr 1e-3), one pass over the training clips per epoch. The split,
+the epoch batches, the trainer run and the batched prediction are the small-model
+harness's (``training.smallfit``, shared with the IDM); what is the reward's own:
+its stratified split, its batches (``data.collate``), its optimiser and its metrics.
 """
 from __future__ import annotations
 
-import json
-import time
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -17,8 +19,11 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from training.reward.config import RewardTrainConfig
-from training.reward.data import RewardClip, iter_batches, split_by_episode
+from resim.config import from_dict, to_dict
+from training import smallfit
+from training.config import OptimConfig, RunConfig
+from training.reward.config import RewardModelConfig, RewardTrainConfig
+from training.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
 from training.reward.features import add_clip_features
 from training.reward.metrics import reward_metrics
 from training.reward.model import Video2Reward
@@ -32,96 +37,49 @@ def can_use_features(model: Video2Reward, clips: Sequence[RewardClip]) -> bool:
 def usable_clips(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> tuple[list[RewardClip], list[dict]]:
     """(clips the model can use, [{"key", "reason"}] of the others): bad clips (shorter than the window,
     unreadable frames) are reported and left out, the run goes on (bad input is named, never fatal)."""
-    from training.reward.data import ClipError, window_indices
-
-    ok, skipped = [], []
-    for c in clips:
-        if c.dino is not None and c.dino_id:  # featurised from its window already; no need to decode frames
-            ok.append(c)
-            continue
-        try:
+    def check(c: RewardClip) -> None:
+        if c.dino is None or not c.dino_id:  # a featurised clip was cut from its window already: not decoded
             window_indices(len(c.clip_frames()), cfg.model, cfg.data.clip_window)
-            ok.append(c)
-        except ClipError as e:
-            skipped.append({"key": c.key, "reason": str(e)})
-    return ok, skipped
+
+    return smallfit.usable(clips, check, ClipError)
 
 
 def build_reward(model_cfg: dict, *, device="cpu") -> Video2Reward:
     """Registry builder (``training.registry``: "reward"): a Video2Reward from its config mapping."""
-    from resim.config import from_dict
-    from training.reward.config import RewardModelConfig
-
     return Video2Reward(from_dict(RewardModelConfig, model_cfg, prefix="model")).to(device)
 
 
-class EpochBatches:
-    """Re-iterable batches over fixed clips for ``Trainer.fit``: each ``iter()`` is one epoch,
-    shuffled with seed ``seed * 1000 + epoch`` (the epoch counts calls to ``iter``)."""
-
-    def __init__(self, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool):
-        self.clips, self.cfg, self.use_features = list(clips), cfg, use_features
-        self.epoch = 0
-
-    def __len__(self) -> int:
-        return -(-len(self.clips) // self.cfg.batch_size_per_gpu)
-
-    def __iter__(self):
-        e = self.epoch
-        self.epoch += 1
-        return iter_batches(self.clips, self.cfg.batch_size_per_gpu, self.cfg.model, self.use_features,
-                            shuffle_seed=self.cfg.seed * 1000 + e, where=self.cfg.data.clip_window)
+def epoch_batches(clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool) -> smallfit.EpochBatches:
+    """Re-iterable batches over fixed clips for ``Trainer.fit``: each ``iter()`` is one epoch, shuffled with
+    seed ``cfg.seed * 1000 + epoch``."""
+    return smallfit.EpochBatches(clips, cfg.batch_size_per_gpu, cfg.seed,
+                                 lambda cs: collate(cs, cfg.model, use_features, cfg.data.clip_window))
 
 
-def run_config(cfg: RewardTrainConfig, steps: int, progress: bool = False):
+def run_config(cfg: RewardTrainConfig, steps: int, progress: bool = False) -> RunConfig:
     """The common trainer's RunConfig for a reward run (AdamW at cfg.lr, constant LR, fp32)."""
-    from resim.config import to_dict
-    from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
-
-    return RunConfig(
-        model_name="reward", model=to_dict(cfg.model),
-        data=DataConfig(batch_size_per_gpu=cfg.batch_size_per_gpu, load_frames=True, load_dino=True, seed=cfg.seed),
+    return smallfit.run_config(
+        "reward", to_dict(cfg.model), steps=steps, batch_size=cfg.batch_size_per_gpu, seed=cfg.seed,
         optim=OptimConfig(lr=cfg.lr, weight_decay=cfg.weight_decay, grad_clip_norm=cfg.grad_clip_norm),
-        trainer=TrainerConfig(steps=steps, seed=cfg.seed, parallel="none", tensorboard=False,
-                              progress_bar=progress, loss_curve_png=True, save_final_weights=False),
-        preset="reward", reference={"resim_b2": "AdamW, lr 1e-3, 20 epochs, 35K CARLA samples, 224x224"})
+        save_final_weights=False, preset="reward", progress=progress, load_frames=True, load_dino=True,
+        reference={"resim_b2": "AdamW, lr 1e-3, 20 epochs, 35K CARLA samples, 224x224"})
 
 
 def fit(model: Video2Reward, clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_features: bool,
         run_dir: str | Path, progress: bool = False) -> dict:
     """Train ``model`` in place through the common ``training.trainer.Trainer`` for ``cfg.epochs``
-    epochs over ``clips``; returns the trainer's summary plus "samples_per_s" and "history"
-    (the per-step rows of RUN_DIR/metrics.jsonl)."""
-    from training.trainer import Trainer
-
-    data = EpochBatches(clips, cfg, use_features)
-    steps = cfg.epochs * len(data)
-    t0 = time.perf_counter()
-    summary = Trainer(model, run_config(cfg, steps, progress), run_dir).fit(data)
-    dt = time.perf_counter() - t0
-    model.eval()
-    mpath = Path(run_dir) / "metrics.jsonl"
-    history = [json.loads(line) for line in mpath.read_text().splitlines() if line.strip()] if mpath.is_file() else []
-    # steady-state throughput from the trainer's per-step timings (data + forward + backward + step),
-    # leaving out step 0 (warm-up) when there are more; wall time also counts set-up and checkpointing
-    rows = history[1:] if len(history) > 1 else history
-    t = sum(r["step_time_s"] for r in rows)
-    sps = sum(r["samples_per_s"] * r["step_time_s"] for r in rows) / t if t > 0 else float("nan")
-    return {**summary, "steps": steps, "samples_per_s": sps, "wall_samples_per_s": cfg.epochs * len(data.clips) / dt,
-            "history": history}
+    epochs over ``clips``; returns ``training.smallfit.fit``'s summary ("steps", "samples_per_s",
+    "history": the per-step rows of RUN_DIR/metrics.jsonl, ...)."""
+    return smallfit.fit(model, epoch_batches(clips, cfg, use_features), cfg.epochs,
+                        lambda steps: run_config(cfg, steps, progress), run_dir)
 
 
-@torch.no_grad()
 def predict(model: Video2Reward, clips: Sequence[RewardClip], use_features: bool, batch_size: int = 32,
             where: str = "end") -> np.ndarray:
-    model.eval()
-    out = []
-    for batch in iter_batches(clips, batch_size, model.cfg, use_features, where=where):
-        if use_features:
-            out.append(model(features=batch["dino"]))
-        else:
-            out.append(model(video=batch["video"]))
-    return torch.cat(out).numpy() if out else np.zeros(0, np.float32)
+    """(N,) predicted infraction scores of ``clips``, in their order."""
+    forward = (lambda m, b: m(features=b["dino"])) if use_features else (lambda m, b: m(video=b["video"]))
+    return smallfit.predict(model, clips, lambda cs: collate(cs, model.cfg, use_features, where), forward,
+                            batch_size)
 
 
 class SplitError(ValueError):
@@ -187,8 +145,6 @@ def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
             train, held = add_clip_features(model, train, cfg.data.clip_window), \
                 add_clip_features(model, held, cfg.data.clip_window)
         use_features = True
-    import tempfile
-
     with tempfile.TemporaryDirectory(prefix="resim-reward-") as tmp:
         run_dir = Path(out_dir) / "trainer" if out_dir is not None else Path(tmp)
         fitted = fit(model, train, cfg, use_features, run_dir, progress)
