@@ -1,5 +1,6 @@
-"""IDM: windows, loss masking, the Batch path, trajectory metrics and baselines in closed form, the episode
-split, and the synthetic world's waypoints against an independent closed form (shards.testing)."""
+"""IDM: windows, loss masking, the Batch path, trajectory metrics and baselines in closed form, and the synthetic
+world's waypoints against an independent closed form (shards.testing). The split by episode, the epoch batches and
+the batched prediction are the shared harness's: tests/training/test_smallfit.py."""
 import numpy as np
 import pytest
 import torch
@@ -7,7 +8,7 @@ import torch
 from resim.config import ConfigError
 from shards.testing import dummy_trajectory
 from training.eval.idm import InverseDynamicsModel, idm_preset
-from training.eval.idm_train import TrajClip, constant_velocity, load_idm, split_by_episode, trajectory_errors
+from training.eval.idm_train import TrajClip, constant_velocity, load_idm, trajectory_errors
 from training.eval.synthetic import PlaneWorldConfig, future_waypoints, make_clips
 
 
@@ -54,17 +55,6 @@ def test_trajectory_errors_and_constant_velocity_closed_form():
     assert trajectory_errors(cv[:1], gt[:1])["ade_m"] == pytest.approx(0.0, abs=1e-5)
     assert np.allclose(cv[1, :, 1:], 0) and cv[1, -1, 0] == pytest.approx(8 * np.linalg.norm(gt[1, 0, :2]), rel=1e-6)
     assert trajectory_errors(cv[1:], gt[1:])["fde_m"] > 1.0
-
-
-def test_split_by_episode_keeps_episodes_whole():
-    clips = [TrajClip(f"k{i}", f"ep{i % 5}", np.zeros((3, 4, 4, 3), np.uint8), np.zeros((8, 3), np.float32), 1, 10.0)
-             for i in range(20)]
-    train, held = split_by_episode(clips, 0.25, seed=3)
-    assert not {c.item_id for c in train} & {c.item_id for c in held}
-    assert len({c.item_id for c in held}) == 1 and len(train) + len(held) == 20
-    assert split_by_episode(clips, 0.25, seed=3)[1] == held           # deterministic
-    with pytest.raises(ValueError, match="at least 2"):
-        split_by_episode(clips[:1], 0.25)
 
 
 def test_synthetic_waypoints_match_constant_curvature_closed_form():
@@ -138,15 +128,6 @@ def test_mirror_augmentation_flips_frames_and_negates_y_and_yaw():
     assert torch.equal(b["video"][1], b["video"][0].flip(-1))
     assert torch.allclose(b["trajectory"][1], torch.from_numpy(traj * np.array([1, -1, -1], np.float32)))
     assert torch.equal(b["trajectory"][0], torch.from_numpy(traj))
-
-
-def test_split_guarantees_a_minimum_of_heldout_episodes():
-    clips = [TrajClip(f"k{i}", f"ep{i % 4}", np.zeros((3, 4, 4, 3), np.uint8), np.zeros((8, 3), np.float32), 1, 10.0)
-             for i in range(12)]
-    assert len({c.item_id for c in split_by_episode(clips, 0.25)[1]}) == 1
-    train, held = split_by_episode(clips, 0.25, min_heldout=2)
-    assert len({c.item_id for c in held}) == 2 and len({c.item_id for c in train}) == 2
-    assert len({c.item_id for c in split_by_episode(clips, 0.25, min_heldout=9)[0]}) == 1  # one always trains
 
 
 def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):

@@ -14,22 +14,29 @@ extrapolating from the past; it knows nothing of turns or later speed changes.
 Clips are held in memory at the model's input resolution (uint8, ~0.2 MB per 49-frame clip at 48x80);
 for datasets too large for that, ``resim train idm`` streams shards through the common data loader
 (``InverseDynamicsModel.loss`` accepts a ``training.data.Batch``).
+
+The split by episode, the epoch batches, the trainer run and the batched prediction are the small-model
+harness's (``training.smallfit``, shared with Video2Reward); what is the IDM's own: its clips and targets, the
+mirror augmentation, the optimiser (warmup + cosine), early stopping on validation ADE and the CV baseline.
 """
 from __future__ import annotations
 
 import hashlib
 import json
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from safetensors.torch import save_file
 
-from resim.config import ConfigError, check_positive, safe_yaml
+from resim.config import ConfigError, check_positive, safe_yaml, to_dict
+from training import smallfit
+from training.config import OptimConfig, RunConfig
 from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
+from training.smallfit import frames_to_tensor
 
 
 @dataclass
@@ -118,20 +125,6 @@ def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list
     return clips, counts
 
 
-def split_by_episode(clips: Sequence[TrajClip], heldout_fraction: float, seed: int = 0, min_heldout: int = 1
-                     ) -> tuple[list[TrajClip], list[TrajClip]]:
-    """(train, held-out) with whole episodes on one side; episodes ordered by a seeded hash of their id.
-
-    ``round(heldout_fraction * episodes)`` episodes are held out, at least ``min_heldout`` and at least one,
-    and always leaving one for training."""
-    eps = sorted({c.item_id for c in clips}, key=lambda e: hashlib.sha256(f"{seed}\0{e}".encode()).hexdigest())
-    if len(eps) < 2:
-        raise ValueError(f"{len(clips)} clips from {len(eps)} episode(s): a split by episode needs at least 2")
-    k = min(len(eps) - 1, max(1, min_heldout, int(np.floor(heldout_fraction * len(eps) + 0.5))))
-    held = set(eps[:k])
-    return [c for c in clips if c.item_id not in held], [c for c in clips if c.item_id in held]
-
-
 def collate(clips: Sequence[TrajClip], cfg: IDMConfig, flip: Sequence[bool] | None = None) -> dict:
     """``{"video": (B, T, 3, h, w) float [0, 1] (the model's window), "trajectory": (B, N, 3), "keys"}``.
 
@@ -143,45 +136,17 @@ def collate(clips: Sequence[TrajClip], cfg: IDMConfig, flip: Sequence[bool] | No
         f, t = c.frames[idx], c.trajectory
         if flip is not None and flip[i]:
             f, t = f[:, :, ::-1], t * np.array([1.0, -1.0, -1.0], np.float32)
-        vids.append(torch.from_numpy(np.ascontiguousarray(f)).permute(0, 3, 1, 2))
+        vids.append(frames_to_tensor(f))
         trajs.append(t)
-    return {"video": torch.stack(vids).float().div_(255.0),
+    return {"video": torch.stack(vids),
             "trajectory": torch.from_numpy(np.stack(trajs).astype(np.float32)),
             "keys": [c.key for c in clips]}
 
 
-class ClipBatches:
-    """Re-iterable epochs of shuffled batches for ``Trainer.fit`` (epoch e shuffled with seed*1000 + e; the
-    same RNG mirrors each clip with probability ``hflip_prob``). ``on_epoch_end(epoch)`` runs after the last
-    batch of every epoch (when the trainer asks for the next one; the very last epoch's is the caller's)."""
-
-    def __init__(self, clips: Sequence[TrajClip], cfg: IDMConfig, batch_size: int, seed: int,
-                 hflip_prob: float = 0.0, on_epoch_end=None):
-        self.clips, self.cfg, self.bs, self.seed, self.epoch = list(clips), cfg, batch_size, seed, 0
-        self.hflip_prob, self.on_epoch_end = hflip_prob, on_epoch_end
-
-    def __len__(self) -> int:
-        return -(-len(self.clips) // self.bs)
-
-    def __iter__(self) -> Iterator[dict]:
-        rng = np.random.default_rng(self.seed * 1000 + self.epoch)
-        order = rng.permutation(len(self.clips))
-        flips = rng.random(len(self.clips)) < self.hflip_prob
-        self.epoch += 1
-        for i in range(0, len(order), self.bs):
-            yield collate([self.clips[j] for j in order[i:i + self.bs]], self.cfg, flips[i:i + self.bs])
-        if self.on_epoch_end is not None:
-            self.on_epoch_end(self.epoch)
-
-
-@torch.no_grad()
 def predict(model: InverseDynamicsModel, clips: Sequence[TrajClip], batch_size: int = 32) -> np.ndarray:
-    """(N, num_waypoints, 3) predicted trajectories."""
-    model.eval()
-    dev = next(model.parameters()).device
-    out = [model(collate(clips[i:i + batch_size], model.cfg)["video"].to(dev)).cpu()
-           for i in range(0, len(clips), batch_size)]
-    return torch.cat(out).numpy() if out else np.zeros((0, model.cfg.num_waypoints, 3), np.float32)
+    """(N, num_waypoints, 3) predicted trajectories, in the order of ``clips``."""
+    return smallfit.predict(model, clips, lambda cs: collate(cs, model.cfg), lambda m, b: m(b["video"]), batch_size,
+                            empty_shape=(model.cfg.num_waypoints, 3))
 
 
 def constant_velocity(gt: np.ndarray, waypoint_dt_s: float = 0.5) -> np.ndarray:
@@ -206,19 +171,15 @@ def trajectory_errors(pred: np.ndarray, gt: np.ndarray) -> dict:
             "yaw_err_deg": float(np.rad2deg(np.abs(dyaw)).mean()), "n": int(len(pred))}
 
 
-def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False):
-    from resim.config import to_dict
-    from training.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
-
-    return RunConfig(
+def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False) -> RunConfig:
+    """The common trainer's RunConfig for an IDM run (AdamW, warmup + cosine to 5 %, clipping at 1)."""
+    return smallfit.run_config(
         # the resolved IDMConfig, not just the preset name: a run must load the same network after presets change
-        model_name="idm", model=to_dict(tcfg.model_cfg()),
-        data=DataConfig(batch_size_per_gpu=tcfg.batch_size_per_gpu, load_frames=True, seed=tcfg.seed),
+        "idm", to_dict(tcfg.model_cfg()), steps=steps, batch_size=tcfg.batch_size_per_gpu, seed=tcfg.seed,
         optim=OptimConfig(lr=tcfg.lr, weight_decay=tcfg.weight_decay, warmup_steps=min(tcfg.warmup_steps, steps - 1),
                           schedule="cosine", min_lr_ratio=0.05, grad_clip_norm=1.0),
-        trainer=TrainerConfig(steps=steps, seed=tcfg.seed, parallel="none", tensorboard=False, progress_bar=progress,
-                              loss_curve_png=True, save_final_weights=True),
-        preset=f"idm-{tcfg.preset}", reference={"resim": "IDM: video -> 8 waypoints at 2 Hz (XVO backbone there)"})
+        save_final_weights=True, preset=f"idm-{tcfg.preset}", progress=progress, load_frames=True,
+        reference={"resim": "IDM: video -> 8 waypoints at 2 Hz (XVO backbone there)"})
 
 
 class BestOnValidation:
@@ -248,19 +209,14 @@ class BestOnValidation:
 
 def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainConfig, run_dir: str | Path,
         progress: bool = False, val: Sequence[TrajClip] = ()) -> dict:
-    """Train through the common Trainer; with ``val`` clips, keep the weights of the best validation epoch
-    (and re-export them to ``run_dir/final``)."""
-    from safetensors.torch import save_file
-
-    from training.trainer import Trainer
-
+    """Train through the common Trainer (``training.smallfit.fit``: epoch ``e`` shuffled with seed
+    ``seed * 1000 + e``, the same RNG mirroring each clip with probability ``hflip_prob``); with ``val`` clips,
+    keep the weights of the best validation epoch (and re-export them to ``run_dir/final``)."""
     stopper = BestOnValidation(model, val) if len(val) else None
-    data = ClipBatches(clips, model.cfg, tcfg.batch_size_per_gpu, tcfg.seed, tcfg.hflip_prob, on_epoch_end=stopper)
-    steps = tcfg.epochs * len(data)
-    t0 = time.perf_counter()
-    summary = Trainer(model, run_config(tcfg, steps, progress), run_dir).fit(data)
-    model.eval()
-    out = {**summary, "steps": steps, "seconds": time.perf_counter() - t0}
+    data = smallfit.EpochBatches(clips, tcfg.batch_size_per_gpu, tcfg.seed,
+                                 lambda cs, flip: collate(cs, model.cfg, flip),
+                                 augment=lambda rng, n: rng.random(n) < tcfg.hflip_prob, on_epoch_end=stopper)
+    out = smallfit.fit(model, data, tcfg.epochs, lambda steps: run_config(tcfg, steps, progress), run_dir)
     if stopper is not None:
         stopper(tcfg.epochs)           # the last epoch (the trainer stops without asking for another batch)
         out["early_stopping"] = stopper.restore()
@@ -334,13 +290,8 @@ def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[Tra
     counts: dict = {}
     if clips is None:
         clips, counts = clips_from_dataset(root, mcfg.input_hw)
-    usable, skipped = [], []
-    for c in clips:
-        try:
-            mcfg.frame_indices(c.num_history_frames, len(c.frames))
-            usable.append(c)
-        except ValueError as e:
-            skipped.append({"key": c.key, "reason": str(e)})
+    usable, skipped = smallfit.usable(clips, lambda c: mcfg.frame_indices(c.num_history_frames, len(c.frames)),
+                                      ValueError)
     if not usable:
         if skipped:   # the reason is the window, not the data: say so with the first clip's numbers
             raise IDMDataError(f"{root}: the model's window fits none of the {len(skipped)} clips with a trajectory "
@@ -350,8 +301,9 @@ def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[Tra
             raise IDMDataError(f"{root}: none of its {counts['samples']} samples has a trajectory (traj.npy)")
         raise IDMDataError(f"{root}: no samples (no committed shards: DIR/shards/*.tar with DIR/index/*.json)")
     try:
-        train, held = split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed, tcfg.min_heldout_episodes)
-    except ValueError as e:   # split_by_episode's only error: fewer than 2 episodes
+        train, held = smallfit.split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed,
+                                                min_heldout=tcfg.min_heldout_episodes)
+    except ValueError as e:   # the split's only error: fewer than 2 episodes
         raise IDMDataError(f"{root}: {e}") from None
     return IDMData(train, held, skipped, counts)
 
@@ -372,7 +324,7 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
     fit_clips, val = train, []
     if tcfg.val_fraction > 0 and n_train_eps >= tcfg.min_episodes_for_validation:
         # a second seeded split, inside the training episodes only
-        fit_clips, val = split_by_episode(train, tcfg.val_fraction, tcfg.split_seed + 1)
+        fit_clips, val = smallfit.split_by_episode(train, tcfg.val_fraction, tcfg.split_seed + 1)
         validation = (f"{len({c.item_id for c in val})} of the {n_train_eps} training episodes "
                       f"({len(val)} clips), best epoch kept")
     else:
