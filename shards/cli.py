@@ -3,11 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
+import random
 import sys
+from pathlib import Path
 
 from resim.argtypes import positive_int as _positive_int, wrap as _wrap
+from shards.confine import UnsafePathError, confined
+from shards.errors import ShardReadError
+from shards.schema import schema_dict
+
+# Every `resim` call imports this module to register its subcommands, so `resim --help` stays fast only if the
+# rest of shards (numpy, pyarrow; webdataset, which pulls in torch; matplotlib for previews) is imported inside
+# the handler that needs it: the imports inside the _cmd_* functions below are that, not an oversight.
 
 DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
 KEY_HELP = "sample key (list them with `resim shards ls DIR --samples`)"
@@ -41,8 +51,6 @@ example:
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:
-    from shards.schema import schema_dict
-
     print(json.dumps(schema_dict(), indent=2))
     return 0
 
@@ -170,13 +178,9 @@ def _cmd_verify(args) -> int:
 
 
 def _cmd_preview(args) -> int:
-    import random
-    from pathlib import Path
-
-    from shards.confine import UnsafePathError, confined
     from shards.manifest import read_manifest
     from shards.preview import render_preview
-    from shards.reader import ShardReadError, find_sample
+    from shards.reader import find_sample
 
     if bool(args.key) == bool(args.random):
         print("error: give either KEY or --random N", file=sys.stderr)
@@ -218,14 +222,8 @@ def _cmd_preview(args) -> int:
 def _on_dataset(cmd):
     """Runs ``cmd`` on an existing dataset folder; a dataset it cannot read (corrupt index or manifest, missing
     files) is a clear one-line error and exit status 1, not a traceback. Our own bugs still raise."""
-    import functools
-
     @functools.wraps(cmd)
     def run(args) -> int:
-        from pathlib import Path
-
-        from shards.reader import ShardReadError
-
         from shards import layout
 
         if not Path(args.dir).is_dir():

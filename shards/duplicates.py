@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pyarrow.parquet as pq
+
 
 def duplicates_path(root: str | Path) -> Path:
     return Path(root) / "dedup" / "duplicates.parquet"
@@ -12,8 +14,6 @@ def duplicates_path(root: str | Path) -> Path:
 
 def duplicate_keys(root: str | Path) -> frozenset[str]:
     """Keys the dedup pass left out (empty when the dataset has none or was never deduped)."""
-    import pyarrow.parquet as pq
-
     path = duplicates_path(root)
     if not path.is_file():
         return frozenset()

@@ -1,6 +1,10 @@
 """Read a dataset's manifests (one Parquet row per sample) and indexes (one JSON per shard) without opening tars."""
 from __future__ import annotations
 
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
 from shards.errors import ShardReadError
@@ -13,9 +17,6 @@ def read_manifest(root, committed_only: bool = True):
 
     With ``committed_only``, rows of shards without an index (an interrupted writer) are left out.
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     d = layout.manifest_dir(root)
     tables = []
     for p in sorted(d.glob("*.parquet")) if d.is_dir() else []:
@@ -59,9 +60,6 @@ def read_indexes(root) -> list[dict]:
 def read_quarantine(root):
     """``DIR/quarantine/*.parquet`` concatenated (the pipeline's columns: item, unit_id, source, stage, status,
     reason, attempts; see pipelines/quarantine.py), or None."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     d = layout.quarantine_dir(root)
     files = sorted(p for p in d.glob("*.parquet") if not p.name.startswith(".")) if d.is_dir() else []
     if not files:
@@ -71,8 +69,6 @@ def read_quarantine(root):
 
 def shard_of_key(root, key: str) -> str | None:
     """The shard file name holding ``key``, from the manifest (None if not listed)."""
-    import pyarrow.compute as pc
-
     t = read_manifest(root)
     hit = t.filter(pc.equal(t["key"], key))
     return hit["shard"][0].as_py() if hit.num_rows else None

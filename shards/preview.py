@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from shards.video import decode_mp4
+
 HISTORY_COLOR = "#1f77b4"
 FUTURE_COLOR = "#ff7f0e"
 
@@ -31,6 +33,7 @@ def pick_frames(num_frames: int, num_history: int, max_frames: int = 12) -> list
 
 def render_preview(sample: dict, out_png, max_frames: int = 12, cols: int = 6) -> Path:
     """Write the contact sheet of a decoded ``sample`` (frames decoded on demand) to ``out_png``."""
+    # matplotlib is slow to import and only the contact sheet needs it (the light install may lack it)
     try:
         import matplotlib
     except ImportError as e:
@@ -38,8 +41,6 @@ def render_preview(sample: dict, out_png, max_frames: int = 12, cols: int = 6) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
-
-    from shards.video import decode_mp4
 
     meta = sample["meta.json"]
     frames = sample.get("frames")

@@ -37,9 +37,9 @@ import numpy as np
 
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
+from shards.errors import ShardReadError
 from shards.fsio import atomic_write_bytes, link_no_clobber, tmp_name
 from shards.npy import NpyError, decode_npy, encode_npy, stored_to_float32
-from shards.reader import ShardReadError
 from shards.schema import COMMANDS, prompt_id
 
 ROLES = ("command", "null")

@@ -25,12 +25,14 @@ import numpy as np
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
 from shards.npy import decode_npy, decode_npy_view, stored_to_float32
+from shards.prompts import PromptTable
 from shards.schema import FORBIDDEN_EXTENSIONS, MEMBERS, REQUIRED_MEMBERS
 from shards.validate import LATENT_DTYPES, is_forbidden_ext
 # the errors and member-name split live in shards.errors so tario and manifest need not import this module
 from shards.errors import BAD_MEMBER, ForbiddenMemberError, ShardReadError
 from shards.manifest import shard_of_key
 from shards.tario import count_records, open_records
+from shards.video import decode_mp4
 
 LATENT_AS = ("float32", "stored")
 
@@ -107,8 +109,6 @@ def decode_sample(raw: dict, *, decode_video: bool = False, latent_as: str = "fl
                                  f"(float16 is stored as float16, bfloat16 as uint16 bits)")
         out["latent.npy"] = stored_to_float32(lat, dtype)
     if decode_video and "frames.mp4" in out:
-        from shards.video import decode_mp4
-
         out["frames"] = decode_mp4(out["frames.mp4"])
     return out
 
@@ -138,8 +138,6 @@ class PromptAttacher:
         self._table = None
 
     def __call__(self, sample: dict) -> dict:
-        from shards.prompts import PromptTable
-
         if self._table is None:  # opened lazily, so the attacher pickles cheaply into workers
             self._table = PromptTable(self.root)
         meta = sample["meta.json"]
@@ -214,6 +212,7 @@ def make_webdataset(urls, *, shardshuffle: int | bool = False, shuffle_samples: 
             (``PromptTable.get`` caches them), so 1-4 MB arrays do not travel through worker queues per sample.
         handler: WebDataset exception handler (default: re-raise).
     """
+    # webdataset imports torch, and shards must stay importable without it: only the training stream needs it
     import webdataset as wds
 
     if isinstance(urls, (str, Path)) and Path(urls).is_dir():

@@ -31,6 +31,8 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
+from resim.config import ConfigError
+
 SCHEMA_VERSION = 3
 # versions a reader of this code reads: 2 added ego_motion_pct_s, stopped and signature, 3 the per-clip quality
 # columns (``since`` below); an older sample simply lacks them (null in the manifest)
@@ -60,8 +62,6 @@ class ClipSpec:
     vae_temporal_compression: int = 4
 
     def __post_init__(self):
-        from resim.config import ConfigError
-
         if self.fps_hz <= 0:
             raise ConfigError(f"fps_hz must be > 0, got {self.fps_hz}")
         if self.num_history_frames < 1 or self.num_future_frames < 1:

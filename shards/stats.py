@@ -30,6 +30,8 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
 from shards import layout
 from shards.manifest import read_indexes, read_manifest, read_quarantine
 from shards.prompts import PromptTable
@@ -134,8 +136,6 @@ def compute_stats(root) -> dict:
 
 
 def _spread(values) -> dict:
-    import numpy as np
-
     v = np.asarray([x for x in values if x is not None], dtype=np.float64)
     v = v[np.isfinite(v)]
     if not len(v):
@@ -146,11 +146,11 @@ def _spread(values) -> dict:
 
 def plot_quality(root, path) -> Path:
     """Histograms of the per-clip columns (``QUALITY_COLUMNS``) by source, one panel each, to ``path`` (PNG)."""
+    # matplotlib is slow to import and only the plot needs it (the light install may lack it)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     man = read_manifest(Path(root)).to_pydict()
     sources = sorted(set(man["source"]))

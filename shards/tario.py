@@ -296,6 +296,7 @@ def count_records(path: str) -> int:
 
 def _general(url: str, start: int, skip_exts: frozenset) -> Iterator[dict]:
     """Any URL ``gopen`` opens, compressed tars: WebDataset's tar iterator (tarfile) and key grouping."""
+    # webdataset imports torch, and shards must stay importable without it: only the training stream needs it
     from webdataset.gopen import gopen
     from webdataset.tariterators import group_by_keys, tar_file_iterator
 

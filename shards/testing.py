@@ -15,12 +15,17 @@ import tarfile
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from shards import layout
 from shards.fsio import sha256_file
 from shards.npy import float32_to_bf16_bits
 from shards.errors import split_member_name
+from shards.prompts import PromptTable
 from shards.schema import COMMANDS, SCHEMA_VERSION, ClipSpec, make_key, prompt_id, prompt_text
+from shards.video import encode_mp4
+from shards.writer import ShardWriter
 
 DUMMY_ENCODER_ID = "placeholder-t5-random"
 
@@ -62,8 +67,6 @@ def make_dummy_sample(source: str = "synthetic", item_id: str = "dummy/episode-0
                       with_trajectory: bool = True, with_dino: bool = False, hazard: bool | None = None,
                       config_hash: str = "dummy") -> dict:
     """A valid sample dict for ``ShardWriter.write`` (random latent; real mp4; placeholder ids)."""
-    from shards.video import encode_mp4
-
     spec = spec or ClipSpec()
     if command not in COMMANDS:
         raise ValueError(f"unknown command {command!r}")
@@ -113,8 +116,6 @@ def make_dummy_sample(source: str = "synthetic", item_id: str = "dummy/episode-0
 
 def add_dummy_prompts(root, seq_len: int = 16, dim: int = 32, dtype: str = "bfloat16", seed: int = 0) -> dict:
     """Add random (seq_len, dim) embeddings for the three commands and the null prompt; return text -> id."""
-    from shards.prompts import PromptTable
-
     table = PromptTable(root)
     rng = np.random.default_rng(seed)
     ids = {}
@@ -131,8 +132,6 @@ def add_dummy_prompts(root, seq_len: int = 16, dim: int = 32, dtype: str = "bflo
 def write_dummy_dataset(root, num_samples: int = 12, prefix: str = "dummy", max_samples_per_shard: int = 5,
                         seed: int = 0, **sample_kw):
     """Write ``num_samples`` dummy samples (commands cycling) plus the prompt table; return the ShardInfos."""
-    from shards.writer import ShardWriter
-
     add_dummy_prompts(root, seed=seed)
     with ShardWriter(root, prefix, max_samples_per_shard=max_samples_per_shard, config_hash="dummy") as w:
         for i in range(num_samples):
@@ -157,9 +156,6 @@ def insert_raw_sample(root, shard: str, key: str, overrides: dict[str, bytes | N
     ``../../x`` or ``/tmp/x`` go in as they are), before (``first``) or after the others. The manifest gets a row
     for it and the index its key, count, size and sha256, so tar, manifest and index agree and only the sample
     itself is bad. Returns ``key``."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     path = layout.shards_dir(root) / shard
     with tarfile.open(path) as t:
         old = [(m.name, t.extractfile(m).read()) for m in t.getmembers() if m.isfile()]

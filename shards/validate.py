@@ -25,6 +25,7 @@ from shards.schema import (
     make_key,
     meta_fields_of,
 )
+from shards.video import mp4_looks_valid
 
 KEY_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
@@ -214,8 +215,6 @@ def sample_problems(sample: dict) -> list[str]:
 
     mp4 = sample.get("frames.mp4")
     if mp4 is not None:
-        from shards.video import mp4_looks_valid
-
         if not isinstance(mp4, (bytes, bytearray)):
             p.append(f"frames.mp4 must be encoded mp4 bytes (see shards.video.encode_mp4), got {type(mp4).__name__}")
         elif not mp4_looks_valid(mp4):

@@ -27,12 +27,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import pyarrow as pa
+import pyarrow.parquet as pq
+
 from shards import layout, safejson
 from shards.fsio import is_tmp_name, sha256_file
 from shards.npy import NpyError, decode_npy
+from shards.prompts import EMBED_DTYPES, PromptTable, PromptTableError
 from shards.reader import ShardReadError, decode_sample, iter_raw_shard
 from shards.schema import READABLE_SCHEMA_VERSIONS, prompt_id
 from shards.validate import sample_problems, video_problems
+from shards.video import VideoError, decode_mp4
 
 
 @dataclass(frozen=True)
@@ -51,8 +56,6 @@ class Problem:
 
 
 def _check_prompts(root, problems: list[Problem]) -> dict:
-    from shards.prompts import EMBED_DTYPES, PromptTable, PromptTableError
-
     table = PromptTable(root)
     try:
         entries = table.entries()
@@ -114,9 +117,6 @@ def _key_order_problems(shard: str, keys: list[str], ikeys: list[str]) -> list[P
 
 def verify(root, decode_video: bool = True, progress: Callable[[str], None] | None = None) -> list[Problem]:
     """All problems found in dataset ``root`` (empty list: everything holds)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     root = Path(root)
     problems: list[Problem] = []
     if not layout.shards_dir(root).is_dir():
@@ -212,8 +212,6 @@ def verify(root, decode_video: bool = True, progress: Callable[[str], None] | No
                         problems.append(Problem(shard, key, f"null_prompt_id {pid} has role "
                                                             f"{prompts[pid].get('role')!r}, not 'null'"))
                 if decode_video and isinstance(s.get("frames.mp4"), bytes):
-                    from shards.video import VideoError, decode_mp4
-
                     try:
                         frames = decode_mp4(s["frames.mp4"])
                     except VideoError as e:

@@ -53,7 +53,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+import pyarrow.parquet as pq
 
+from resim import __version__
 from shards import layout, safejson
 from shards.fsio import atomic_write_bytes, fsync_dir, is_tmp_name, link_no_clobber, sha256_file, tmp_name
 from shards.npy import encode_npy
@@ -96,8 +99,6 @@ def encode_member(ext: str, value: Any) -> bytes:
 
 
 def manifest_schema():
-    import pyarrow as pa
-
     types = {
         "key": pa.string(), "shard": pa.string(), "source": pa.string(), "item_id": pa.string(),
         "start_frame": pa.int64(), "command": pa.string(), "command_source": pa.string(),
@@ -298,9 +299,6 @@ class ShardWriter:
         h["latent_dtype"][m["latent_dtype"]] += 1
 
     def _finish_shard(self) -> None:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
         self._tar.close()
         self._fh.flush()
         os.fsync(self._fh.fileno())
@@ -330,7 +328,6 @@ class ShardWriter:
         buf = io.BytesIO()
         pq.write_table(table, buf)
         atomic_write_bytes(layout.manifest_path(self.root, self._name), buf.getvalue())
-        from resim import __version__
 
         index = {
             "schema_version": SCHEMA_VERSION,
