@@ -56,10 +56,19 @@ class ClipConfig:
     stride_frames: int = 20                   # start-to-start distance of straight-driving windows
     num_waypoints: int = 8
     waypoint_dt_s: float = 0.5
+    # An episode shorter than one clip by at most this many frames (at fps_hz) still gives one clip, from
+    # its start, with its last frame held to the clip's length; 0: such an episode is quarantined (too
+    # short). For outcome-labelled routes: a CARLA / synthetic route ends ~2 s after a crash, so the
+    # shortest routes are the early-crash hazards, the clips a reward model (ReSim's Video2Reward) most needs.
+    max_held_frames: int = 0
 
     def __post_init__(self):
         check_positive("fps_hz", self.fps_hz)
         check_positive("stride_frames", self.stride_frames)
+        if not isinstance(self.max_held_frames, int) or isinstance(self.max_held_frames, bool) \
+                or not 0 <= self.max_held_frames < self.num_frames:
+            raise ConfigError(f"max_held_frames must be an integer in [0, num_frames - 1 = {self.num_frames - 1}] "
+                              f"(at least one recorded frame per clip), got {self.max_held_frames!r}")
         check_positive("num_waypoints", self.num_waypoints)
         check_positive("waypoint_dt_s", self.waypoint_dt_s)
         if self.num_history_frames < 1 or self.num_future_frames < 1:

@@ -66,6 +66,7 @@ class Episode:
     timestamps_s: np.ndarray | None = None   # (num_frames,) seconds from the episode's first frame
     warnings: list[str] = field(default_factory=list)  # repaired defects (e.g. NaN compass interpolated)
     source_duration_s: float | None = None   # the whole recording, before any discard (None: num_frames / fps_hz)
+    held_frames: int = 0                     # trailing copies of the last recorded frame (:meth:`hold_last`)
     _loader: FrameLoader | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
@@ -100,6 +101,48 @@ class Episode:
 
     def replace(self, **changes) -> "Episode":
         return dataclasses.replace(self, **changes)
+
+    def hold_last(self, num_frames: int) -> "Episode":
+        """This episode lengthened to ``num_frames`` by repeating its last frame: what the camera of an ego
+        that has stopped for good keeps seeing (a CARLA / synthetic route ends early after a crash). The
+        held frames repeat the last pose, command and outcome, with speed 0 and timestamps going on at
+        ``fps_hz``; ``warnings`` says how many frames are held. ``num_frames`` <= ours: returned as is."""
+        extra = num_frames - self.num_frames
+        if extra <= 0:
+            return self
+        if self.num_frames < 1:
+            raise ValueError(f"{self.item_id}: an episode without frames has no last frame to hold")
+        last, loader = self.num_frames - 1, self._loader
+
+        def held(start: int, stop: int, size_hw):
+            if loader is None:
+                raise RuntimeError(f"{self.item_id}: episode has no frame loader")
+            frame, got = None, 0
+            if start <= last:
+                for frame in loader(start, min(stop, last + 1), size_hw):
+                    got += 1
+                    yield frame
+                if got != min(stop, last + 1) - start:
+                    return   # the recording ended early: no frame to hold (the stages count what they got)
+            if stop > last + 1:
+                if frame is None:   # the window starts in the held part: decode the last frame once
+                    frame = next(iter(loader(last, last + 1, size_hw)), None)
+                    if frame is None:
+                        return
+                for _ in range(max(start, last + 1), stop):
+                    yield frame.copy()
+
+        def pad(a):
+            return None if a is None else np.concatenate([a, np.repeat(np.asarray(a)[-1:], extra, axis=0)])
+
+        ts = self.timestamps_s
+        if ts is not None:
+            ts = np.concatenate([ts, ts[-1] + np.arange(1, extra + 1) / self.fps_hz])
+        return self.replace(num_frames=num_frames, poses=pad(self.poses), driving_command=pad(self.driving_command),
+                            speed_mps=None if self.speed_mps is None else np.r_[self.speed_mps, np.zeros(extra)],
+                            timestamps_s=ts, held_frames=self.held_frames + extra, _loader=held,
+                            warnings=[*self.warnings, f"{extra} frame(s) appended holding the last frame "
+                                                      f"(an episode shorter than one clip)"])
 
 
 def decode_image_file(path, item: str, size_hw: tuple[int, int] | None = None,

@@ -7,7 +7,8 @@ stages that need them, each at its own size (flow: tiny; VAE: the training resol
 
 Quarantined here (bad input, not our bug): unreadable / zero-byte / truncated items (the reader's
 ``SourceError``), a frame rate that cannot be brought to ``clip.fps_hz``, fewer frames than one clip,
-frames lower than ``sources.opendv.min_height_px`` (OpenDV) or smaller than the VAE input. The episode's
+frames lower than ``sources.opendv.min_height_px`` (OpenDV) or smaller than the VAE input. An episode short of
+one clip by at most ``clip.max_held_frames`` gives one clip with its last frame held instead. The episode's
 ``warnings`` (defects the reader repaired, a route without outcome) become ``warning`` rows of the
 quarantine table: the unit goes on, and the caveat is saved with the dataset.
 """
@@ -33,7 +34,16 @@ class CutStage(Stage):
         return self._readers[spec]
 
     def open(self, state: dict):
-        return self.reader(state).open(state["item_id"])
+        """The unit's episode; one shorter than a clip by at most ``clip.max_held_frames`` frames is lengthened
+        to one clip by holding its last frame (``Episode.hold_last``), the same way in every stage."""
+        ep = self.reader(state).open(state["item_id"])
+        clip = clip_of(state)
+        step = rate_step(ep.fps_hz, clip.fps_hz) if clip.max_held_frames else None
+        if step is not None and ep.num_frames > 0:
+            short = clip.num_frames - ((ep.num_frames - 1) // step + 1)      # clip-rate frames missing
+            if 0 < short <= clip.max_held_frames:
+                ep = ep.hold_last((clip.num_frames - 1) * step + 1)
+        return ep
 
     def process(self, state: dict) -> None:
         cfg, clip = self.cfg, clip_of(state)
@@ -51,8 +61,10 @@ class CutStage(Stage):
         n = (ep.num_frames - 1) // step + 1 if ep.num_frames > 0 else 0     # clip-rate frames available
         N = clip.num_frames
         if n < N:
+            held = (f"; {N - n} missing > max_held_frames {clip.max_held_frames} that may hold the last frame"
+                    if clip.max_held_frames else "")
             raise BadInput(f"too short: {n} frames at {clip.fps_hz:g} Hz < {N} needed for one clip "
-                           f"({N / clip.fps_hz:g} s)")
+                           f"({N / clip.fps_hz:g} s){held}")
         h, w = ep.frame_size_hw
         if state["kind"] == "opendv" and state["spec"]["section"] == "sources.opendv" \
                 and h < cfg.sources.opendv.min_height_px:
@@ -78,7 +90,7 @@ class CutStage(Stage):
             "warnings": [str(x) for x in getattr(ep, "warnings", [])],
         }
         state["windows"] = [{"start": s} for s in starts]
-        used_s = ep.num_frames / ep.fps_hz
+        used_s = (ep.num_frames - ep.held_frames) / ep.fps_hz     # recorded frames only, not held ones
         # the curation funnel (pipelines/curation.py): hours in, hours after the reader's discards, candidates
         state["curation"] = {"source_s": round(float(ep.source_duration_s or used_s), 3), "used_s": round(used_s, 3),
                              "windows": len(starts)}

@@ -43,7 +43,21 @@ def data_config_hash(cfg) -> str:
     from resim.config import to_dict
 
     d = to_dict(absolute_paths(cfg))
-    return config_hash({k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")})
+    return config_hash(_without_new_defaults(
+        {k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")}))
+
+
+# Config fields added after datasets were made, with the default that reproduces the data made before them:
+# left out of the hash at that default, so those datasets keep their hash (a rerun resumes them, and every
+# sample's meta.config_hash stays what it was); any other value is hashed like every field.
+NEW_FIELD_DEFAULTS = {"max_held_frames": 0}    # ClipConfig, wherever a clip geometry is configured
+
+
+def _without_new_defaults(d):
+    if isinstance(d, dict):
+        return {k: _without_new_defaults(v) for k, v in d.items()
+                if not (k in NEW_FIELD_DEFAULTS and v == NEW_FIELD_DEFAULTS[k])}
+    return d
 
 
 def key_seed(key: str) -> int:
