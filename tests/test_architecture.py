@@ -19,12 +19,8 @@ FORBIDDEN = {
 }
 
 # Known violations, each with the reason it is still there; the test fails on any other, and on an entry here
-# that no longer occurs (so the list only shrinks). Reward training reads CARLA route folders itself (whole
-# routes as clips, with their infraction scores); moving it onto the pipeline's shards changes its clips.
-KNOWN = {
-    ("training/reward/cli.py", "pipelines.sources.episode"),
-    ("training/reward/cli.py", "pipelines.sources.carla"),
-}
+# that no longer occurs (so the list only shrinks). None is left.
+KNOWN: set[tuple[str, str]] = set()
 
 
 def imports_of(path: Path) -> list[tuple[int, str]]:

@@ -188,9 +188,22 @@ def test_train_into_a_reward_run_needs_overwrite(two_episodes, tmp_path, capsys)
     assert (rw / "reward.safetensors").read_bytes() == b"old"
 
 
-@pytest.mark.parametrize("flag", [["--clip-frames", "10"], ["--clip-stride-frames", "5"], ["--hold-last"]])
-def test_carla_only_flags_with_shards_are_refused(two_episodes, tmp_path, capsys, flag):
+@pytest.mark.parametrize("flag, instead", [(["--carla", "W/carla"], ""),
+                                           (["--clip-frames", "80"], "clip.num_history_frames"),
+                                           (["--clip-stride-frames", "80"], "clip.stride_frames"),
+                                           (["--hold-last"], "clip.max_held_frames")])
+def test_the_removed_carla_path_is_refused_with_the_two_commands_instead(tmp_path, capsys, flag, instead):
+    """Training reads only shards (docs/architecture.md): the old CARLA-folder flags say how to get shards."""
     out = tmp_path / "run"
-    assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out), *TINY_SETS, *flag]) == 2
-    _one_line_error(capsys, "resim train reward:", flag[0], "only with --carla")
+    for shards in ([], ["--shards", str(tmp_path)]):
+        assert main(["train", "reward", *shards, "--out", str(out), *TINY_SETS, *flag]) == 2
+        _one_line_error(capsys, "resim train reward:", f"{flag[0]} was removed", instead,
+                        "resim pipeline run configs/pipeline/carla-reward.yaml --set sources.carla.root=DIR",
+                        "resim train reward --shards SHARDS")
     assert not out.exists()
+
+
+def test_train_without_shards_is_refused(tmp_path, capsys):
+    assert main(["train", "reward", "--out", str(tmp_path / "run"), *TINY_SETS]) == 2
+    _one_line_error(capsys, "resim train reward:", "--shards DIR is required")
+    assert not (tmp_path / "run").exists()

@@ -124,10 +124,28 @@ def _cmd_features(args: argparse.Namespace) -> int:
     return 0 if summary["samples"] else 1
 
 
+# What `resim train reward` read before it read only shards: refused with the way to get the same clips as shards.
+PIPELINE_FIRST = ("reward training reads only shards: cut the routes with the pipeline, then train on its shards: "
+                  "`resim pipeline run configs/pipeline/carla-reward.yaml --set sources.carla.root=DIR --out SHARDS` "
+                  "and `resim train reward --shards SHARDS --out OUT` (docs/reward.md)")
+REMOVED_FLAGS = {"carla": ("--carla", ""),
+                 "clip_frames": ("--clip-frames", " (clip length: the pipeline's clip.num_history_frames + "
+                                                  "clip.num_future_frames)"),
+                 "clip_stride_frames": ("--clip-stride-frames", " (the pipeline's clip.stride_frames)"),
+                 "hold_last": ("--hold-last", " (the pipeline's clip.max_held_frames)")}
+
+
+def _removed_flag(args) -> str | None:
+    """The one-line error for a flag of the old CARLA-folder path, or None."""
+    for dest, (flag, instead) in REMOVED_FLAGS.items():
+        if getattr(args, dest, None) not in (None, False):
+            return f"{flag} was removed{instead}; {PIPELINE_FIRST}"
+    return None
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from pipelines.sources.episode import SourceError
     from resim import config as rconfig
     from shards.reader import ShardReadError, iter_samples
     from training.reward.backbone import BackboneError
@@ -135,17 +153,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from training.reward.train import SplitError, prepare_training, train_reward
 
     prog = "resim train reward"
+    removed = _removed_flag(args)
+    if removed:
+        print(f"{prog}: error: {removed}", file=sys.stderr)
+        return 2
     cfg = _train_cfg_or_none(args, prog)
     if cfg is None:
         return 2
-    if bool(args.shards) == bool(args.carla):
-        print(f"{prog}: error: pass exactly one of --shards DIR or --carla DIR", file=sys.stderr)
-        return 2
-    carla_only = [f for f, v in (("--clip-frames", args.clip_frames), ("--clip-stride-frames", args.clip_stride_frames),
-                                 ("--hold-last", args.hold_last or None)) if v is not None]
-    if args.shards and carla_only:
-        print(f"{prog}: error: {' and '.join(carla_only)} {'applies' if len(carla_only) == 1 else 'apply'} only with --carla (clips of a shard dataset are the "
-              f"dataset's samples, cut by `resim pipeline run`)", file=sys.stderr)
+    if not args.shards:
+        print(f"{prog}: error: --shards DIR is required (a dataset written by `resim pipeline run`)", file=sys.stderr)
         return 2
     from training.run import REWARD_RUN_FILES, RunFolderError, check_out_dir, remove_run
 
@@ -154,16 +170,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except RunFolderError as e:
         print(f"{prog}: {e}", file=sys.stderr)
         return 2
-    src = args.shards or args.carla
+    src = args.shards
     if not Path(src).is_dir():
         print(f"{prog}: error: {src}: no such folder", file=sys.stderr)
         return 1
     try:
-        if args.shards:
-            clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
-        else:
-            clips = _carla_clips(args)
-    except (ShardReadError, ClipError, SourceError) as e:   # corrupt shard, dino.npy without dino_id, bad root
+        clips = list(clips_from_samples(iter_samples(args.shards, attach_prompts=False, latent_as="stored")))
+    except (ShardReadError, ClipError) as e:   # corrupt shard, dino.npy without dino_id
         print(f"{prog}: error: {src}: {e}", file=sys.stderr)
         return 1
     if not clips:
@@ -197,38 +210,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-CARLA_CLIP_FRAMES = 40         # --clip-frames default (4 s at 10 Hz)
-CARLA_CLIP_STRIDE_FRAMES = 20  # --clip-stride-frames default
-
-
-def _carla_clips(args):
-    """Clips cut straight from CARLA-layout route folders (Bench2Drive / `resim synth` OUT/carla) through
-    pipelines.sources.carla.CarlaReader; routes the reader refuses are named and left out."""
-    from pipelines.sources.carla import CarlaConfig, CarlaReader
-    from pipelines.sources.episode import SourceError
-    from tqdm import tqdm
-
-    from training.reward.data import clips_from_episode
-
-    reader = CarlaReader(CarlaConfig(root=args.carla))
-    clip_frames = args.clip_frames if args.clip_frames is not None else CARLA_CLIP_FRAMES
-    stride = args.clip_stride_frames if args.clip_stride_frames is not None else CARLA_CLIP_STRIDE_FRAMES
-    clips, short = [], []
-    for item in tqdm(reader.list_items(), desc="routes", unit="route", disable=args.no_progress):
-        try:
-            got = clips_from_episode(reader.open(item), clip_frames, stride, hold_last=args.hold_last)
-        except SourceError as e:
-            print(f"skipped route {item}: {e}", file=sys.stderr)
-            continue
-        if not got:
-            short.append(item)
-        clips += got
-    if short:  # named, not silently dropped: these are mostly early-crash hazards (the episode ends 2 s after)
-        print(f"{len(short)} routes are shorter than --clip-frames {clip_frames} and gave no clip "
-              f"(--hold-last keeps them): {', '.join(short)}", file=sys.stderr)
-    return clips
-
-
 def _add_cfg_args(p):
     p.add_argument("--preset", default="tiny", help="named preset: tiny (placeholder backbone, 56 px), synthetic (tiny, 8 frames every 11 = whole 8 s synth episode, temporal_diff) or resim (224 px)")
     p.add_argument("--config", default=None, help="YAML RewardTrainConfig file applied over the preset")
@@ -246,15 +227,14 @@ def add_train_parser(sub) -> None:
     """`resim train reward ...` (registered by training/cli.py under `train`)."""
     t = sub.add_parser("reward", help="train Video2Reward on the labelled clips of a shard dataset",
                        description=TRAIN_DESCRIPTION)
-    t.add_argument("--shards", default=None, help="shard dataset folder (labelled clips: infraction_score set)")
-    t.add_argument("--carla", default=None, help="or a CARLA-layout folder (Bench2Drive routes + results json, "
-                   "e.g. `resim synth` OUT/carla): clips are cut from each route, labelled with its infraction score")
-    t.add_argument("--clip-frames", type=_positive_int, default=None,
-                   help=f"with --carla only: frames per clip (default {CARLA_CLIP_FRAMES} = 4 s)")
-    t.add_argument("--clip-stride-frames", type=_positive_int, default=None,
-                   help=f"with --carla only: frames between clip starts (default {CARLA_CLIP_STRIDE_FRAMES})")
-    t.add_argument("--hold-last", action="store_true", help="with --carla only: a route shorter than --clip-frames "
-                   "(episodes end early after a crash) gives one clip with its last frame held, instead of none")
+    t.add_argument("--shards", default=None, help="shard dataset folder (labelled clips: infraction_score set); "
+                   "CARLA routes become one with `resim pipeline run configs/pipeline/carla-reward.yaml`")
+    # the old CARLA-folder path: hidden, and refused with the two commands that replace it (_removed_flag)
+    for dest, (flag, _) in REMOVED_FLAGS.items():
+        if dest == "hold_last":
+            t.add_argument(flag, dest=dest, action="store_true", help=argparse.SUPPRESS)
+        else:
+            t.add_argument(flag, dest=dest, default=None, help=argparse.SUPPRESS)
     t.add_argument("--out", required=True, help="output folder (trainer logs and loss curve under OUT/trainer); "
                    "a folder holding a reward run is refused unless --overwrite, one holding another kind of run always")
     t.add_argument("--overwrite", action="store_true", help="--out holds a reward run: delete it (checkpoint, "
