@@ -31,12 +31,13 @@ import signal
 import time
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
 import torch.distributed.checkpoint as dcp
 from torch.distributed.checkpoint import DefaultLoadPlanner, FileSystemReader, FileSystemWriter
+from torch.distributed.checkpoint._nested_dict import flatten_state_dict   # the keys DCP saves a state under
 
 from shards.fsio import fsync_dir
 
@@ -257,21 +258,44 @@ def save(run_dir: str | Path, step: int, state: dict[str, Any], *, rank_state: d
     return final
 
 
-def load(path: str | Path, state: dict[str, Any], *, rank: int) -> tuple[dict, dict | None]:
+def load(path: str | Path, state: dict[str, Any], *, rank: int,
+         legacy_name: Callable[[str], str] | None = None) -> tuple[dict, dict | None]:
     """Load ``state`` in place from checkpoint ``path``; return (meta, this rank's rank_state or None).
 
     ``rank_state`` is None when the checkpoint was written by fewer ranks than this run has
     (a resharded resume: weights and optimizer load, RNG / data position start fresh).
+    ``legacy_name``: a parameter's name in checkpoints of an older version of the model (LoRA before peft:
+    ``training.models.lora.pre_peft_name``); such a checkpoint is read under those names.
     """
     p = Path(path)
     if not (p / "meta.json").is_file():
         raise CheckpointError(f"{p} is not a complete checkpoint (no meta.json)")
     reader = SafeFileSystemReader(p)
-    reader.read_metadata()  # refuse foreign pickles here, with our message (DCP would wrap the error)
+    saved = reader.read_metadata().state_dict_metadata  # refuse foreign pickles here, with our message
+    target, back = state, {}
+    if legacy_name is not None and not set(flatten_state_dict(state)[0]) <= set(saved):
+        def to_old(name: str) -> str:
+            back[legacy_name(name)] = name
+            return legacy_name(name)
+        old = _renamed(state, to_old)
+        if set(flatten_state_dict(old)[0]) <= set(saved):
+            target = old
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="torch.distributed is disabled")
-        dcp.load(state, storage_reader=reader, planner=SafeLoadPlanner())
+        dcp.load(target, storage_reader=reader, planner=SafeLoadPlanner())
+    if target is not state:   # tensors were filled in place; the optimizer's param_groups were replaced
+        state.update(_renamed(target, lambda n: back.get(n, n)))
     meta = json.loads((p / "meta.json").read_text())
     rs_path = p / f"rank_{rank}.json"
     rank_state = json.loads(rs_path.read_text()) if rs_path.is_file() else None
     return meta, rank_state
+
+
+def _renamed(obj: Any, name: Callable[[str], str]) -> Any:
+    """``obj`` (nested dicts and lists) with every string key and every string in a list (the optimizer's
+    ``param_groups[i]["params"]``) passed through ``name``; the same tensor objects."""
+    if isinstance(obj, dict):
+        return {(name(k) if isinstance(k, str) else k): _renamed(v, name) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [name(v) if isinstance(v, str) else _renamed(v, name) for v in obj]
+    return obj

@@ -243,7 +243,8 @@ class Trainer:
     def _load(self, path: Path, data) -> int:
         from torch.distributed.checkpoint.state_dict import set_state_dict
         state = self._state()
-        meta, rank_state = ckpt.load(path, state, rank=self.env.rank)
+        meta, rank_state = ckpt.load(path, state, rank=self.env.rank,
+                                     legacy_name=getattr(self.model, "legacy_param_name", None))
         set_state_dict(self.lm, self.optimizer, model_state_dict=state["model"], optim_state_dict=state["optim"])
         if self.ema:
             self.ema.load_state_dict(state["ema"])

@@ -25,6 +25,7 @@ from training.diffusion.config import ObjectiveConfig
 from training.diffusion.losses import training_losses
 from training.models.config import check_noise_levels
 from training.models.dit import NEW_MODULE_PREFIXES, WorldModel
+from training.models.lora import add_lora, is_lora_param, pre_peft_name, to_peft_layout
 
 
 @dataclass
@@ -64,6 +65,9 @@ class TrainableWorldModel(WorldModel):
         objective = objective if objective is not None else ObjectiveConfig()
         return super().from_cogvideox(src, causal=causal, num_train_timesteps=objective.schedule.num_train_timesteps,
                                       init_kwargs={"objective": objective}, **overrides)
+
+    # parameter names in checkpoints written before LoRA moved to peft, for resuming them (training.checkpoint.load)
+    legacy_param_name = staticmethod(pre_peft_name)
 
     def loss(self, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
         """The diffusion objective on one batch (``training.diffusion.training_losses``)."""
@@ -127,7 +131,6 @@ class TrainableWorldModel(WorldModel):
 
 
 def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> TrainableWorldModel:
-    from training.lora import apply_lora
     from training.models.config import preset as model_preset
 
     cfg = from_dict(WorldTrainConfig, model_cfg, prefix="model")
@@ -140,12 +143,12 @@ def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> Train
         with torch.device(device):
             model = TrainableWorldModel(model_preset(cfg.preset, **cfg.overrides), objective=objective)
     if cfg.lora_rank:
-        apply_lora(model.transformer_blocks, cfg.lora_targets, cfg.lora_rank, cfg.lora_alpha or float(cfg.lora_rank))
+        add_lora(model, cfg.lora_targets, cfg.lora_rank, cfg.lora_alpha or float(cfg.lora_rank))
     if cfg.init_weights is not None:
         _load_init(model, Path(cfg.init_weights))
     for n, p in model.named_parameters():
         is_new = n.startswith(NEW_MODULE_PREFIXES)
-        is_lora = n.endswith((".lora_A", ".lora_B"))
+        is_lora = is_lora_param(n)
         p.requires_grad_({"all": True, "dit": not is_new and not is_lora, "lora+new": is_new or is_lora,
                           "new": is_new}[cfg.trainable])
     # frozen DiT + LoRA: some blocks' frozen params are unused by DDP's reducer only if nothing trains there
@@ -160,9 +163,9 @@ def _load_init(model: torch.nn.Module, path: Path) -> None:
 
     if not path.is_file():
         raise ConfigError(f"model.init_weights={path} does not exist (expected RUN_DIR/final/model.safetensors)")
-    sd = load_file(str(path))
+    sd = to_peft_layout(load_file(str(path)), model)   # a stage-1 file, or LoRA in the pre-peft layout
     own = model.state_dict()
-    missing = [k for k in own if k not in sd and not k.endswith((".lora_A", ".lora_B"))
+    missing = [k for k in own if k not in sd and not is_lora_param(k)
                and not k.startswith(NEW_MODULE_PREFIXES)]
     unexpected = [k for k in sd if k not in own]
     bad = [k for k in sd if k in own and tuple(sd[k].shape) != tuple(own[k].shape)]

@@ -1,4 +1,4 @@
-"""LoRA (peft) trainability and merging; CogVideoX-2B size on the meta device; trajectory → actions."""
+"""LoRA (peft): targets, zero start, gradients, merging; CogVideoX-2B size on the meta device; trajectory → actions."""
 import math
 
 import pytest
@@ -7,7 +7,10 @@ import torch
 from training.models.conditioning import actions_from_trajectory
 from training.models.config import config_from_cogvideox, preset
 from training.models.dit import NEW_MODULE_PREFIXES, WorldModel
-from training.models.lora import LoraSettings, add_lora, lora_state_dict, merge_lora
+from training.models.lora import add_lora, is_lora_param, merge_lora
+from training.world import build_world
+
+from .conftest import randomize_new_modules
 
 
 def _inputs(b=2, t=3):
@@ -16,41 +19,57 @@ def _inputs(b=2, t=3):
             torch.randn(b, 16, 64, generator=g), torch.randn(b, 8, 3, generator=g), torch.randn(b, t, 3, generator=g))
 
 
-def test_lora_trainable_set_and_merge(cogvideox):
-    model = add_lora(WorldModel.from_cogvideox(cogvideox, causal=True), LoraSettings(rank=4, alpha=8.0)).eval()
-    names = {n for n, p in model.named_parameters() if p.requires_grad}
-    assert names and all("lora_" in n or n.startswith(NEW_MODULE_PREFIXES) for n in names)
-    lora_names = [n for n in names if "lora_" in n]
-    for target in ("to_q", "to_k", "to_v", "to_out.0", "ff.net.0.proj", "ff.net.2"):
-        assert any(f".{target}.lora_A" in n for n in lora_names), target
-    assert not any(n.startswith("trajectory_encoder") and "lora_" in n for n in lora_names)
-    assert any(n.startswith("trajectory_encoder.") for n in names)
-    frozen = [n for n, p in model.named_parameters() if not p.requires_grad]
-    assert "transformer_blocks.0.attn1.to_q.base_layer.weight" in frozen and "proj_out.weight" in frozen
-    assert set(lora_state_dict(model)) == names
+TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "ff.net.0.proj", "ff.net.2")   # diffusers' CogVideoX LoRA targets
 
+
+def test_lora_targets_start_and_merge(cogvideox):
+    model = WorldModel.from_cogvideox(cogvideox, causal=True).eval()
     x, t, text, traj, act = _inputs()
+    randomize_new_modules(model)
+    with torch.no_grad():
+        before = model(x, t, text, traj, act)
+    wrapped = add_lora(model, TARGETS, rank=4, alpha=8.0)
+    assert len(wrapped) == len(TARGETS) * len(model.transformer_blocks)
+    lora_names = [n for n, _ in model.named_parameters() if is_lora_param(n)]
+    for target in TARGETS:
+        assert any(f".{target}.lora_A.default.weight" in n for n in lora_names), target
+    assert all(n.startswith("transformer_blocks.") for n in lora_names)   # not the trajectory encoder's linears
+    q = model.transformer_blocks[0].attn1.to_q
+    assert q.scaling["default"] == 2.0 and tuple(q.lora_A["default"].weight.shape) == (4, q.in_features)
+    assert "transformer_blocks.0.attn1.to_q.base_layer.weight" in model.state_dict()
     with torch.no_grad():
         plain = model(x, t, text, traj, act)
-        for n, p in model.named_parameters():   # LoRA B starts at 0: give the adapters an effect
-            if "lora_B" in n or n.startswith(("trajectory_encoder.head", "action_encoder.proj_out")):
+        torch.testing.assert_close(plain, before, rtol=0, atol=0)   # B starts at 0: the output is unchanged
+        for n, p in model.named_parameters():   # give the adapters an effect
+            if ".lora_B." in n:
                 p.normal_(0, 0.05)
         adapted = model(x, t, text, traj, act)
         assert (adapted - plain).abs().max() > 1e-4
         merge_lora(model)
-        assert not any("lora_" in n for n, _ in model.named_parameters())
-        assert isinstance(model.transformer_blocks[0].attn1.to_q, torch.nn.Linear)
+        assert not any(is_lora_param(n) for n, _ in model.named_parameters())
+        assert type(model.transformer_blocks[0].attn1.to_q) is torch.nn.Linear
         merged = model(x, t, text, traj, act)
     assert (merged - adapted).abs().max().item() <= 1e-5
 
 
-def test_lora_gradients_reach_only_trainables(cogvideox):
-    model = add_lora(WorldModel.from_cogvideox(cogvideox, causal=True), LoraSettings(rank=2))
+def test_lora_matches_no_layer_is_an_error(cogvideox):
+    model = WorldModel.from_cogvideox(cogvideox, causal=True)
+    with pytest.raises(ValueError, match="to_qq"):
+        add_lora(model, ("to_qq",), rank=4, alpha=4.0)
+    with pytest.raises(ValueError, match="rank"):
+        add_lora(model, ("to_q",), rank=0, alpha=4.0)
+
+
+def test_lora_gradients_reach_only_trainables():
+    torch.manual_seed(0)
+    model = build_world({"preset": "tiny", "lora_rank": 2, "trainable": "lora+new"})
     x, t, text, traj, act = _inputs()
     model(x, t, text, traj, act).square().mean().backward()
     assert all(p.grad is None for p in model.parameters() if not p.requires_grad)
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for n, p in model.named_parameters() if "lora_A" in n
-               or "trajectory_encoder.head" in n)
+    # B = 0 at the start: B gets gradients (A does not yet), as do the new modules
+    assert all(p.grad.abs().sum() > 0 for n, p in model.named_parameters() if ".lora_B." in n)
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for n, p in model.named_parameters()
+               if n.startswith("trajectory_encoder.head"))
 
 
 def test_cogvideox_2b_on_meta_device():

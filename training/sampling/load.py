@@ -26,6 +26,7 @@ import yaml
 from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
 from resim.config import from_dict, safe_yaml
 from training.diffusion.config import ObjectiveConfig
+from training.models.lora import to_peft_layout
 
 
 class SamplingInputError(ValueError):
@@ -78,7 +79,7 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
                                  f"({e})") from e
     builder = f"registry:{name}"
     weights = d / "ema.safetensors" if prefer_ema and (d / "ema.safetensors").is_file() else d / "model.safetensors"
-    state = load_file(str(weights))
+    state = to_peft_layout(load_file(str(weights)), model)   # LoRA saved before peft: its keys renamed
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise SamplingInputError(f"checkpoint {weights}: does not fit the model built from its config "

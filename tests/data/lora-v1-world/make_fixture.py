@@ -1,6 +1,6 @@
 """How ``tests/data/lora-v1-world/`` was made: a tiny world model with LoRA, written by the hand-written
-``training.lora.LoRALinear`` that ``build_world`` used before LoRA moved to peft (run at commit c972fdd, the
-last with ``training/lora.py``; it cannot run after that, which is the point: the files are the old format).
+``training.lora.LoRALinear`` that ``build_world`` used before LoRA moved to peft (run on commit c972fdd; it cannot
+run once ``training/lora.py`` is gone, which is the point: the files keep the old format).
 
 * ``config.yaml``: the run config's ``model_name`` + ``model`` section (what ``load_world_model`` reads).
 * ``model.safetensors``: the model's ``state_dict()``, as the trainer exports ``final/model.safetensors``
