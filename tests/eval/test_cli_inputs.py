@@ -10,11 +10,10 @@ import yaml
 from resim.cli import main
 from resim.config import ConfigError
 from shards.schema import ClipSpec
-from training.eval.synthetic import PlaneWorldConfig, write_synthetic_shards
 
 
 @pytest.fixture(scope="module")
-def ds(tmp_path_factory):
+def ds(tmp_path_factory, road_world):
     """2 episodes x one 21-frame clip (9 history + 12 future), and two IDM runs: one whose window fits the clips,
     one (the tiny preset: 21 frames every 2 after the history) that needs 49-frame clips."""
     from safetensors.torch import save_file
@@ -25,7 +24,7 @@ def ds(tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("evalinputs")
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
-    write_synthetic_shards(root / "ds", PlaneWorldConfig(episodes=2, frames_per_episode=21, seed=1), spec)
+    road_world.write_shards(root / "ds", 2, 21, seed=1, spec=spec)
     for name, cfg in (("idm-fits", idm_preset("tiny", future_frames=12, num_frames=7)), ("idm-49", idm_preset("tiny"))):
         d = root / name / "final"
         d.mkdir(parents=True)
@@ -60,11 +59,7 @@ def test_malformed_values_are_usage_errors(ds, capsys):
     _usage_error(capsys, ["eval", "quality", *_world(ds, "--steps", "0")], "--steps: must be >= 1")  # was: 50 steps
     _usage_error(capsys, ["eval", "quality", *_world(ds, "--limit", "0")], "--limit: must be >= 1")  # was: all clips
     _usage_error(capsys, ["eval", "control", *_world(ds, "--limit", "-1"), "--idm", "x"], "--limit: must be >= 1")
-    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--size", "32"], "expected HxW")  # was ValueError
-    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--size", "32xabc"], "expected HxW")
-    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--clip-stride", "0"], "must be >= 1")
-    _usage_error(capsys, ["eval", "synth", "--out", str(ds / "s"), "--episodes", "0"], "must be >= 1")
-    assert not (ds / "out").exists() and not (ds / "s").exists()
+    assert not (ds / "out").exists()
 
 
 def test_bad_heldout_list_and_weight_files(ds, tmp_path, capsys):
@@ -111,17 +106,6 @@ def test_idm_training_says_why_no_clip_is_usable(ds, tmp_path, capsys):
     assert not out.exists()
 
 
-def test_synth_refuses_configs_that_write_nothing(tmp_path, capsys):
-    # an episode shorter than one 49-frame clip: used to print "wrote 0 clips" and exit 0
-    assert main(["eval", "synth", "--out", str(tmp_path / "s"), "--frames-per-episode", "20"]) == 2
-    _error(capsys, "frames_per_episode 20 is shorter than one clip of 49 frames")
-    assert not (tmp_path / "s").exists()
-    with pytest.raises(ConfigError, match="clip_stride_frames must be >= 1"):   # was a range() traceback
-        PlaneWorldConfig(clip_stride_frames=0)
-    with pytest.raises(ConfigError, match="fps_hz"):
-        PlaneWorldConfig(fps_hz=float("nan"))
-
-
 def test_idm_configs_validate_without_dividing_by_zero():
     from training.eval.idm import idm_preset
     from training.eval.idm_train import IDMTrainConfig
@@ -161,26 +145,6 @@ def test_cuda_message_names_the_way_out(ds, capsys):
            + "; use --device cpu")
 
 
-def test_synth_into_an_existing_folder(tmp_path, capsys):
-    """Was a ShardExistsError traceback telling the user to pass overwrite=True (a Python argument the CLI
-    lacked), after the prompt table had already been replaced."""
-    out = tmp_path / "s"
-    small = ["--episodes", "1", "--frames-per-episode", "49"]
-    assert main(["eval", "synth", "--out", str(out), *small]) == 0
-    capsys.readouterr()
-    assert main(["eval", "synth", "--out", str(out), *small, "--seed", "1"]) == 2
-    _error(capsys, "exists and is not empty (use --overwrite to replace it)")
-    assert main(["eval", "synth", "--out", str(out), *small, "--seed", "1", "--overwrite"]) == 0
-    assert "wrote 1 clips" in capsys.readouterr().out
-    assert sorted(p.name for p in out.iterdir()) == ["index", "manifest", "prompts", "shards"]
-    other = tmp_path / "mine"
-    other.mkdir()
-    (other / "notes.txt").write_text("keep me")
-    assert main(["eval", "synth", "--out", str(other), *small, "--overwrite"]) == 2   # not a dataset: not removed
-    _error(capsys, "does not look like a shard dataset")
-    assert (other / "notes.txt").read_text() == "keep me"
-
-
 def _help(capsys, argv):
     with pytest.raises(SystemExit) as e:
         main([*argv, "--help"])
@@ -198,8 +162,5 @@ def test_help_describes_each_command(capsys):
     # the quality example runs without downloaded weights: placeholder networks and an IDM run made first
     q = _help(capsys, ["eval", "quality"])
     assert "--allow-placeholder-networks" in q and "resim eval idm --shards DATA --out runs/idm" in q
-    s = _help(capsys, ["eval", "synth"])
-    assert "resim eval synth --out" in s and "episodes to render (default 24)" in s and "--overwrite" in s
-    assert "OUT/shards" in s
     i = _help(capsys, ["eval", "idm"])
     assert all(name in i for name in IDM_PRESETS), i                      # was: "tiny, small (default)"

@@ -9,7 +9,7 @@ from resim.config import ConfigError
 from shards.testing import dummy_trajectory
 from training.eval.idm import InverseDynamicsModel, idm_preset
 from training.eval.idm_train import TrajClip, constant_velocity, load_idm, trajectory_errors
-from training.eval.synthetic import PlaneWorldConfig, future_waypoints, make_clips
+from labeling.trajectory import trajectory_from_poses
 
 
 def test_windows():
@@ -57,7 +57,9 @@ def test_trajectory_errors_and_constant_velocity_closed_form():
     assert trajectory_errors(cv[1:], gt[1:])["fde_m"] > 1.0
 
 
-def test_synthetic_waypoints_match_constant_curvature_closed_form():
+def test_pose_waypoints_match_the_dummy_trajectorys_closed_form():
+    """The shards' trajectories (labeling.trajectory_from_poses, as the pipeline and the road-world fixture make
+    them) and shards.testing.dummy_trajectory agree on a constant-curvature drive."""
     v, yaw_total_deg, fps = 8.0, 24.0, 10.0
     rate = np.deg2rad(yaw_total_deg) / 4.0
     t = np.arange(0, 50) / fps
@@ -66,12 +68,12 @@ def test_synthetic_waypoints_match_constant_curvature_closed_form():
     x = 5.0 + v / rate * (np.sin(yaw) - np.sin(th0))
     y = -2.0 - v / rate * (np.cos(yaw) - np.cos(th0))
     poses = np.stack([x, y, yaw], -1)
-    got = future_waypoints(poses, 0, fps)
+    got = trajectory_from_poses(poses, 0, fps)
     assert np.allclose(got, dummy_trajectory(yaw_total_deg, speed_mps=v), atol=1e-4)
 
 
-def test_synthetic_clips_render_and_move():
-    clips = make_clips(PlaneWorldConfig(episodes=1, frames_per_episode=49, seed=2))
+def test_road_world_clips_render_and_move(road_world):
+    clips = road_world.clips(1, 49, seed=2)
     assert len(clips) == 1
     c = clips[0]
     assert c["frames"].shape == (49, 32, 48, 3) and c["frames"].dtype == np.uint8
@@ -130,7 +132,7 @@ def test_mirror_augmentation_flips_frames_and_negates_y_and_yaw():
     assert torch.equal(b["trajectory"][0], torch.from_numpy(traj))
 
 
-def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):
+def test_early_stopping_keeps_the_best_validation_epoch(tmp_path, road_world):
     """fit() with validation clips: the record lists every epoch and the weights left in the model (and in
     final/) are the best epoch's, not the last one's."""
     from safetensors.torch import load_file
@@ -138,7 +140,7 @@ def test_early_stopping_keeps_the_best_validation_epoch(tmp_path):
     from training.eval.idm_train import IDMTrainConfig, collate, fit, load_idm, predict
 
     clips = [{"item_id": c["item_id"], "frames": c["frames"], "traj": c["traj"]}
-             for c in make_clips(PlaneWorldConfig(episodes=3, frames_per_episode=59, seed=4))]
+             for c in road_world.clips(3, 59, seed=4)]
     tc = [TrajClip(f"k{i}", c["item_id"], c["frames"], c["traj"], 9, 10.0) for i, c in enumerate(clips)]
     torch.set_num_threads(1)
     torch.manual_seed(0)

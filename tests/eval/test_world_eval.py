@@ -9,18 +9,17 @@ import yaml
 
 from resim.cli import main
 from shards.schema import ClipSpec
-from training.eval.synthetic import PlaneWorldConfig, write_synthetic_shards
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
+def world(tmp_path_factory, road_world):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("evalworld")
     ds = root / "ds"
     # short clips keep the (CPU-slow) VAE decode cheap: 9 history + 12 future frames (6 latent frames), the
     # 8 waypoints every 0.15 s spanning the 12 future frames
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
-    write_synthetic_shards(ds, PlaneWorldConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1), spec)
+    road_world.write_shards(ds, 2, 21, clip_stride_frames=10, seed=1, spec=spec)
     # a world-model "run" in the trainer's export layout (random init: plumbing, not quality)
     from safetensors.torch import save_file
 
@@ -213,13 +212,12 @@ def test_limit_zero_is_an_error_not_all_clips(tmp_path):
         eval_clips_from_dataset(tmp_path / "nope")
 
 
-def test_commands_command_reports_the_labeler_through_the_vae(world, capsys):
+def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, road_world):
     root, _ = world
     # frames at the size the tiny VAE decodes to (8x its latents), as the pipeline stores them
     ds = root / "ds-vae-size"
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
-    write_synthetic_shards(ds, PlaneWorldConfig(episodes=2, frames_per_episode=21, clip_stride_frames=10, seed=1,
-                                           frames_hw=(64, 96)), spec)
+    road_world.write_shards(ds, 2, 21, clip_stride_frames=10, seed=1, frames_hw=(64, 96), spec=spec)
     out = root / "commands"
     assert main(["eval", "commands", *_common(root, ds, out), "--all-clips"]) == 0
     rep = json.loads((out / "commands.json").read_text())

@@ -11,6 +11,7 @@ from pipelines.sources.navsim import NavsimConfig, NavsimReader
 from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
 from pipelines.sources.synth.generate import generate, preset
 from pipelines.sources.synth.ground_truth import GroundTruth, window_commands
+from resim.config import ConfigError
 
 
 def readers(d):
@@ -127,3 +128,22 @@ def test_random_explorer_drives_past_its_64_random_segments():
     rng = np.random.default_rng(3)
     trace = simulate(build_road(rng, 80.0, 8.0), 80.0, 10.0, rng, "explorer", "random")
     assert len(trace.t_s) > 0 and np.isfinite(trace.poses).all()
+
+
+def test_an_episode_rendered_in_memory_is_the_one_written(synth_dir):
+    """render_episode (the tests' way to the road world without a pipeline run) gives the same expert drive as
+    ``resim synth`` wrote: the same poses exactly, and frames equal to the written JPEGs up to their loss."""
+    from pipelines.sources.synth.generate import render_episode
+
+    gt = GroundTruth.load(synth_dir)
+    e = next(e for e in gt.episodes if e["layout"]["reader"] == "carla" and e["driver"] == "expert")
+    item = e["layout"]["item_id"]
+    frames, poses = render_episode(e["index"], 7, preset("tiny"), fps_hz=10.0)
+    assert np.allclose(poses, gt.poses_for("carla", item), atol=1e-9)
+    written = np.stack(list(readers(synth_dir)["carla"].open(item).frames()))
+    assert written.shape == frames.shape
+    assert np.abs(written.astype(int) - frames).mean() < 4.0                       # JPEG q90
+    other, _ = render_episode(e["index"] + 1, 7, preset("tiny"), fps_hz=10.0)
+    assert np.abs(other[:len(frames)].astype(int) - frames[:len(other)]).mean() > 10.0  # and not any drive
+    with pytest.raises(ConfigError, match="must divide"):
+        render_episode(0, 7, preset("tiny"), fps_hz=3.0)

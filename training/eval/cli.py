@@ -19,7 +19,7 @@ DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
 
 EPILOG = """\
 typical flow (held-out = the episodes the IDM did not train on):
-  resim eval synth --out data/eval-synth --episodes 24            # small rendered world with exact trajectories
+  resim pipeline run configs/pipeline/synthetic.yaml --out DATA     # the synthetic world: exact trajectories
   resim eval idm --shards DATA --out runs/idm                      # IDM (future frames -> 8 waypoints)
   resim eval idm --shards DATA --out runs/vo --window history      # VO-style planner (history only)
   resim eval control  --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
@@ -39,7 +39,8 @@ only with --allow-placeholder-networks (random-init networks, marked as such eve
 
 QUALITY_EPILOG = """\
 examples:
-  resim eval synth --out DATA && resim eval idm --shards DATA --out runs/idm --preset tiny   # the held-out split
+  resim pipeline run configs/pipeline/synthetic.yaml --out DATA       # the synthetic world's shards
+  resim eval idm --shards DATA --out runs/idm --preset tiny            # the IDM and its held-out split
   resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --allow-placeholder-networks                 # no weights needed: random-init networks (plumbing only)
   resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
@@ -97,22 +98,15 @@ Writes OUT/planning.json (ADE/FDE of the video-prediction policy, the VO planner
 IDM on the recorded future; the protocol) and OUT/planning.png (bar chart).
 """
 
-SYNTH_EPILOG = """\
-example:
-  resim eval synth --out data/eval-synth --episodes 24
-
-Writes OUT/shards/*.tar, OUT/manifest/ and OUT/index/ (one clip every --clip-stride frames: 9 history + 40
-future frames with traj.npy) and OUT/prompts/ (a placeholder prompt table).
-"""
-
 # `resim eval idm --preset` (training.eval.idm.IDM_PRESETS; listed here so that --help needs no torch import).
-# Times measured on the 24-episode `resim eval synth` set (168 clips), default epochs, 2 CPU cores shared with
-# other jobs: tiny 166-452 s (tiny-queries 166 s), small about 10 min.
+# Times measured on 168 clips of 32x48 (24 episodes of an earlier ground-plane test world, since replaced by the
+# synthetic road world), default epochs, 2 CPU cores shared with other jobs: tiny 166-452 s (tiny-queries 166 s),
+# small about 10 min.
 IDM_PRESET_NAMES = ["tiny", "tiny-queries", "tiny-history", "small", "small-history"]
 IDM_PRESET_HELP = ("IDM preset: tiny (32x48 input, 48 k parameters, odometry head), tiny-queries (tiny with the "
                    "query head), small (default; 48x80, 151 k parameters, odometry head), tiny-history / "
                    "small-history (history-only VO planner twins; --window history picks them). On 2 CPU cores "
-                   "and the default 24-episode `resim eval synth` set: tiny about 3-7 min, small about 10 min")
+                   "and 168 clips: tiny about 3-7 min, small about 10 min")
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
@@ -251,19 +245,6 @@ def register(subparsers) -> None:
                    help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
     i.set_defaults(func=_cmd_idm)
 
-    s = sub.add_parser("synth", help="render a small world with exact trajectories into shards (IDM data)",
-                       description="Render a small synthetic driving world (32x48 px, 10 Hz) with exact ego "
-                                   "trajectories and write its clips as a shard dataset (tiny-model latents, a "
-                                   "placeholder prompt table): data for `resim eval idm` and the world-model evals.",
-                       epilog=SYNTH_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    s.add_argument("--out", required=True, help="dataset folder to create (must be empty or absent unless --overwrite)")
-    s.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
-    s.add_argument("--episodes", type=_positive_int, default=24, help="episodes to render (default 24)")
-    s.add_argument("--seed", type=int, default=0, help="world seed: the same seed writes the same dataset (default 0)")
-    s.add_argument("--size", type=_hw, default=(32, 48), help="HxW of the frames (default 32x48)")
-    s.add_argument("--clip-stride", type=_positive_int, default=10, help="frames between clip starts (default 10)")
-    s.add_argument("--frames-per-episode", type=_positive_int, default=109, help="episode length in frames (default 109)")
-    s.set_defaults(func=_cmd_synth)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
 
@@ -682,37 +663,4 @@ def _cmd_idm(args) -> int:
     print("held-out:")
     print(_traj_table(res["heldout"]))
     print(f"wrote {Path(args.out) / 'idm_report.json'}, idm_report.png and final/ (weights)")
-    return 0
-
-
-def _cmd_synth(args) -> int:
-    from resim.config import ConfigError
-    from shards.schema import ClipSpec
-    from training.eval.synthetic import PlaneWorldConfig, check_fits, write_synthetic_shards
-
-    try:
-        cfg = PlaneWorldConfig(episodes=args.episodes, seed=args.seed, frames_hw=args.size,
-                          clip_stride_frames=args.clip_stride, frames_per_episode=args.frames_per_episode)
-        per_episode = check_fits(cfg, ClipSpec(fps_hz=cfg.fps_hz))   # "wrote 0 clips" is not a success
-    except ConfigError as e:
-        print(f"resim eval synth: {e}", file=sys.stderr)
-        return 2
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        print(f"resim eval synth: --out {out} is a file, not a folder", file=sys.stderr)
-        return 2
-    if out.is_dir() and any(out.iterdir()):
-        if not args.overwrite:   # was: ShardExistsError traceback ("Pass overwrite=True") after a partial write
-            print(f"resim eval synth: --out {out} exists and is not empty (use --overwrite to replace it)",
-                  file=sys.stderr)
-            return 2
-        if not ((out / "shards").is_dir() or (out / "manifest").is_dir()):
-            print(f"resim eval synth: --out {out} does not look like a shard dataset (no shards/ or manifest/); "
-                  "not removing it", file=sys.stderr)
-            return 2
-        import shutil
-        shutil.rmtree(out)
-    n = write_synthetic_shards(args.out, cfg)
-    assert n == per_episode * cfg.episodes, (n, per_episode)   # our bug if the two counts disagree
-    print(f"wrote {n} clips of {args.episodes} episodes to {args.out}")
     return 0

@@ -13,15 +13,19 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing as mp
 import shutil
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from resim.config import ConfigError, from_dict, to_dict
 
 from .drivers import EXPLORER_PATTERNS, Trace, simulate
+from .ground_truth import command_share
 from .render import Camera, Renderer
 from .score import Score, score_trace
 from .world import LANE_OFFSET_M, World, build_road
@@ -149,14 +153,9 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
     if workers == 1:
         results = map(_make_episode, jobs)
     else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
         pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
         results = pool.map(_make_episode, jobs)   # ordered: output does not depend on scheduling
     if progress:
-        from tqdm import tqdm
-
         results = tqdm(results, total=len(plans), desc="synth episodes", unit="ep")
     gt_eps, csv_rows, records = [], [], []
     try:
@@ -175,7 +174,6 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
         (tmp / "carla").mkdir(exist_ok=True)
         (tmp / "carla" / "simulation_results.json").write_text(
             json.dumps(writers.results_json(records), indent=4), encoding="utf-8")
-    from .ground_truth import command_share
 
     share = command_share(gt_eps)
     gt = {"format": "resim-synth-ground-truth", "version": 1, "seed": seed, "episodes_requested": episodes,
@@ -192,6 +190,24 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
                                                                  for p in PARTS},
                "hazardous": sum(e["driver"] == "explorer" for e in gt_eps), "command_share": share}
     return summary
+
+
+def render_episode(index: int, seed: int, cfg: SynthConfig, fps_hz: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """One expert drive of the world, in memory: what ``resim synth`` writes to files for episode ``index``
+    (same world, same driver), without the layouts, for code that needs frames with exact poses and no
+    pipeline run (tests of the IDM and of the evaluations).
+
+    Returns frames (N, H, W, 3) uint8 RGB and poses (N, 3) float64 [x m, y m, yaw rad unwrapped, left +] in the
+    world frame, both at ``fps_hz`` (which must divide ``cfg.sim_hz``)."""
+    step = cfg.sim_hz / fps_hz
+    if not fps_hz > 0 or abs(step - round(step)) > 1e-9:
+        raise ConfigError(f"fps_hz {fps_hz} must divide the simulation rate {cfg.sim_hz}")
+    plan = EpisodePlan(index, "carla", "expert", None, f"synth_{index:04d}")
+    rng, world, tr, _, _ = _simulate_episode(plan, seed, cfg)
+    renderer = Renderer(world, Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg), rng)
+    steps = list(range(0, len(tr.t_s), int(round(step))))
+    frames = np.stack([renderer.render(tr.poses[s], tr.t_s[s]) for s in steps])
+    return frames, tr.poses[steps].astype(np.float64)
 
 
 def _make_episode(job):
