@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import textwrap
+from pathlib import Path
 
 
 def _int_at_least(text: str, low: int) -> int:
@@ -80,8 +81,6 @@ def torch_device(text: str) -> str:
 
 def local_dir(text: str) -> str:
     """An existing local folder (model weights/configs): never a hub id, so nothing is downloaded by mistake."""
-    from pathlib import Path
-
     p = Path(text).expanduser()
     if not p.is_dir():
         what = "a file, not a folder" if p.exists() else "no such folder"

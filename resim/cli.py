@@ -12,6 +12,8 @@ import importlib
 import os
 import sys
 
+from resim import __version__
+
 # (module defining register(subparsers)); order = order in --help
 COMMANDS: list[str] = [
     "pipelines.sources.cli",
@@ -52,7 +54,6 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    from resim import __version__
 
     parser.add_argument("--version", action="version", version=f"resim {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -90,8 +91,6 @@ def _stdout_closed() -> int:
     """``resim ... | head``: the reader left. Quiet exit, the usual Python way
     (https://docs.python.org/3/library/signal.html#note-on-sigpipe): point stdout at devnull so the
     interpreter's last flush does not raise again, and exit 141 (128 + SIGPIPE) like a C tool would."""
-    import os
-
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())

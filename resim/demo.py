@@ -24,13 +24,15 @@ import argparse
 import hashlib
 import html
 import json
+import os
 import shutil
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from resim.config import ConfigError, from_dict, save, to_dict
+from resim.cli import main
+from resim.config import ConfigError, apply_overrides, from_dict, save, to_dict
 from resim.models import shipped_model
 
 REPO = Path(__file__).resolve().parents[1]
@@ -115,8 +117,6 @@ class Step:
         return m.get("argv") == self.argv and m.get("upstream", "") == upstream
 
     def run(self, upstream: str = "") -> float:
-        from resim.cli import main
-
         if self.dir.exists():
             shutil.rmtree(self.dir)  # an unfinished earlier attempt: start the step over
         t0 = time.perf_counter()
@@ -155,7 +155,7 @@ class StepRunner:
 
 def pick_history_key(shards_dir: Path) -> str:
     """A held sample with a trajectory (NAVSIM/CARLA-like), preferring a turning clip, for rollouts/planning."""
-    from shards.manifest import read_manifest
+    from shards.manifest import read_manifest   # pyarrow: not at the top, every `resim` call imports this module
 
     rows = read_manifest(shards_dir).to_pylist()
     if not rows:
@@ -444,11 +444,10 @@ def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False) -> Path:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    import os
-
     # The demo's models are tiny: thread synchronisation costs more than it saves. Measured on the 2-core
     # dev machine with the other core busy: a tiny world-model step took 33 ms on 1 thread, 1.5 s on 2.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    # torch after OMP_NUM_THREADS is set, and not at the top: every `resim` call imports this module
     import torch
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
@@ -456,7 +455,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     data = dict(PRESETS[args.preset])
-    from resim.config import apply_overrides
 
     try:
         apply_overrides(data, args.overrides)
