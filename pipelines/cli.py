@@ -1,13 +1,26 @@
 """`resim pipeline run|check|submit|status|logs`: the Ray data pipeline from the command line.
 
-Light at import time (argparse only); Ray, torch and OpenCV are imported inside the handlers.
+Light at import time (argparse, PyYAML and the pipeline's light modules): every `resim` call imports this
+module to register its subcommands, so the runner and what it pulls in (Ray, torch, OpenCV, numpy) are imported
+inside the handlers that need them, to keep `resim --help` fast.
 """
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
+from dataclasses import replace
+from pathlib import Path
 
+import yaml
+
+from pipelines import submit
+from pipelines.config import to_dict
+from pipelines.out_lock import OutBusy
+from pipelines.ray_connect import ClusterError
+from pipelines.video_preflight import opendv_warnings
 from resim.argtypes import wrap as _wrap
+from resim.config import ConfigError
 
 RUN_EPILOG = """\
 examples:
@@ -63,8 +76,6 @@ RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "pro
 def foreign_out(out) -> str | None:
     """What makes ``out`` a non-empty folder that is not a pipeline output ("a, b, ..."; None when it is absent,
     empty, or written by `resim pipeline run`: config_hash.txt is stamped before any other output)."""
-    from pathlib import Path
-
     from shards.layout import foreign_entries
 
     return None if (Path(out) / "config_hash.txt").is_file() else foreign_entries(out, RUN_OUTPUT_NAMES)
@@ -83,14 +94,9 @@ JOB_ERRORS = (OSError, ValueError, RuntimeError)
 
 
 def _cmd_run(args) -> int:
-    import logging
-
     from pipelines import runner
-    from pipelines.out_lock import OutBusy
-    from pipelines.ray_connect import ClusterError
     from pipelines.report import format_summary
     from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
-    from resim.config import ConfigError
 
     logging.basicConfig(level=logging.INFO, format="[pipeline] %(message)s")
     try:
@@ -100,8 +106,6 @@ def _cmd_run(args) -> int:
             raise ConfigError(f"out: {cfg.out} is not empty and is not a pipeline output (it holds {shown}); "
                               "give an empty or new folder (or --force to write into it anyway)")
         if args.no_progress:
-            from dataclasses import replace
-
             cfg = replace(cfg, ray=replace(cfg.ray, progress_bars=False))
         res = runner.run(cfg, force=args.force)
     except ConfigError as e:
@@ -123,12 +127,6 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_check(args) -> int:
-    import yaml
-
-    from pipelines.config import to_dict
-    from pipelines.video_preflight import opendv_warnings
-    from resim.config import ConfigError
-
     try:
         cfg = _load(args)
     except ConfigError as e:
@@ -141,9 +139,6 @@ def _cmd_check(args) -> int:
 
 
 def _cmd_submit(args) -> int:
-    from pipelines import submit
-    from resim.config import ConfigError
-
     try:
         cfg = _load(args)
     except ConfigError as e:
@@ -166,8 +161,6 @@ def _cmd_submit(args) -> int:
 
 
 def _cmd_status(args) -> int:
-    from pipelines import submit
-
     try:
         print(submit.status(args.address, args.job_id))
     except JOB_ERRORS as e:
@@ -176,8 +169,6 @@ def _cmd_status(args) -> int:
 
 
 def _cmd_logs(args) -> int:
-    from pipelines import submit
-
     try:
         if args.follow:
             submit.follow_logs(args.address, args.job_id)

@@ -20,6 +20,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from media.frames import cover_size, rate_step
 from pipelines import quarantine
@@ -116,6 +117,7 @@ class _Frames:
 
 def contact_sheet(out: str | Path, cfg, states: list[dict], rows: list[dict], per_reason: int = 6) -> Path:
     """``OUT/curation.png``: one row of examples per reason (see the module docstring)."""
+    # matplotlib is slow to import: only for the contact sheet
     import matplotlib
 
     matplotlib.use("Agg")
@@ -188,8 +190,6 @@ def contact_sheet(out: str | Path, cfg, states: list[dict], rows: list[dict], pe
 def duplicate_pairs(out: str | Path, man: dict) -> list[dict]:
     """The dedup table joined with the manifest (``man``, as a dict of columns): ``item_id``/``start_frame`` of each
     copy and of the clip kept."""
-    import pyarrow.parquet as pq
-
     p = duplicates_path(out)
     if not p.is_file():
         return []

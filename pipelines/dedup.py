@@ -24,18 +24,20 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from shards.duplicates import duplicates_path
 from shards.fsio import atomic_write_bytes
+from shards.manifest import read_manifest
 
 SIGNATURE_FRAMES = 4
 
 
 def dhash(frame: np.ndarray) -> int:
     """64-bit difference hash of an RGB uint8 frame ``(H, W, 3)``."""
-    import cv2
-
     g = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
     t = cv2.resize(g, (9, 8), interpolation=cv2.INTER_AREA).astype(np.int16)
     bits = (t[:, 1:] > t[:, :-1]).ravel()
@@ -98,9 +100,6 @@ def find_duplicates(rows: list[dict], max_bits: int, num_frames: int, band_bits:
 
 def write_duplicates(out: str | Path, dups: list[dict]) -> Path:
     """``OUT/dedup/duplicates.parquet`` (atomic; an empty table when there are none)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     path = duplicates_path(out)
     table = pa.table({"key": [d["key"] for d in dups], "duplicate_of": [d["duplicate_of"] for d in dups],
                       "distance_bits": pa.array([d["distance_bits"] for d in dups], pa.int32())})
@@ -112,8 +111,6 @@ def write_duplicates(out: str | Path, dups: list[dict]) -> Path:
 
 def dedup_dataset(out: str | Path, max_bits: int, num_frames: int, band_bits: int = 8) -> list[dict]:
     """The one pass at the end of a run: the manifest's signatures → groups → ``dedup/duplicates.parquet``."""
-    from shards.manifest import read_manifest
-
     t = read_manifest(out).select(["key", "item_id", "start_frame", "signature"]).to_pylist()
     dups = find_duplicates(t, max_bits, num_frames, band_bits)
     write_duplicates(out, dups)

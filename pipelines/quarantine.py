@@ -27,6 +27,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pyarrow as pa
+import pyarrow.parquet as pq
+
 from shards.fsio import atomic_write_bytes
 
 QUARANTINE_COLUMNS = ("item", "unit_id", "source", "stage", "status", "reason", "attempts")
@@ -69,9 +72,6 @@ def table_path(root: str | Path, unit_id: str) -> Path:
 
 def write_rows(root: str | Path, unit_id: str, rows: list[dict]) -> Path | None:
     """Write (or, with no rows, remove) the unit's quarantine file atomically."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     path = table_path(root, unit_id)
     if not rows:
         path.unlink(missing_ok=True)
@@ -86,8 +86,6 @@ def write_rows(root: str | Path, unit_id: str, rows: list[dict]) -> Path | None:
 
 def read_table(root: str | Path) -> list[dict]:
     """All quarantine rows of a dataset folder (sorted by unit, then item)."""
-    import pyarrow.parquet as pq
-
     d = Path(root) / "quarantine"
     rows: list[dict] = []
     for p in sorted(d.glob("*.parquet")) if d.is_dir() else []:

@@ -81,7 +81,7 @@ def explain(address: str | None, e: BaseException) -> ClusterError | None:
 
 def join(address: str | None, **init_kwargs) -> None:
     """``ray.init(address=address, **init_kwargs)``; a missing, dead or incompatible cluster is a ``ClusterError``."""
-    import ray
+    import ray   # ray takes seconds to import and the CLI imports this module: only when joining
 
     env = os.environ.get("RAY_ADDRESS")
     target = env if env and (address is None or address == "auto") else address   # what Ray will use

@@ -16,8 +16,12 @@ import json
 from collections import Counter, defaultdict
 from pathlib import Path
 
+import pyarrow.parquet as pq
+
 from pipelines import curation, quarantine
+from shards.duplicates import duplicates_path
 from shards.fsio import atomic_write_bytes
+from shards.schema import COMMANDS
 
 STAGE_ORDER = ("cut", "label", "label.cuts", "balance", "encode", "encode.decode", "encode.vae", "encode.mp4",
                "encode.signature", "encode.quality", "write")
@@ -119,10 +123,6 @@ def _curation_cost(seconds: Counter, this_run: dict) -> dict:
 
 def _duplicates(out: str | Path) -> dict:
     """``dedup/duplicates.parquet`` in numbers: clips left out, and the groups they belong to."""
-    import pyarrow.parquet as pq
-
-    from shards.duplicates import duplicates_path
-
     p = duplicates_path(out)
     if not p.is_file():
         return {"clips_left_out": 0, "groups": 0, "checked": False}
@@ -138,12 +138,11 @@ def write_stats(out: str | Path, stats: dict) -> Path:
 
 def write_report_png(out: str | Path, stats: dict) -> Path:
     """Four panels: commands by source, turning share before/after, clip counts, throughput per stage."""
+    # matplotlib is slow to import: only for the report's figure
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from shards.schema import COMMANDS
 
     fig, ax = plt.subplots(2, 2, figsize=(11, 7.5))
     cbo = stats["clips"]["commands_by_origin"]

@@ -18,16 +18,28 @@ import logging
 import os
 import re
 import shutil
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from pipelines import curation, out_lock, quarantine, ray_connect, resume, stage_fit
+from tqdm import tqdm
+
+from pipelines import curation, out_lock, quarantine, ray_connect, report, resume, stage_fit
 from pipelines.config import PipelineConfig, absolute_paths, to_dict
+from pipelines.dedup import dedup_dataset
 from pipelines.load import check_synthetic_world
-from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
+from pipelines.sources.episode import SourceError
+from pipelines.sources.synth.generate import generate, preset
+from pipelines.stages import UNIT_STAGES
+from pipelines.stages.base import OUTPUT_ERRNOS, Chain, OutputError
+from pipelines.stages.encode import data_config_hash
+from pipelines.stages.prompts import PromptStage, all_prompts
+from pipelines.submit import JOB_ENV, package_dirs
 from pipelines.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
 from resim.config import ConfigError, save
+from shards.prompts import PromptTable
+from shards.schema import make_key, prompt_id
 
 log = logging.getLogger("resim.pipeline")
 
@@ -91,8 +103,6 @@ class EnumerateStage:
         self.cfg = cfg
 
     def __call__(self) -> tuple[list[dict], list[dict]]:
-        from pipelines.sources.episode import SourceError
-
         states, bad = [], []
         for spec in source_specs(self.cfg):
             attempts = 0
@@ -151,7 +161,6 @@ def check_unique_keys(states: list[dict]) -> None:
             seen[k] = st
     if not clashes:
         return
-    from shards.schema import make_key
 
     a, b = clashes[0]
 
@@ -177,7 +186,6 @@ def ensure_synthetic(cfg: PipelineConfig) -> None:
     if (root / "ground_truth.json").exists():
         check_synthetic_world(cfg)   # reused only if it is the world the config describes (ConfigError)
         return
-    from pipelines.sources.synth.generate import generate, preset
 
     log.info("generating a synthetic world (%d episodes, seed %d, preset %s) in %s", s.episodes, s.seed,
              s.preset, root)
@@ -198,6 +206,7 @@ def init_ray(cfg: PipelineConfig) -> bool:
     (``pipelines.ray_connect``)."""
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    # after RAY_* are set; only the Ray executor needs ray (the local one runs without it)
     import ray
 
     if ray.is_initialized():
@@ -205,7 +214,6 @@ def init_ray(cfg: PipelineConfig) -> bool:
     kw = dict(include_dashboard=False, log_to_driver=True, logging_level=logging.ERROR,
               configure_logging=True)
     if cfg.ray.address:   # join a cluster from a checkout: ship our packages to its workers
-        from pipelines.submit import JOB_ENV, package_dirs
 
         ray_connect.join(cfg.ray.address, logging_level=logging.ERROR,
                          runtime_env={"py_modules": package_dirs(), "excludes": ["__pycache__", "*.pyc"],
@@ -224,8 +232,6 @@ def init_ray(cfg: PipelineConfig) -> bool:
 
 def pool_names(cfg: PipelineConfig) -> list[str]:
     """The ``ray.stages`` entries a Ray run uses: its actor pools (``unit_pipeline``) and the prompt task."""
-    from pipelines.stages import UNIT_STAGES
-
     fused = ("cut", "label", "balance") if cfg.ray.fuse_cpu_stages else ()
     return [n for n, _ in UNIT_STAGES if n not in fused or n == "label"] + ["prompts"]
 
@@ -250,7 +256,7 @@ def fit_to_cluster(cfg: PipelineConfig, have_gpu: bool) -> PipelineConfig:
 
 
 def _quiet_ray_data(progress: bool) -> None:
-    import ray.data
+    import ray.data   # see init_ray
 
     ctx = ray.data.DataContext.get_current()
     ctx.enable_progress_bars = False      # our own bar per stage (run_units_ray) instead
@@ -264,15 +270,13 @@ def _quiet_ray_data(progress: bool) -> None:
 
 def start_prompts_ray(cfg: PipelineConfig, have_gpu: bool):
     """Encode the prompt table in a Ray task *while* the units run (it needs its own model load)."""
-    import ray
+    import ray   # see init_ray
 
     res = cfg.ray.stages.prompts
 
     @ray.remote(num_cpus=res.num_cpus, num_gpus=stage_fit.resolve_gpus(res, have_gpu), memory=res.memory_bytes,
                 max_retries=0)
     def encode_prompts(cfg_dict: dict) -> list[str]:
-        from pipelines.stages.prompts import PromptStage, all_prompts
-
         texts = all_prompts()
         out = PromptStage(cfg_dict)({"text": [t for t, _ in texts], "role": [r for _, r in texts]})
         return list(out["prompt_id"])
@@ -282,9 +286,6 @@ def start_prompts_ray(cfg: PipelineConfig, have_gpu: bool):
 
 def unit_pipeline(cfg: PipelineConfig) -> list[tuple[str, object, dict]]:
     """(pool name, callable class, constructor kwargs) in order; cut+label+balance fused when configured."""
-    from pipelines.stages import UNIT_STAGES
-    from pipelines.stages.base import Chain
-
     cfg_dict = to_dict(cfg)
     stages = list(UNIT_STAGES)
     if cfg.ray.fuse_cpu_stages:
@@ -308,12 +309,7 @@ class _Board:
 
 
 def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_done, progress: bool = True) -> None:
-    import threading
-
-    import ray
-    from tqdm import tqdm
-
-    from pipelines.stages import UNIT_STAGES
+    import ray   # see init_ray
 
     if not states:
         return
@@ -359,18 +355,12 @@ def run_units_ray(cfg: PipelineConfig, states: list[dict], have_gpu: bool, on_do
 
 
 def run_prompts_local(cfg: PipelineConfig) -> list[str]:
-    from pipelines.stages.prompts import PromptStage, all_prompts
-
     texts = all_prompts()
     out = PromptStage(cfg)({"text": [t for t, _ in texts], "role": [r for _, r in texts]})
     return list(out["prompt_id"])
 
 
 def run_units_local(cfg: PipelineConfig, states: list[dict], on_done, progress: bool = True) -> None:
-    from tqdm import tqdm
-
-    from pipelines.stages import UNIT_STAGES
-
     for name, cls in UNIT_STAGES:
         stage = cls(cfg)
         states = [stage.run_one(s) for s in tqdm(states, desc=f"{name:>8}", disable=not progress, unit="unit")]
@@ -391,8 +381,6 @@ def prepare_out(cfg: PipelineConfig, force: bool = False) -> Path:
     into the new config's dataset. (Stamping only at the first commit would need the Ray actors to
     coordinate; deriving the lock from the markers needs nothing.)
     """
-    from pipelines.stages.encode import data_config_hash
-
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     stamp = out / "config_hash.txt"
@@ -433,10 +421,6 @@ def run(cfg: PipelineConfig, *, force: bool = False, progress: bool | None = Non
 
 def prompts_complete(out: Path) -> bool:
     """Whether OUT's prompt table holds every prompt a dataset can reference."""
-    from pipelines.stages.prompts import all_prompts
-    from shards.prompts import PromptTable
-    from shards.schema import prompt_id
-
     if not (Path(out) / "prompts").is_dir():
         return False
     return {prompt_id(t) for t, _ in all_prompts()} <= set(PromptTable(Path(out)).ids())
@@ -447,8 +431,6 @@ def finished_listing(cfg: PipelineConfig) -> tuple[list[dict], list[dict]] | Non
     same data hash, every enumerated unit committed, a complete prompt table), else None. It costs a listing and
     the markers, so the rerun of a finished run reports in seconds, without starting Ray; the listing is handed
     on, not made twice."""
-    from pipelines.stages.encode import data_config_hash
-
     out = Path(cfg.out)
     stamp = out / "config_hash.txt"
     if not stamp.is_file() or stamp.read_text().strip() != data_config_hash(cfg) or not prompts_complete(out):
@@ -474,7 +456,7 @@ def _run_locked(cfg: PipelineConfig, force: bool, progress: bool, t0: float) -> 
         started = init_ray(cfg)
     try:
         if cfg.ray.executor == "ray":
-            import ray
+            import ray   # see init_ray
 
             have_gpu = ray.cluster_resources().get("GPU", 0) >= 1
             cpus = float(ray.cluster_resources().get("CPU", 1.0))
@@ -482,15 +464,13 @@ def _run_locked(cfg: PipelineConfig, force: bool, progress: bool, t0: float) -> 
         return _run_units(cfg, force, progress, t0, have_gpu, cpus)
     finally:
         if started:
-            import ray
+            import ray   # see init_ray
 
             ray.shutdown()
 
 
 def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have_gpu: bool,
                cpus: float, listing: tuple[list[dict], list[dict]] | None = None) -> RunResult:
-    from pipelines import report
-
     out = prepare_out(cfg, force)
     ensure_synthetic(cfg)
     states, bad_sources = listing if listing is not None else EnumerateStage(cfg)()
@@ -507,7 +487,7 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
         if not todo and prompts_complete(out):
             pass                    # a finished dataset: nothing to run, the stats below are recomputed
         elif cfg.ray.executor == "ray":
-            import ray
+            import ray   # see init_ray
 
             _quiet_ray_data(progress)
             prompts = start_prompts_ray(cfg, have_gpu)
@@ -524,7 +504,6 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
     check_committed(out, todo)      # a unit that ran without committing is never counted as done
     dedup_s = 0.0
     if cfg.dedup.enabled:           # one pass over the whole dataset's signatures (pipelines/dedup.py)
-        from pipelines.dedup import dedup_dataset
 
         t_dedup = time.perf_counter()
         dedup_dataset(out, cfg.dedup.max_bits, cfg.clip.num_frames, cfg.dedup.band_bits)

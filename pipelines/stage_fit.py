@@ -60,7 +60,7 @@ def request_of(res: StageResources, have_gpu: bool) -> Request:
 
 def cluster_nodes() -> list[NodeResources]:
     """The alive nodes of the Ray this process is connected to (``ray.nodes()``)."""
-    import ray
+    import ray   # ray takes seconds to import: only once connected (the rest is pure arithmetic, tested without Ray)
 
     out = []
     for n in ray.nodes():

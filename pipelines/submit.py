@@ -15,6 +15,7 @@ The job's entrypoint is ``python -m resim pipeline run job_config.yaml --no-prog
 from __future__ import annotations
 
 import asyncio
+import importlib
 import shutil
 import tempfile
 import time
@@ -41,8 +42,6 @@ def absolutize(cfg: PipelineConfig) -> PipelineConfig:
 
 
 def package_dirs() -> list[str]:
-    import importlib
-
     return [str(Path(importlib.import_module(p).__file__).resolve().parent) for p in PACKAGES]
 
 
@@ -58,7 +57,7 @@ def build_working_dir(cfg: PipelineConfig, dest: Path) -> Path:
 
 
 def client(address: str):
-    from ray.job_submission import JobSubmissionClient
+    from ray.job_submission import JobSubmissionClient   # ray takes seconds to import: only for a submission
 
     return JobSubmissionClient(address)
 

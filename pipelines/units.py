@@ -16,6 +16,10 @@ from pathlib import Path
 from typing import Any
 
 from pipelines.config import ClipConfig, PipelineConfig
+from pipelines.sources.carla import CarlaConfig, CarlaReader
+from pipelines.sources.navsim import NavsimConfig, NavsimReader
+from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
+from pipelines.sources.synth.generate import SynthConfig
 from resim.config import ConfigError, from_dict, to_dict
 
 KINDS = ("opendv", "navsim", "carla")
@@ -102,21 +106,19 @@ def _synth_navsim_split(root: Path) -> str:
     p = root / "synth_config.json"
     if p.is_file():
         return str(json.loads(p.read_text()).get("navsim_split", "synth"))
-    from pipelines.sources.synth.generate import SynthConfig
-
     return SynthConfig().navsim_split
+
+
+# source kind -> (reader config, reader class)
+READERS = {"opendv": (OpenDVConfig, OpenDVReader), "navsim": (NavsimConfig, NavsimReader),
+           "carla": (CarlaConfig, CarlaReader)}
 
 
 def make_reader(spec: SourceSpec):
     """The sources package's reader for ``spec`` (the readers' interface: ``list_items()``, ``open(id)``)."""
-    if spec.kind == "opendv":
-        from pipelines.sources.opendv import OpenDVConfig as C, OpenDVReader as R
-    elif spec.kind == "navsim":
-        from pipelines.sources.navsim import NavsimConfig as C, NavsimReader as R
-    elif spec.kind == "carla":
-        from pipelines.sources.carla import CarlaConfig as C, CarlaReader as R
-    else:
+    if spec.kind not in READERS:
         raise ValueError(f"unknown source kind {spec.kind!r}")
+    C, R = READERS[spec.kind]
     try:
         rcfg = from_dict(C, {"root": spec.root, **dict(spec.options), "exclude": list(spec.exclude)})
     except ConfigError as e:

@@ -2,9 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import time
+from pathlib import Path
 
 from resim.argtypes import non_negative_int, positive_int
+from resim.config import ConfigError, load
 
 PROG = "resim synth"
 
@@ -51,14 +55,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import json
-    import time
-
-    from pathlib import Path
-
-    from resim.config import ConfigError, load
-
-    from .synth.generate import SYNTH_PRESETS, SynthConfig
+    # numpy and OpenCV only when the command runs: every `resim` call imports this module to register `synth`
+    from .synth.generate import SYNTH_PRESETS, SynthConfig, generate
 
     def error(msg: str, rc: int) -> int:
         print(f"{PROG}: error: {msg}", file=sys.stderr)
@@ -73,8 +71,6 @@ def run(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         return error(f"--out {out}: exists and is not a folder", 2)
-    from .synth.generate import generate
-
     t0 = time.perf_counter()
     try:
         summary = generate(args.out, args.episodes, args.seed, cfg, overwrite=args.overwrite,
@@ -87,7 +83,7 @@ def run(args) -> int:
         return error(f"--out {out}: cannot write there ({e.strerror or e})", 1)
     summary["seconds"] = round(time.perf_counter() - t0, 2)
     if args.contact_sheet:
-        from .synth.contact_sheet import contact_sheet
+        from .synth.contact_sheet import contact_sheet   # lazy, as above
 
         try:
             contact_sheet(args.out, args.contact_sheet)

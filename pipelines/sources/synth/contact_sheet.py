@@ -3,19 +3,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from ..carla import CarlaConfig, CarlaReader
+from ..navsim import NavsimConfig, NavsimReader
+from ..opendv import OpenDVConfig, OpenDVReader
+from .ground_truth import GroundTruth
 
 
 def contact_sheet(root: str | Path, out_png: str | Path, max_episodes: int = 6, columns: int = 6,
                   size_hw: tuple[int, int] = (128, 224)) -> Path:
     """One row per episode (frames evenly spread over it), labelled with reader, driver and score."""
-    import cv2
-
-    from ..carla import CarlaConfig, CarlaReader
-    from ..navsim import NavsimConfig, NavsimReader
-    from ..opendv import OpenDVConfig, OpenDVReader
-    from .ground_truth import GroundTruth
-
     root = Path(root)
     gt = GroundTruth.load(root)
     split = gt.data["config"]["navsim_split"]
