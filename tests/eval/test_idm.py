@@ -175,3 +175,27 @@ def test_runs_written_before_the_odometry_head_still_load(tmp_path):
     (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {}}))
     with pytest.raises(ValueError, match="not an IDM run"):
         load_idm(tmp_path)
+
+
+def test_a_missing_or_corrupt_idm_run_is_named(tmp_path):
+    """No files: FileNotFoundError naming both places; files that cannot be used: ValueError naming the file."""
+    import yaml
+    from safetensors.torch import save_file
+
+    with pytest.raises(FileNotFoundError, match=f"IDM checkpoint {tmp_path}: expected config.yaml \\+ "
+                                                "model.safetensors in it or in .*written by `resim eval idm`"):
+        load_idm(tmp_path)
+    (tmp_path / "final").mkdir()
+    m = InverseDynamicsModel(idm_preset("tiny"))
+    save_file({k: v.contiguous() for k, v in m.state_dict().items()}, str(tmp_path / "final/model.safetensors"))
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "idm", "model": {"preset": "tiny"}}))
+    loaded, info = load_idm(tmp_path)
+    assert info["checkpoint"] == str(tmp_path / "final") and len(info["weights_sha256"]) == 64
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "idm", "model": {"preset": "nosuch"}}))
+    with pytest.raises(ValueError, match=f"^{tmp_path / 'final' / 'config.yaml'}: .*nosuch"):
+        load_idm(tmp_path)
+    (tmp_path / "final/config.yaml").write_text(yaml.safe_dump({"model_name": "idm", "model": {"preset": "tiny"}}))
+    w = tmp_path / "final/model.safetensors"
+    w.write_bytes(w.read_bytes()[:64])
+    with pytest.raises(ValueError, match=f"^{w}: not a readable safetensors file"):
+        load_idm(tmp_path)

@@ -32,10 +32,11 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import save_file
 
-from resim.config import ConfigError, check_positive, safe_yaml, to_dict
+from resim.config import ConfigError, check_positive, to_dict
 from training import smallfit
 from training.config import OptimConfig, RunConfig
 from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
+from training.exported import ExportNotFoundError, load_exported
 from training.smallfit import frames_to_tensor
 
 
@@ -228,44 +229,23 @@ def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainCo
 
 
 def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsModel, dict]:
-    """Load a trained IDM/planner from a run folder (or its ``final/``), built through the registry."""
-    import yaml
-    from safetensors.torch import load_file
-
-    from training import registry
-
-    p = Path(run_dir)
-    d = next((c for c in (p, p / "final") if (c / "model.safetensors").is_file() and (c / "config.yaml").is_file()),
-             None)
-    if d is None:
-        raise FileNotFoundError(f"IDM checkpoint {p}: expected config.yaml + model.safetensors in it or in {p / 'final'}"
-                                " (written by `resim eval idm`)")
-    from safetensors import SafetensorError
-
-    # a user's files that cannot be read are ValueErrors naming the file (the CLI prints them in one line)
+    """Load a trained IDM/planner from a run folder (or its ``final/``), built through the registry
+    (``training.exported``). ``FileNotFoundError`` when neither holds the files; a ``ValueError`` naming the file
+    for anything wrong in them (the CLI prints it in one line)."""
     try:
-        run_cfg = safe_yaml((d / "config.yaml").read_text()) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise ValueError(f"{d / 'config.yaml'}: invalid YAML ({e})") from None
-    if not isinstance(run_cfg, dict) or run_cfg.get("model_name") != "idm":
-        got = run_cfg.get("model_name") if isinstance(run_cfg, dict) else None
-        raise ValueError(f"{d}: model_name is {got!r}, not an IDM run")
-    try:
-        state = load_file(str(d / "model.safetensors"))
-    except SafetensorError as e:
-        raise ValueError(f"{d / 'model.safetensors'}: not a readable safetensors file ({e})") from None
-    mdict = dict(run_cfg.get("model") or {})
-    if "head" not in mdict:
-        # runs written before the odometry head store only {"preset": ...}; the presets' head changed since
-        mdict["head"] = "odometry" if any(k.startswith("odometry.") for k in state) else "queries"
-    model = registry.build("idm", mdict, device="cpu")   # ConfigError (a ValueError) for a bad model config
-    try:
-        model.load_state_dict(state, strict=True)
-    except RuntimeError as e:   # missing / unexpected keys, shape mismatches: weights vs config.yaml
-        raise ValueError(f"{d / 'model.safetensors'}: weights do not match config.yaml "
-                         f"({str(e).strip().splitlines()[0][:300]})") from None
-    sha = hashlib.sha256((d / "model.safetensors").read_bytes()).hexdigest()
-    return model.to(device).eval().requires_grad_(False), {"checkpoint": str(d), "weights_sha256": sha}
+        ex = load_exported(run_dir, expect="idm", label="an IDM run", adapt_config=_head_of_old_runs)
+    except ExportNotFoundError as e:
+        raise FileNotFoundError(f"IDM checkpoint {e} (written by `resim eval idm`)") from None
+    sha = hashlib.sha256(ex.weights.read_bytes()).hexdigest()
+    return ex.model.to(device).eval().requires_grad_(False), {"checkpoint": str(ex.folder), "weights_sha256": sha}
+
+
+def _head_of_old_runs(model_cfg: dict, state: Any) -> dict:
+    """Runs written before the odometry head store only {"preset": ...}, and the presets' head changed since:
+    their head is the one their weights hold."""
+    if "head" in model_cfg:
+        return model_cfg
+    return {**model_cfg, "head": "odometry" if any(k.startswith("odometry.") for k in state) else "queries"}
 
 
 class IDMDataError(ValueError):
