@@ -88,6 +88,8 @@ class CutStage(Stage):
             "infraction_score": None if outcome is None else float(outcome.infraction_score),
             "infractions": None if outcome is None else [str(x) for x in outcome.infractions],
             "warnings": [str(x) for x in getattr(ep, "warnings", [])],
+            # clip-rate frames at the end that only hold the last recorded one (clip.max_held_frames)
+            "held_frames": n - ((ep.num_frames - ep.held_frames - 1) // step + 1) if ep.held_frames else 0,
         }
         state["windows"] = [{"start": s} for s in starts]
         used_s = (ep.num_frames - ep.held_frames) / ep.fps_hz     # recorded frames only, not held ones

@@ -200,6 +200,7 @@ class EncodeStage(CutStage):
         for st in kept:
             covered += st + N - max(st, end_f)
             end_f = st + N
+        covered -= max(0, end_f - (e["num_frames"] - e.get("held_frames", 0)))   # held frames are no footage
         state.setdefault("curation", {})["covered_s"] = round(covered / clip.fps_hz, 3)
         for k, v in (("encode.decode", t_dec), ("encode.vae", t_vae), ("encode.mp4", t_mp4),
                      ("encode.signature", t_sig), ("encode.quality", t_qual)):

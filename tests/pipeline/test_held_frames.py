@@ -12,7 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
-from pipelines import quarantine, runner
+from pipelines import quarantine, resume, runner
 from pipelines.sources.episode import Episode
 from resim.config import ConfigError, config_hash
 from shards.reader import iter_samples
@@ -79,6 +79,8 @@ def test_a_route_short_of_one_clip_gives_one_clip_with_its_last_frame_held(short
     held = np.abs(frames[40:] - frames[39]).mean()
     assert held < 0.2 * moving, (held, moving)             # frames 40..48 show frame 39 (up to mp4 coding)
     assert [r["status"] for r in _rows(out, item)] == ["warning"]
+    (marker,) = [m for m in resume.read_markers(out).values() if m["item_id"] == item]
+    assert marker["curation"]["used_s"] == marker["curation"]["covered_s"] == 4.0   # recorded footage, not held
     assert "9 frame(s) appended holding the last frame" in _rows(out, item)[0]["reason"]
 
 
