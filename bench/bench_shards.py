@@ -13,20 +13,21 @@ import time
 from pathlib import Path
 
 import numpy as np
+import webdataset as wds
+
+from shards.npy import float32_to_bf16_bits
+from shards.prompts import PromptTable
+from shards.reader import iter_samples, make_webdataset
+from shards.schema import COMMANDS, prompt_text
+from shards.stats import compute_stats
+from shards.testing import add_dummy_prompts, make_dummy_sample
+from shards.writer import ShardWriter, encode_member
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--samples", type=int, default=24)
     args = ap.parse_args()
-    import webdataset as wds
-
-    from shards.npy import float32_to_bf16_bits
-    from shards.reader import iter_samples, make_webdataset
-    from shards.schema import COMMANDS
-    from shards.stats import compute_stats
-    from shards.testing import add_dummy_prompts, make_dummy_sample
-    from shards.writer import ShardWriter, encode_member
 
     # ReSim sizes: 49 frames at 480x720 -> latent (13, 16, 60, 90) bf16; frames.mp4 at 224 px wide
     samples = []
@@ -38,8 +39,6 @@ def main() -> None:
     try:
         root = tmp / "ds"
         # real-size prompt table: 4 x (226, 4096) bf16
-        from shards.prompts import PromptTable
-        from shards.schema import prompt_text
 
         t = PromptTable(root)
         rng = np.random.default_rng(0)

@@ -30,18 +30,19 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from labeling.commands import command_from_trajectory, command_from_yaw  # noqa: E402
-from labeling.config import CommandConfig, FlowConfig, LabelerConfig  # noqa: E402
+from labeling.config import CommandConfig, FlowConfig, LabelerConfig, preset  # noqa: E402
 from labeling.flow import FlowLabeler  # noqa: E402
 from labeling.trajectory import trajectory_from_poses  # noqa: E402
+from pipelines.sources.carla import CarlaConfig, CarlaReader  # noqa: E402
+from pipelines.sources.opendv import OpenDVConfig, OpenDVReader  # noqa: E402
+from pipelines.sources.synth.ground_truth import GroundTruth  # noqa: E402
+from resim.config import apply_overrides, from_dict, to_dict  # noqa: E402
 from shards.schema import COMMANDS  # noqa: E402
 
 WIN, STRIDE, FPS = 40, 10, 10.0
 
 
 def episodes(root: Path):
-    from pipelines.sources.carla import CarlaConfig, CarlaReader
-    from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
-
     for name, reader in (("opendv", OpenDVReader(OpenDVConfig.preset("synthetic", root=root / "opendv"))),
                          ("carla", CarlaReader(CarlaConfig(root=root / "carla")))):
         for item in reader.list_items():
@@ -117,7 +118,7 @@ def plot_held_out(held: dict, ref_deg: float, title: str, path: Path) -> None:
     """Left: flow vs true heading change per held-out window (wrong commands in red), the turn definition (dashed,
     vertical) and each world's calibrated flow threshold (dotted, horizontal). Middle: the error against the true
     heading change (a scale error is a slope; noise of the yaw / FOE split a band). Right: |error| distribution."""
-    import matplotlib
+    import matplotlib   # slow to import: only for the figure
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -162,12 +163,8 @@ def plot_held_out(held: dict, ref_deg: float, title: str, path: Path) -> None:
 def calibrate_world(root: Path, args) -> tuple[dict, np.ndarray, int, dict]:
     """One world: calibrate on its even episodes, report on its odd ones. Returns (numbers, held-out |error| deg,
     held-out windows labelled right, held-out arrays for the plot)."""
-    from pipelines.sources.synth.ground_truth import GroundTruth
-
     gt = GroundTruth.load(root)
     cam = gt.data.get("camera", {})
-    from labeling.config import preset
-    from resim.config import apply_overrides, from_dict, to_dict
 
     raw = to_dict(preset(args.preset))
     if args.hfov_deg is not None:

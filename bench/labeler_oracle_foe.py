@@ -17,6 +17,7 @@ import argparse
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
@@ -26,6 +27,7 @@ sys.path.insert(0, str(REPO / "bench"))
 from calibrate_labeler import FPS, STRIDE, WIN, cmd_of, episodes  # noqa: E402
 from labeling.config import preset  # noqa: E402
 from labeling.flow import FlowLabeler, prepare_frame  # noqa: E402
+from pipelines.sources.synth.ground_truth import GroundTruth  # noqa: E402
 
 
 def physical_foe(poses: np.ndarray, ahead_m: float, f_px: float) -> np.ndarray:
@@ -43,7 +45,6 @@ def yaw_per_pair(lab: FlowLabeler, frames, mode: str, poses: np.ndarray, ahead_m
     greys = [prepare_frame(fr, fc.work_width_px) for fr in frames]
     if mode == "fitted":
         return lab.yaw_rates_from_grey(iter(greys), FPS) / FPS
-    import cv2
     greys = [cv2.equalizeHist(g) for g in greys]
     h, w = greys[0].shape
     f = lab.focal_px(w)
@@ -65,7 +66,6 @@ def main() -> int:
     ap.add_argument("--data", required=True, help="a `resim synth` output folder")
     ap.add_argument("--preset", default="default")
     args = ap.parse_args()
-    from pipelines.sources.synth.ground_truth import GroundTruth
 
     root = Path(args.data)
     gt = GroundTruth.load(root)

@@ -22,17 +22,23 @@ from __future__ import annotations
 
 import argparse
 import platform
+import statistics
 import tarfile
 import tempfile
 import time
 from pathlib import Path
 
+import torch
+
+from resim.config import from_dict
+from shards.schema import COMMANDS
+from shards.testing import add_dummy_prompts, make_dummy_sample
+from shards.writer import ShardWriter
+from training.config import DataConfig
+from training.data import StreamLoader
+
 
 def write_dataset(root: Path, n: int, latent_hw: tuple[int, int], per_shard: int) -> None:
-    from shards.schema import COMMANDS
-    from shards.testing import add_dummy_prompts, make_dummy_sample
-    from shards.writer import ShardWriter
-
     add_dummy_prompts(root, seq_len=226, dim=4096)  # CogVideoX T5 size: (226, 4096) bf16
     with ShardWriter(root, "bench", max_samples_per_shard=per_shard, config_hash="bench") as w:
         for i in range(n):
@@ -85,10 +91,6 @@ def raw_python(root: Path) -> tuple[int, int]:
 
 
 def make_loader(root: Path, n: int, batch: int, workers: int = 0, read_all: bool = True):
-    from resim.config import from_dict
-    from training.config import DataConfig
-    from training.data import StreamLoader
-
     cfg = from_dict(DataConfig, {"shards": str(root), "batch_size_per_gpu": batch, "samples_per_epoch": n,
                                  "num_workers": workers, "open_shards_per_worker": 4})
     loader = StreamLoader(cfg, verbose=False)
@@ -112,9 +114,6 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
-    import statistics
-
-    import torch
 
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as d:

@@ -29,6 +29,10 @@ os.environ.setdefault("RAY_AUTH_MODE", "disabled")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+from pipelines import runner  # noqa: E402
+from pipelines.load import load_config  # noqa: E402
+from pipelines.sources.synth.generate import generate, preset  # noqa: E402
+
 SYNTH = REPO / "configs/pipeline/synthetic.yaml"
 # $RESIM_SHARED_DIR, else shared/ beside the checkout (main clone), else one level up (worktree wt/<x>)
 _SHARED = [Path(os.environ["RESIM_SHARED_DIR"])] if os.environ.get("RESIM_SHARED_DIR") else \
@@ -38,8 +42,6 @@ DASHCAM = next((s / "data" / "dashcam" for s in _SHARED if (s / "data" / "dashca
 
 
 def _world(tmp: Path, episodes: int = 6) -> Path:
-    from pipelines.sources.synth.generate import generate, preset
-
     root = tmp / f"world{episodes}"
     if not root.exists():
         generate(root, episodes, 0, preset("tiny"), progress=False)
@@ -47,9 +49,6 @@ def _world(tmp: Path, episodes: int = 6) -> Path:
 
 
 def _run(out: Path, overrides: list[str], base: Path = SYNTH) -> dict:
-    from pipelines import runner
-    from pipelines.load import load_config
-
     cfg = load_config(base, ["ray.progress_bars=false", *overrides], out=out)
     t0 = time.perf_counter()
     res = runner.run(cfg)

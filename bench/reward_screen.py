@@ -24,13 +24,15 @@ import time
 import numpy as np
 import torch
 
+from pipelines.sources.carla import CarlaConfig, CarlaReader
+from resim.config import from_dict
+from training.reward.config import PRESETS, RewardModelConfig
+from training.reward.data import RewardClip, clips_from_episode, frames_to_tensor, split_by_episode
+from training.reward.metrics import reward_metrics
+from training.reward.model import Video2Reward
+
 
 def cache(root: str, out: str, size: int = 56) -> None:
-    from pipelines.sources.carla import CarlaConfig, CarlaReader
-    from training.reward.config import RewardModelConfig
-    from training.reward.data import clips_from_episode, frames_to_tensor
-    from training.reward.model import Video2Reward
-
     m = Video2Reward(RewardModelConfig(image_size_px=size, num_frames=80, frame_step=1)).eval()
     reader = CarlaReader(CarlaConfig(root=root))
     items = reader.list_items()
@@ -47,10 +49,6 @@ def cache(root: str, out: str, size: int = 56) -> None:
 
 def run(feats, score, hazard, items, mcfg, split: int, epochs=100, lr=1e-3, wd=0.01, bs=16, seed=0,
         eval_every=10) -> dict:
-    from training.reward.data import RewardClip, split_by_episode
-    from training.reward.metrics import reward_metrics
-    from training.reward.model import Video2Reward
-
     clips = [RewardClip(key=str(items[i]), item_id=str(items[i]), infraction_score=float(score[i]),
                         hazard=bool(hazard[i]), dino=np.array([i])) for i in range(len(score))]
     train, held = split_by_episode(clips, 0.25, split)
@@ -112,8 +110,6 @@ def main(argv=None) -> int:
     if args.cmd == "cache":
         cache(args.carla_root, args.out, args.size_px)
         return 0
-    from resim.config import from_dict
-    from training.reward.config import PRESETS, RewardModelConfig
 
     z = np.load(args.features)
     data = (z["feats"], z["score"], z["hazard"], z["items"])

@@ -36,6 +36,16 @@ import argparse
 import time
 
 import torch
+import torch.nn.functional as F
+from torch.nn.attention import SDPBackend, sdpa_kernel
+from torch.profiler import ProfilerActivity, profile
+
+from training.models.attention import Attention, block_causal_block_mask, block_causal_mask
+from training.models.config import preset
+from training.models.dit import WorldModel
+from training.models.flex import flex_block_attention
+from training.sampling.guidance import guidance_preset
+from training.sampling.rollout import Condition, RolloutConfig, rollout
 
 
 def main() -> None:
@@ -67,11 +77,6 @@ def main() -> None:
     for b in backends:
         if b not in ("sdpa", "flex"):
             raise SystemExit(f"--attention: unknown backend {b!r} (sdpa, flex)")
-
-    from training.models.config import preset
-    from training.models.dit import WorldModel
-    from training.sampling.guidance import guidance_preset
-    from training.sampling.rollout import Condition, RolloutConfig, rollout
 
     cfg = preset(preset_name)
     torch.manual_seed(0)
@@ -173,13 +178,6 @@ def _attention_kernels(prof) -> list[str]:
 
 
 def sdpa_probe() -> None:
-    import torch.nn.functional as F
-    from torch.nn.attention import SDPBackend, sdpa_kernel
-    from torch.profiler import ProfilerActivity, profile
-
-    from training.models.attention import Attention, block_causal_mask
-    from training.models.config import preset
-
     cfg = preset("cogvideox-2b")
     dev = torch.device("cuda")
     print(f"device: {torch.cuda.get_device_name(0)}, torch {torch.__version__}; sdp flags: "
@@ -240,7 +238,6 @@ def sdpa_probe() -> None:
 def _flex_probe(q, k, v, mask, text_len: int, n: int, nf: int, base: float) -> None:
     """The alternative the docs name: ``flex_attention`` with the same block-causal pattern as a BlockMask
     (fully masked 128x128 tiles skipped), compiled; checked against SDPA with the boolean mask."""
-    import torch.nn.functional as F
     try:
         from torch.nn.attention.flex_attention import create_block_mask, flex_attention
 
@@ -276,12 +273,6 @@ def flex_probe(dev: torch.device, preset_name: str = "cogvideox-2b") -> None:
     512x896. The flex path compiles static for its first shape, then once with dynamic lengths (torch's
     default), so every row after the first times the dynamic-shape kernel (compare: the static compile in
     ``--sdpa-probe``)."""
-    import torch.nn.functional as F
-
-    from training.models.attention import Attention, block_causal_block_mask, block_causal_mask
-    from training.models.config import preset
-    from training.models.flex import flex_block_attention
-
     cfg = preset(preset_name)
     torch.manual_seed(0)
     attn = Attention(cfg.hidden_dim, cfg.num_attention_heads, cfg.attention_head_dim).to(dev, torch.bfloat16)

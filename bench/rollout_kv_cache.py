@@ -17,6 +17,11 @@ import time
 
 import torch
 
+from training.models.config import preset
+from training.models.dit import WorldModel
+from training.sampling.guidance import guidance_preset
+from training.sampling.rollout import Condition, RolloutConfig, rollout
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -26,11 +31,6 @@ def main() -> None:
     ap.add_argument("--preset", default="tiny", help="world-model preset (tiny: 2 layers, 32-d, 8x12 latents)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-
-    from training.models.config import preset
-    from training.models.dit import WorldModel
-    from training.sampling.guidance import guidance_preset
-    from training.sampling.rollout import Condition, RolloutConfig, rollout
 
     torch.manual_seed(0)
     cfg = preset(args.preset)

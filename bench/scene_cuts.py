@@ -17,8 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from labeling.config import preset
 from labeling.cut_set import KINDS, build_cut_video, score
 from labeling.cuts import CutConfig, detect_cuts
+from labeling.flow import FlowLabeler
 
 REPO = Path(__file__).resolve().parents[1]
 DASHCAM = REPO.parent / "shared" / "data" / "dashcam"
@@ -77,8 +79,6 @@ def main() -> None:
             res[k] = tot
         rows[f"{m}@{w}"] = (res, t)
     # the labeler's cost on the same frames, for the curation-cost target (<= 25 % of labeling)
-    from labeling.config import preset
-    from labeling.flow import FlowLabeler
 
     lab = FlowLabeler(preset("default"))
     t0 = time.perf_counter()

@@ -29,11 +29,14 @@ import json
 import time
 
 import torch
+from torch.profiler import ProfilerActivity, profile
+
+from training.data import Batch
+from training.distributed import init_distributed, wrap_model
+from training.world import build_world
 
 
 def synthetic_batch(b: int, hw: tuple[int, int], device, seq: int = 226, dim: int = 4096):
-    from training.data import Batch
-
     g = torch.Generator().manual_seed(0)
     return Batch(
         latents=torch.randn(b, 13, 16, *hw, generator=g).to(device),
@@ -48,8 +51,6 @@ def synthetic_batch(b: int, hw: tuple[int, int], device, seq: int = 226, dim: in
 
 def _profile_step(step_fn) -> None:
     """One more step under torch.profiler: where the GPU time goes (top kernels, and matmul/attention/other)."""
-    from torch.profiler import ProfilerActivity, profile
-
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         step_fn()
         torch.cuda.synchronize()
@@ -71,9 +72,6 @@ def _profile_step(step_fn) -> None:
 
 def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: bool = False,
             attention: str = "sdpa") -> dict:
-    from training.distributed import wrap_model
-    from training.world import build_world
-
     torch.manual_seed(0)
     # built on the GPU (random init there; a 1.7B-parameter fp32 init on the CPU only costs start-up time)
     model = build_world({"preset": "cogvideox-2b", "overrides": {"attention_backend": attention},
@@ -127,7 +125,6 @@ def main() -> None:
     args = ap.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("bench/train_mfu.py needs a CUDA GPU")
-    from training.distributed import init_distributed
 
     env = init_distributed(force_group=True)
     torch.backends.cuda.matmul.allow_tf32 = True

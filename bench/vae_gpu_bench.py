@@ -24,8 +24,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from media.encoders import VideoVAE  # noqa: E402
 
 COGVIDEOX_2B_VAE = dict(
     in_channels=3, out_channels=3, latent_channels=16, block_out_channels=(128, 256, 256, 512),
@@ -45,11 +49,9 @@ def main() -> int:
     ap.add_argument("--warmup", type=int, default=1)
     args = ap.parse_args()
 
-    import numpy as np
+    # after parsing: --help answers at once, and on a machine without the GPU stack (torch, diffusers)
     import torch
     from diffusers import AutoencoderKLCogVideoX
-
-    from media.encoders import VideoVAE
 
     if not torch.cuda.is_available():
         print("no CUDA GPU: this benchmark needs one (nothing measured)")

@@ -23,7 +23,7 @@ A highway with trucks, a roundabout, a parking lot, a bridge, a tunnel, snow, fo
 
 
 def vae() -> None:
-    from diffusers import AutoencoderKLCogVideoX
+    from diffusers import AutoencoderKLCogVideoX   # heavy (seconds to import): only the step that needs it
 
     m = AutoencoderKLCogVideoX(
         block_out_channels=(8, 8, 8, 8), layers_per_block=1, latent_channels=16, norm_num_groups=2,
@@ -35,6 +35,7 @@ def vae() -> None:
 
 
 def t5() -> None:
+    # sentencepiece and transformers are heavy (seconds to import): only the step that needs them
     import sentencepiece as spm
     from transformers import T5Config, T5Tokenizer
 
