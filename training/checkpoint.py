@@ -21,6 +21,7 @@ The JSON files need no unpickling at all.
 from __future__ import annotations
 
 import base64
+import enum
 import io
 import json
 import os
@@ -37,7 +38,9 @@ import numpy as np
 import torch
 import torch.distributed.checkpoint as dcp
 from torch.distributed.checkpoint import DefaultLoadPlanner, FileSystemReader, FileSystemWriter
-from torch.distributed.checkpoint._nested_dict import flatten_state_dict   # the keys DCP saves a state under
+# the keys DCP saves a state under, and the helper DCP's own planner sets a loaded value with
+from torch.distributed.checkpoint._nested_dict import flatten_state_dict, set_element
+from torch.distributed.checkpoint.metadata import StorageMeta
 
 from shards.fsio import fsync_dir
 
@@ -72,8 +75,6 @@ def _enum_member(cls: Any, name: Any):
     """What ``builtins.getattr`` may do in DCP metadata: name an allowed enum's member. Python 3.11.0-3.11.4
     pickle an enum member as ``getattr(EnumClass, 'NAME')`` (3.11.5+ as ``EnumClass(value)``), so the
     memory-format enum of ``TensorProperties`` arrives in that form from those interpreters."""
-    import enum
-
     if not (isinstance(cls, type) and issubclass(cls, enum.Enum)
             and (cls.__module__, cls.__qualname__) in _ALLOWED_GLOBALS and isinstance(name, str)
             and name in cls.__members__):
@@ -106,7 +107,6 @@ class SafeFileSystemReader(FileSystemReader):
         with self.fs.create_stream(path, "rb") as f:
             metadata = _MetadataUnpickler(f).load()
         if getattr(metadata, "storage_meta", None) is None:
-            from torch.distributed.checkpoint.metadata import StorageMeta
             metadata.storage_meta = StorageMeta()
         metadata.storage_meta.load_id = self.load_id
         return metadata
@@ -116,7 +116,6 @@ class SafeLoadPlanner(DefaultLoadPlanner):
     """Non-tensor values (optimizer hyper-parameters) are loaded with ``weights_only=True``."""
 
     def load_bytes(self, read_item, value: io.BytesIO) -> None:
-        from torch.distributed.checkpoint._nested_dict import set_element  # noqa: F401  (same helper DCP uses)
         obj = torch.load(value, weights_only=True)
         if self.flatten_state_dict:
             set_element(self.original_state_dict, self.mappings[read_item.dest_index.fqn], obj)

@@ -1,11 +1,19 @@
 """`resim train NAME ...` (one subcommand per model with presets) and `resim train launch`.
 
-Light module: torch is imported inside the handlers.
+Light module: every `resim` call imports this module to register its subcommands, so what needs torch, numpy or the
+models is imported inside the handler that uses it, to keep `resim --help` fast.
 """
 from __future__ import annotations
 
 import argparse
 import sys
+
+import yaml
+
+from resim.config import ConfigError, to_dict
+from training.launch import add_launch_arguments, main_launch
+from training.presets import PRESETS
+from training.reward.cli import add_train_parser as add_reward_parser
 
 TRAIN_EPILOG = """\
 examples:
@@ -43,9 +51,6 @@ def add_train_arguments(p: argparse.ArgumentParser, presets: list[str]) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    import yaml
-
-    from resim.config import ConfigError, to_dict
     from training.run import resolve_config
 
     try:
@@ -98,14 +103,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_launch(args: argparse.Namespace) -> int:
-    from training.launch import main_launch
-
     return main_launch(args)
 
 
 def register(subparsers) -> None:
-    from training.presets import PRESETS
-
     p = subparsers.add_parser(
         "train", help="train a model from shards (world model, Video2Reward; launch on many GPUs)",
         description="Train a model from shards on one CPU/GPU, or on many with `resim train launch`.",
@@ -117,10 +118,8 @@ def register(subparsers) -> None:
                            epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
         add_train_arguments(s, list(table))
         s.set_defaults(func=_cmd_train, model_name=name)
-    from training.reward.cli import add_train_parser as add_reward_parser
 
     add_reward_parser(sub)  # Video2Reward has its own data path (clips with infraction scores), see docs/reward.md
-    from training.launch import add_launch_arguments
     lp = sub.add_parser(
         "launch", help="run `resim train ...` on N nodes x G processes with torchrun, print a SLURM script, or dry-run",
         description="Wrap torchrun around `resim train NAME ...` (the arguments after `--`).",

@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from shards.duplicates import duplicate_keys
+from shards.npy import stored_to_float32
 from shards.prompts import PromptTable, PromptTableError
 from shards.schema import COMMANDS
 from training.config import DataConfig
@@ -150,7 +151,6 @@ def _stack_latents(samples: list[dict], keys: list[str]) -> torch.Tensor:
         dt = dtypes.pop()
         arr = _stack([s["latent.npy"] for s in samples], "latents", keys)
         return arr.view(torch.int16).view(torch.bfloat16) if dt == "bfloat16" else arr
-    from shards.npy import stored_to_float32
     return _stack([stored_to_float32(s["latent.npy"], s["meta.json"]["latent_dtype"]) for s in samples],
                   "latents", keys)
 

@@ -19,6 +19,9 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 from torch import nn
+from torch.distributed.algorithms._checkpoint.checkpoint_wrapper import (
+    CheckpointImpl, apply_activation_checkpointing as _apply, checkpoint_wrapper)
+from torch.nn.parallel import DistributedDataParallel as DDP
 
 
 @dataclass(frozen=True)
@@ -110,8 +113,6 @@ def apply_activation_checkpointing(model: nn.Module) -> str:
     if hasattr(model, "set_activation_checkpointing"):
         model.set_activation_checkpointing(True)
         return "model hook"
-    from torch.distributed.algorithms._checkpoint.checkpoint_wrapper import (
-        CheckpointImpl, apply_activation_checkpointing as _apply, checkpoint_wrapper)
     blocks = set(id(b) for b in block_modules(model))
     if not blocks:
         raise ValueError(f"activation checkpointing: {type(model).__name__} has no ModuleList blocks "
@@ -143,11 +144,12 @@ def wrap_model(model: nn.Module, env: DistEnv, *, parallel: str = "auto", activa
     lm: nn.Module = LossModule(model)
     mode = resolve_parallel(parallel, env)
     if mode == "ddp":
-        from torch.nn.parallel import DistributedDataParallel as DDP
         lm = DDP(lm, device_ids=[env.device.index] if env.device.type == "cuda" else None,
                  find_unused_parameters=bool(getattr(model, "ddp_find_unused_parameters", False)))
         notes.append(f"DDP over {env.world_size} ranks")
     elif mode == "fsdp":
+        # FSDP2 is in torch.distributed.fsdp from torch 2.6 on: imported only to shard, so an older torch
+        # still trains on one device or with DDP
         from torch.distributed.fsdp import MixedPrecisionPolicy, fully_shard
         mp = MixedPrecisionPolicy(param_dtype=torch.bfloat16 if bf16_params else None, reduce_dtype=torch.float32)
         units = block_modules(model)

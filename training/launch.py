@@ -10,6 +10,9 @@
   ``-- reward ...``: the config is resolved and checked and the launch command printed, without a memory
   estimate (Video2Reward is not a presets.py model and trains on one process: a launch or ``--slurm`` script
   of reward with more than one rank is refused).
+
+Light module: every `resim` call imports this module to register its subcommands, so what needs torch, numpy or the
+models is imported inside the handler that uses it, to keep `resim --help` fast.
 """
 from __future__ import annotations
 
@@ -18,6 +21,10 @@ import os
 import shlex
 import subprocess
 import sys
+
+from resim.cli import build_parser
+from resim.config import ConfigError
+from training.reward.cli import _load_train_cfg
 
 GiB = 2**30
 
@@ -88,7 +95,6 @@ def dry_run(args, train: list[str]) -> dict:
     """Resolve config, build on meta, estimate per-GPU memory for N x G ranks. Returns the numbers."""
     import torch
 
-    from resim.cli import build_parser
     from training import registry
     from training.run import resolve_config
 
@@ -174,8 +180,6 @@ def reward_dry_run(args, train: list[str], ns) -> dict:
     """`--dry-run -- reward ...`: resolve and check the Video2Reward config and print the launch command. There is
     no memory estimate: Video2Reward is not built from a `training/presets.py` preset (its size depends on the
     backbone folder) and trains on one process (parallel none, no sharding)."""
-    from training.reward.cli import _load_train_cfg
-
     cfg = _load_train_cfg(ns)   # ConfigError -> exit 2 in main_launch, as for the other models
     world = args.nnodes * args.nproc_per_node
     m = cfg.model
@@ -209,7 +213,6 @@ def main_launch(args: argparse.Namespace) -> int:
               "--nnodes 1 --nproc-per-node 1 (or `resim train reward` directly)", file=sys.stderr)
         return 2
     if args.dry_run:
-        from resim.config import ConfigError
         try:
             dry_run(args, train)
         except ConfigError as e:

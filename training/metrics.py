@@ -13,6 +13,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import yaml
+from tqdm import tqdm
+
+from resim.config import safe_yaml
+
 METRICS = "metrics.jsonl"
 
 
@@ -63,7 +68,6 @@ class MetricsLogger:
             else:
                 self._tb = SummaryWriter(log_dir=str(self.run_dir / "tensorboard"), purge_step=start_step + 1)
         if progress_bar:
-            from tqdm import tqdm
             self._bar = tqdm(total=total_steps, initial=start_step, desc="train", unit="step",
                              dynamic_ncols=True, file=sys.stderr)
 
@@ -107,10 +111,6 @@ class MetricsLogger:
 
 def _run_title(run_dir: Path) -> str:
     """"<model> loss (<folder>)" from the run's config.yaml: a folder name alone ("trainer", "final") says little."""
-    import yaml
-
-    from resim.config import safe_yaml   # metrics.py stays light (imported by every run before its model)
-
     try:
         name = (safe_yaml((run_dir / "config.yaml").read_text()) or {}).get("model_name")
     except (OSError, yaml.YAMLError, AttributeError):
@@ -123,7 +123,7 @@ def plot_loss_curve(run_dir: str | Path) -> Path | None:
     recs = [r for r in read_metrics(run_dir) if isinstance(r.get("loss"), (int, float))]
     if not recs:
         return None
-    import matplotlib
+    import matplotlib   # slow to import: only for the loss-curve PNG
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -45,6 +45,10 @@ from typing import Iterator
 
 import numpy as np
 
+from shards import layout
+from shards.reader import ForbiddenMemberError, ShardReadError, decode_sample
+from shards.tario import open_records
+
 _DRAW, _SLOT = 1, 2
 SAMPLE_ORDER = "splitmix64-v2"  # recorded in the data position: positions of another order are refused
 _M64 = (1 << 64) - 1
@@ -187,8 +191,6 @@ class WorkerStream:
 
     def _open(self, slot: int) -> None:
         """(Re)open the shard of ``slot`` at its recorded offset (seeking over the records already read)."""
-        from shards.tario import open_records
-
         k, shard, offset = self.cur.slots[slot]
         self._iters[slot] = open_records(self.plan.urls[shard], start=offset, skip_exts=self._skip_exts)
 
@@ -220,8 +222,6 @@ class WorkerStream:
 
     # -------------------------------------------------------------- samples
     def _decode(self, raw: dict) -> dict:
-        from shards.reader import decode_sample
-
         # latents stay as stored (float16, or bfloat16 bits): Batch.to() widens them on the device, which
         # moves half the bytes through worker queues and host memory (bench/loader_overhead.py)
         # npy members as zero-copy read-only views of the member bytes (collation copies them once)
@@ -267,8 +267,6 @@ class WorkerStream:
 
     def samples(self) -> Iterator[tuple[dict, int, int]]:
         """Decoded samples in stream order, each with (shard index, record index in the shard)."""
-        from shards.reader import ForbiddenMemberError, ShardReadError
-
         S = self.plan.open_shards
         while True:
             i = self.cur.index
@@ -320,9 +318,6 @@ class WorkerStream:
 
     def _restore(self, pending: list) -> dict:
         """Partial buckets of a saved position: re-read each buffered sample at its (shard, record)."""
-        from shards.reader import ShardReadError
-        from shards.tario import open_records
-
         buckets: dict = {}
         for bucket in pending:
             for shard, rec in bucket:
@@ -411,8 +406,6 @@ def dataset_counts(root: Path, strict: bool = True) -> tuple[list[str], list[dic
     """(shard paths, per-shard source counts) of the committed shards, from the index files
     (each index carries the manifest's per-source histogram). A tar whose size is not the one its index
     recorded is a ``DataError`` when ``strict``, else left out with a warning (as unreadable shards are)."""
-    from shards import layout
-
     paths, kept, dropped = layout.committed_shards(root), [], []
     counts = []
     for p in paths:

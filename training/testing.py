@@ -3,10 +3,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from shards.schema import COMMANDS, ClipSpec
+from shards.testing import add_dummy_prompts, make_dummy_sample
+from shards.writer import ShardWriter
+
 
 def navsim_spec():
     """NAVSIM-style clip geometry: 2 Hz logs, 1 history + 8 future frames = 3 latent frames (1 of history)."""
-    from shards.schema import ClipSpec
     return ClipSpec(fps_hz=2.0, num_history_frames=1, num_future_frames=8, num_waypoints=8, waypoint_dt_s=0.5)
 
 
@@ -15,10 +18,6 @@ def write_world_dataset(root, num_samples=12, per_shard=4, sources=("synthetic",
     Commands cycle; sources cycle per shard (one source per shard, as the pipeline writes them).
     ``specs``: optional ``{source: ClipSpec}`` (clip geometry per source; default ReSim's 9 + 40 frames
     at 10 Hz = 13 latent frames), e.g. ``{"navsim": navsim_spec()}`` for a mixed-geometry dataset."""
-    from shards.schema import COMMANDS
-    from shards.testing import add_dummy_prompts, make_dummy_sample
-    from shards.writer import ShardWriter
-
     add_dummy_prompts(root, seq_len=16, dim=64, seed=seed)
     n_shards = -(-num_samples // per_shard)
     i = 0

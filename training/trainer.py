@@ -20,14 +20,19 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import random
 import signal
 import time
 import warnings
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import numpy as np
 import torch
+from safetensors.torch import save_file
 from torch import nn
+from torch.distributed.checkpoint.state_dict import (StateDictOptions, get_model_state_dict, get_state_dict,
+                                                     set_state_dict)
 
 from resim.config import save as save_config, to_dict
 from training import checkpoint as ckpt
@@ -122,10 +127,6 @@ _DATA_RNG_SEED_OFFSET = 0x5EED_DA7A
 
 
 def seed_all(seed: int) -> None:
-    import random
-
-    import numpy as np
-
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
@@ -227,7 +228,6 @@ class Trainer:
 
     # ------------------------------------------------------------------ state
     def _state(self) -> dict:
-        from torch.distributed.checkpoint.state_dict import get_state_dict
         msd, osd = get_state_dict(self.lm, self.optimizer)
         return {"model": msd, "optim": osd, "ema": self.ema.state_dict() if self.ema else {}}
 
@@ -241,7 +241,6 @@ class Trainer:
         return path
 
     def _load(self, path: Path, data) -> int:
-        from torch.distributed.checkpoint.state_dict import set_state_dict
         state = self._state()
         meta, rank_state = ckpt.load(path, state, rank=self.env.rank,
                                      legacy_name=getattr(self.model, "legacy_param_name", None))
@@ -417,7 +416,6 @@ class Trainer:
         parameters, so with a partly frozen model (``model.trainable=lora+new|dit|new``, ReSim stage 2) the frozen
         tensors and buffers come from the model and the EMA values are laid over the rest. Sampling
         (``training.sampling.load``) and ``model.init_weights`` load either file strictly."""
-        from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
         opts = StateDictOptions(full_state_dict=True, cpu_offload=True)
         sd = get_model_state_dict(self.lm, options=opts)
         ema_full = {}
@@ -426,7 +424,6 @@ class Trainer:
                 ema_full[n] = t.full_tensor() if hasattr(t, "full_tensor") else t
         if not self.env.is_main:
             return
-        from safetensors.torch import save_file
         out = self.run_dir / "final"
         out.mkdir(parents=True, exist_ok=True)
         strip = lambda n: n[len("model."):] if n.startswith("model.") else n  # noqa: E731  (LossModule prefix)

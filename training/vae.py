@@ -26,7 +26,9 @@ from typing import Any, Iterable, Optional
 
 import torch
 import torch.nn.functional as F
+import yaml
 from diffusers import AutoencoderKLCogVideoX
+from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict, safe_yaml
 
@@ -164,8 +166,6 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
         model = TrainableVAE.from_config(diffusers_config(cfg))
     model.train_cfg = cfg
     if cfg.init_weights is not None:
-        from safetensors.torch import load_file
-
         if not Path(cfg.init_weights).is_file():
             raise ConfigError(f"model.init_weights={cfg.init_weights} does not exist")
         model.load_state_dict(load_file(str(cfg.init_weights)))
@@ -189,11 +189,8 @@ def latent_std(vae: AutoencoderKLCogVideoX, batches: Iterable, max_batches: int 
 def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = None) -> Path:
     """``RUN/final/model.safetensors`` → a diffusers folder (default ``RUN/final/vae``) with the measured
     ``scaling_factor``; loads with ``AutoencoderKLCogVideoX.from_pretrained`` / ``media.encoders.VideoVAE``."""
-    from safetensors.torch import load_file
-
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir / "final" / "vae"
-    import yaml
 
     cfg = from_dict(VaeTrainConfig, safe_yaml((run_dir / "config.yaml").read_text())["model"], prefix="model")
     vae = AutoencoderKLCogVideoX.from_config(diffusers_config(cfg))

@@ -1,11 +1,14 @@
 """`resim eval ...`: video quality, controllability, planning, and the inverse dynamics model.
 
-Light module: torch and friends are imported in the handlers. Every command prints its protocol with the
-numbers and writes DIR/<name>.json + DIR/<name>.png. See docs/eval.md.
+Light module: every `resim` call imports this module to register its subcommands, so what needs torch, numpy or the
+models is imported inside the handler that uses it, to keep `resim --help` fast.
+
+Every command prints its protocol with the numbers and writes DIR/<name>.json + DIR/<name>.png. See docs/eval.md.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 import warnings
@@ -13,6 +16,9 @@ from pathlib import Path
 
 from resim.argtypes import height_width as _hw, local_dir as _local_dir, positive_int as _positive_int
 from resim.argtypes import torch_device as _torch_device
+from resim.config import ConfigError, apply_overrides, from_dict
+from resim.models import shipped_model
+from training.sampling.cli import UsageError, resolve_device
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
@@ -251,8 +257,6 @@ def register(subparsers) -> None:
 # ------------------------------------------------------------------------------------------ helpers
 def _device(args, name: str) -> bool:
     """Resolve --device in place (cuda on a CPU-only build, a missing cuda:N: one line, before any loading)."""
-    from training.sampling.cli import UsageError, resolve_device
-
     try:
         args.device = resolve_device(args.device)
     except UsageError as e:
@@ -262,8 +266,6 @@ def _device(args, name: str) -> bool:
 
 
 def _heldout_items(path: str | None, all_clips: bool = False):
-    import json
-
     if path is None or all_clips:
         return None
     p = Path(path)
@@ -287,7 +289,6 @@ def _runner(args):
     import torch
 
     from media.encoders import VideoVAE
-    from resim.config import from_dict
     from training.sampling.guidance import guidance_preset
     from training.sampling.load import PromptSource, encoded_with, load_world_model, run_objective
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, ddim_schedule
@@ -350,7 +351,6 @@ def _finish(out: Path, name: str, report: dict, text: str, png_fn) -> None:
 
 # ------------------------------------------------------------------------------------------ commands
 def _cmd_quality(args) -> int:
-    from resim.config import ConfigError
     from training.eval.quality import QualityConfig, build_networks
     from training.eval.report import format_quality, plot_quality
     from training.eval.worldeval import quality_eval
@@ -543,7 +543,6 @@ def _cmd_drift(args) -> int:
 
 def _cmd_vae(args) -> int:
     from media.encoders import VideoVAE
-    from resim.models import shipped_model
     from shards.reader import ShardReadError
     from training.eval.report import write_json
     from training.eval.vae_eval import format_vae_eval, plot_vae_eval, vae_eval
@@ -629,7 +628,6 @@ def _cmd_planning(args) -> int:
 
 
 def _cmd_idm(args) -> int:
-    from resim.config import ConfigError, apply_overrides, from_dict
     from training.eval.idm_train import IDMTrainConfig, run_idm_training
 
     d = {"preset": args.preset if args.window == "future" or args.preset.endswith("-history")

@@ -26,6 +26,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from labeling.commands import command_from_trajectory
+from labeling.config import preset as labeler_preset
 from shards.schema import COMMANDS
 from training.eval.fidelity import psnr, ssim
 from training.eval.worldeval import EvalClip, WorldRollouts, _idm_on
@@ -56,8 +58,6 @@ def flow_commands(videos: np.ndarray, num_history_frames: int, fps_hz: float, la
 
 
 def idm_commands(videos: np.ndarray, num_history_frames: int, idm: Any, labeler_cfg: Any) -> list[str]:
-    from labeling.commands import command_from_trajectory
-
     return [command_from_trajectory(t, labeler_cfg)[0] for t in _idm_on(idm, videos, num_history_frames)]
 
 
@@ -112,8 +112,6 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     rep["flow_labeler"]["mean_yaw_deg"]["recorded future"] = float(np.mean(gt_yaw))
     rep["flow_labeler"]["mean_yaw_deg"]["recorded through the VAE"] = float(np.mean(vae_yaw))
     if idm is not None:
-        from labeling.config import preset as labeler_preset
-
         lcfg = labeler_preset("default")
         by_idm = {k: idm_commands(v, nh, idm, lcfg) for k, v in videos.items()}
         rep["idm"]["commanded"] = confusion(cond, [lab for c in COMMANDS for lab in by_idm[c]])

@@ -5,8 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from shards.schema import COMMANDS
+from training.sampling.outputs import write_gif
 
 SHORT = {"Turning left": "left", "Moving forward": "forward", "Turning right": "right"}
 
@@ -34,6 +36,7 @@ def format_commands(rep: dict) -> str:
 
 
 def plot_commands(rep: dict, path: str | Path, title: str = "") -> Path:
+    # matplotlib is slow to import and only the plot needs it
     import matplotlib
 
     matplotlib.use("Agg")
@@ -75,8 +78,6 @@ def plot_commands(rep: dict, path: str | Path, title: str = "") -> Path:
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
-    from PIL import Image, ImageDraw
-
     im = Image.fromarray(img)
     ImageDraw.Draw(im).text((2, 1), text, fill=(255, 255, 255))
     return np.asarray(im)
@@ -86,8 +87,6 @@ def command_strip(videos: dict[str, np.ndarray], index: int, num_history_frames:
                   path: str | Path, every_s: float = 0.8) -> Path:
     """Rows: recorded future, then the rollouts under left / forward / right (and the null prompt); columns:
     the last history frame, then every ``every_s`` seconds. ``videos[name]`` is ``(N, T, H, W, 3)`` uint8."""
-    from PIL import Image
-
     names = ["recorded", *COMMANDS, *(["null prompt"] if "null prompt" in videos else [])]
     t = videos["recorded"].shape[1]
     step = max(1, int(round(every_s * fps_hz)))
@@ -103,8 +102,6 @@ def command_strip(videos: dict[str, np.ndarray], index: int, num_history_frames:
 
 def command_gif(videos: dict[str, np.ndarray], index: int, fps_hz: float, path: str | Path) -> Path:
     """The recorded future and the three commanded rollouts side by side, as an animated GIF."""
-    from training.sampling.outputs import write_gif
-
     names = ["recorded", *COMMANDS]
     frames = np.concatenate([np.stack([_label(f, SHORT.get(n, n)) for f in videos[n][index]]) for n in names], axis=2)
     return write_gif(frames, Path(path), fps_hz, max_width=frames.shape[2])

@@ -20,8 +20,11 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
+from PIL import Image
 
+from training.eval.commands_report import _label
 from training.eval.worldeval import EvalClip, WorldRollouts
+from training.sampling.rollout import rollout_num_future_frames
 
 STATS = ("sharpness", "contrast", "brightness")
 
@@ -69,8 +72,6 @@ def drift_eval(runner: WorldRollouts, clips: Sequence[EvalClip], *, seconds: flo
                command: str | None = "Moving forward", bin_s: float = 1.0) -> dict[str, Any]:
     """Roll each clip's history out for ``seconds`` under ``command`` (None: the null prompt); the report
     (``_videos``: the decoded rollouts, history included)."""
-    from training.sampling.rollout import rollout_num_future_frames
-
     if not clips:
         raise ValueError("no clips to evaluate")
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
@@ -103,6 +104,7 @@ def format_drift(rep: dict) -> str:
 
 
 def plot_drift(rep: dict, path, title: str = ""):
+    # matplotlib is slow to import and only the plot needs it
     import matplotlib
 
     matplotlib.use("Agg")
@@ -138,10 +140,6 @@ def plot_drift(rep: dict, path, title: str = ""):
 def drift_strip(videos: np.ndarray, first_frame: int, fps_hz: float, path, times_s=(0, 2, 5, 10, 20, 30),
                 rows: int = 2):
     """Frames of the first ``rows`` rollouts at ``times_s`` after the last history frame, as one PNG."""
-    from PIL import Image
-
-    from training.eval.commands_report import _label
-
     out = []
     for v in videos[:rows]:
         tiles = []

@@ -21,7 +21,11 @@ counts, resolution and resize method, frames used, network names with the sha256
 """
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import math
+import os
+import pickle
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +38,9 @@ from media.device import resolve_device
 from resim.config import ConfigError
 from training.eval.fidelity import PSNR_CAP_DB, psnr, ssim, to_unit
 from training.eval.frechet import MIN_SAMPLES_UNBIASED, FeatureStats, frechet_from_stats
+from training.eval.i3d import I3D
+from training.eval.inception import FIDInception
+from training.eval.lpips import LPIPS
 
 MIN_FVD_FRAMES = 9          # I3D's first conv spans 7 frames at stride 2; FVD clips are conventionally >= 16
 PER_FRAME_METRICS = ("psnr", "ssim", "lpips", "dreamsim")
@@ -126,8 +133,6 @@ class Networks:
 
 def dreamsim_status(cfg: QualityConfig) -> tuple[bool, str]:
     """(available, reason). Never downloads: needs the package and a local, already-extracted cache."""
-    import importlib.util
-
     if "dreamsim" not in cfg.metrics:
         return False, "not requested"
     if importlib.util.find_spec("dreamsim") is None:
@@ -146,9 +151,8 @@ class _DreamSimAdapter:
     """DreamSim's model as ``(x, y) -> (N,)`` on [0, 1] frames (224x224 bicubic, as its preprocess does)."""
 
     def __init__(self, cfg: QualityConfig, device: str):
-        import os
-
         os.environ.setdefault("HF_HUB_OFFLINE", "1")   # the backbones must come from the local cache
+        # DreamSim is an optional package (with its own weights): only when the metric is asked for
         from dreamsim import dreamsim  # type: ignore[import-not-found]
 
         self.model, _ = dreamsim(pretrained=True, device=device, cache_dir=str(cfg.dreamsim_dir),
@@ -163,8 +167,6 @@ class _DreamSimAdapter:
 
 
 def _dir_sha256(d: Path) -> str:
-    import hashlib
-
     h = hashlib.sha256()
     for p in sorted(d.rglob("*")):
         if p.is_file():
@@ -175,10 +177,6 @@ def _dir_sha256(d: Path) -> str:
 
 def build_networks(cfg: QualityConfig, device: str) -> Networks:
     """Load the requested networks from local files; random-init placeholders only when allowed."""
-    from training.eval.i3d import I3D
-    from training.eval.inception import FIDInception
-    from training.eval.lpips import LPIPS
-
     def need(name: str, **paths) -> bool:
         if name not in cfg.metrics:
             return False
@@ -193,8 +191,6 @@ def build_networks(cfg: QualityConfig, device: str) -> Networks:
     def load(name: str, fn):
         """A user's weight file that torch cannot read (truncated, not a state dict, wrong layout) is a
         ConfigError naming it; anything else is our bug and propagates."""
-        import pickle
-
         try:
             return fn()
         except (RuntimeError, ValueError, pickle.UnpicklingError, EOFError) as e:

@@ -16,7 +16,7 @@ import numpy as np
 def _plain(o: Any, null_nonfinite: bool = False) -> Any:
     """``o`` with tensors, arrays, numpy scalars and paths made plain JSON values. JSON has no inf/nan: they are
     written as strings ("nan"), or as null with ``null_nonfinite`` (the reward's metrics: null = undefined)."""
-    import torch
+    import torch   # only to recognise tensors: the module otherwise needs numpy alone
 
     if isinstance(o, dict):
         return {str(k): _plain(v, null_nonfinite) for k, v in o.items()}
@@ -104,6 +104,7 @@ def format_quality(report: dict) -> str:
 def plot_quality(report: dict, path: str | Path, title: str = "") -> Path:
     """One panel per metric: per-frame curves (PSNR/SSIM/LPIPS/DreamSim) with per-horizon means as steps,
     FID per horizon bin, FVD per cumulative horizon."""
+    # matplotlib is slow to import and only the plot needs it
     import matplotlib
 
     matplotlib.use("Agg")
@@ -147,6 +148,7 @@ def plot_quality(report: dict, path: str | Path, title: str = "") -> Path:
 def plot_bars(groups: dict[str, dict[str, float | None]], path: str | Path, title: str = "",
               ylabel: str = "m") -> Path:
     """Grouped bars: ``{"ADE": {"IDM": 0.4, "constant velocity": 1.2}, "FDE": {...}}``."""
+    # matplotlib is slow to import and only the plot needs it
     import matplotlib
 
     matplotlib.use("Agg")

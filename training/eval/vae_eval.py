@@ -21,13 +21,13 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from training.eval.commands import confusion, flow_commands
 from training.eval.fidelity import psnr, ssim
+from training.sampling.outputs import decode_latents
 
 
 def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarray:
     """uint8 ``(B, T, H, W, 3)`` → the VAE's reconstruction, same shape and dtype."""
-    from training.sampling.outputs import decode_latents
-
     lat = vae.encode(frames, seeds=list(seeds))
     return decode_latents(vae, torch.from_numpy(lat))
 
@@ -36,8 +36,6 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
                    clips: Sequence[Any]) -> dict:
     """The flow labeler's command and heading change (deg, left +) of each clip's future, on the originals
     and on the reconstructions; accuracies against the recorded commands, and how much heading survives."""
-    from training.eval.commands import confusion, flow_commands
-
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     raw_c, raw_y = flow_commands(np.stack(frames), nh, fps, labeler)
     rec_c, rec_y = flow_commands(np.stack(recs), nh, fps, labeler)
@@ -99,6 +97,7 @@ def format_vae_eval(rep: dict) -> str:
 
 def plot_vae_eval(rep: dict, path: str | Path, fps_hz: float, title: str = "") -> Path:
     """Per-frame PSNR/SSIM curves above originals (top row) vs reconstructions (bottom row) of one clip."""
+    # matplotlib is slow to import and only the plot needs it
     import matplotlib
 
     matplotlib.use("Agg")

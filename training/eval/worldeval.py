@@ -23,6 +23,7 @@ evaluation resolution (the protocol says which); the IDM resizes its input itsel
 from __future__ import annotations
 
 import hashlib
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -30,7 +31,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from training.eval.idm_train import constant_velocity, trajectory_errors
+from labeling.config import preset as labeler_preset
+from labeling.flow import FlowLabeler
+from shards.reader import iter_samples
+from training.eval.idm_train import constant_velocity, resize_frames, trajectory_errors
+from training.eval.quality import VideoQualityEvaluator
+from training.sampling.outputs import decode_rollout
+from training.sampling.rollout import Condition, rollout
 
 
 @dataclass
@@ -50,8 +57,6 @@ def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = N
                             need_trajectory: bool = True) -> list[EvalClip]:
     """Clips of ``root`` (only those of episodes ``items`` when given; at most ``limit``, spread over the
     episodes by :func:`spread_over_episodes`; ``None``: all)."""
-    from shards.reader import iter_samples
-
     # `limit is not None`, not `if limit`: a limit of 0 must not mean "all clips"
     if limit is not None and limit < 1:
         raise ValueError(f"limit must be >= 1 (or None for all clips), got {limit}")
@@ -103,8 +108,6 @@ def _one_geometry(clips: list[EvalClip]) -> list[EvalClip]:
         counts[geo(c)] = counts.get(geo(c), 0) + 1
     best = max(counts, key=lambda g: (counts[g], g[0][0]))
     if len(counts) > 1:
-        import sys
-
         others = ", ".join(f"{n} x latent {g[0]} @ {g[2]:g} Hz" for g, n in counts.items() if g != best)
         print(f"[resim eval] evaluating the {counts[best]} clips of geometry latent {best[0]} @ {best[2]:g} Hz; "
               f"left out clips of other geometries: {others}", file=sys.stderr)
@@ -147,9 +150,6 @@ class WorldRollouts:
         return np.concatenate(out)
 
     def _batch(self, clips, trajs, commands, seed: int, num_future_latents: int | None = None) -> np.ndarray:
-        from training.sampling.outputs import decode_rollout
-        from training.sampling.rollout import Condition, rollout
-
         h = self.history_latents(clips[0])
         t_lat = clips[0].latents.shape[0]
         if any(c.latents.shape[0] != t_lat or self.history_latents(c) != h for c in clips):
@@ -174,8 +174,6 @@ class WorldRollouts:
     def decode_recorded(self, clips: Sequence[EvalClip]) -> np.ndarray:
         """The clips' own latents decoded as a rollout's are (``decode_rollout``, round by round): the video a
         world model that predicted the recorded future exactly would show, ``(N, T, H, W, 3)`` uint8."""
-        from training.sampling.outputs import decode_rollout
-
         out = []
         for i in range(0, len(clips), self.batch_size):
             part = clips[i:i + self.batch_size]
@@ -204,12 +202,8 @@ def _l2(pred: np.ndarray, target: np.ndarray) -> dict:
 
 
 def flow_labeler_status() -> tuple[Any, str]:
-    """(FlowLabeler instance or None, reason)."""
-    try:
-        from labeling.config import preset as labeler_preset
-        from labeling.flow import FlowLabeler
-    except ImportError as e:
-        return None, f"the optical-flow labeler (labeling/) is not importable on this branch: {e}"
+    """(FlowLabeler instance or None, reason). The labeler is part of this tree, so always the default one and
+    no reason; callers keep the pair form to say why a metric is missing."""
     return FlowLabeler(labeler_preset("default")), ""
 
 
@@ -327,8 +321,6 @@ def planning_eval(runner: WorldRollouts, idm: Any, planner: Any | None, clips: S
 
 
 def quality_eval(runner: WorldRollouts, clips: Sequence[EvalClip], qcfg: Any, networks: Any = None) -> dict:
-    from training.eval.quality import VideoQualityEvaluator
-
     ev = VideoQualityEvaluator(qcfg, networks)
     for i in range(0, len(clips), runner.batch_size):
         part = clips[i:i + runner.batch_size]
@@ -340,7 +332,6 @@ def quality_eval(runner: WorldRollouts, clips: Sequence[EvalClip], qcfg: Any, ne
         if g.shape[1] != r.shape[1]:
             raise ValueError(f"generated {g.shape[1]} frames, the clip has {r.shape[1]}")
         if g.shape[-2:] != r.shape[-2:]:   # VAE resolution vs frames.mp4: bring generated to the GT's size
-            from training.eval.idm_train import resize_frames
 
             g = torch.from_numpy(np.stack([resize_frames(v, tuple(r.shape[-2:])) for v in gen])).permute(0, 1, 4, 2, 3)
         ev.update(g, r)

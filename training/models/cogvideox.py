@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors.torch import load_file
 
 
 def _folder(src: Path) -> Path:
@@ -23,7 +24,6 @@ def _read_weights(folder: Path) -> dict[str, torch.Tensor]:
     index = sorted(folder.glob("*.safetensors.index.json"))
     singles = sorted(folder.glob("*.safetensors"))
     if index or singles:
-        from safetensors.torch import load_file
         files = singles
         if index:
             names = sorted(set(json.loads(index[0].read_text())["weight_map"].values()))

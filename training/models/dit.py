@@ -33,10 +33,13 @@ import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
+from resim.config import save
 from training.models.attention import KVCache, block_causal_block_mask, block_causal_mask
 from training.models.blocks import DiTBlock
+from training.models.cogvideox import cogvideox_num_train_timesteps, load_cogvideox_state
 from training.models.conditioning import ActionEncoder, TextPooler, TrajectoryEncoder
-from training.models.config import WorldModelConfig, check_attention_backend, check_pretrained_noise_levels
+from training.models.config import (WorldModelConfig, check_attention_backend, check_pretrained_noise_levels,
+                                    config_from_cogvideox)
 from training.models.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
 
 NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.", "text_pooler.")
@@ -93,8 +96,6 @@ class WorldModel(nn.Module):
         embedding is tied to them (ConfigError otherwise, before any weight is read). ``init_kwargs``: further
         arguments of the (sub)class's constructor.
         """
-        from training.models.cogvideox import cogvideox_num_train_timesteps, load_cogvideox_state
-        from training.models.config import config_from_cogvideox
         if num_train_timesteps is not None:
             check_pretrained_noise_levels(num_train_timesteps, cogvideox_num_train_timesteps(src))
         config, state = load_cogvideox_state(src)
@@ -249,5 +250,4 @@ class WorldModel(nn.Module):
 
 def save_config(model: WorldModel, path: str | Path) -> Path:
     """Write the resolved model config (YAML) next to an output."""
-    from resim.config import save
     return save(model.cfg, path)

@@ -1,5 +1,7 @@
-"""`resim sample` (roll the world model out from a history) and `resim plan` (rank candidate trajectories by
-the reward of their imagined futures). Light module: torch and friends are imported in the handlers.
+"""`resim sample` (roll the world model out from a history) and `resim plan` (rank candidate trajectories by the
+reward of their imagined futures). Light module: every `resim` call imports this module to register its
+subcommands, so what needs torch, numpy or the models is imported inside the handler that uses it, to keep
+`resim --help` fast.
 """
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from pathlib import Path
 
 from resim.argtypes import (height_width, local_dir, non_negative_float, non_negative_int, positive_float,
                             positive_int, torch_device)
+from resim.config import ConfigError, from_dict, save, to_dict
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
@@ -159,7 +162,6 @@ def _trajectories(specs: list[str] | None) -> list:
 def _rollout_config(args):
     """The resolved RolloutConfig from the preset and the overrides; checked before any model is loaded (the
     bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded)."""
-    from resim.config import ConfigError, from_dict
     from training.sampling.guidance import guidance_preset
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
 
@@ -313,7 +315,6 @@ class _Setup:
 
 
 def _save_config(setup: _Setup, out: Path, extra: dict) -> None:
-    from resim.config import save, to_dict
     save(setup.cfg, out / "rollout.yaml")
     (out / "run.json").write_text(json.dumps({**setup.model_info, "history": setup.history.source,
                                               "seconds": setup.args.seconds, "seed": setup.args.seed,
@@ -330,7 +331,6 @@ def _save_config(setup: _Setup, out: Path, extra: dict) -> None:
 def _cmd_sample(args) -> int:
     import torch
 
-    from resim.config import ConfigError
     from shards.schema import COMMANDS
     from training.sampling.load import SamplingInputError
     from training.sampling.outputs import decode_rollout, write_rollout
@@ -420,7 +420,6 @@ def _say(cmd: str, bar=None):
 def _cmd_plan(args) -> int:
     import numpy as np
 
-    from resim.config import ConfigError
     from training.reward.checkpoint import CheckpointError, load_checkpoint
     from training.sampling.load import SamplingInputError
     from training.sampling.outputs import grid_with_scores

@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from training.diffusion.schedule import alphas_cumprod
+
 if TYPE_CHECKING:
     from training.diffusion.config import ScheduleConfig
 
@@ -41,7 +43,6 @@ def cogvideox_alphas_cumprod(schedule: "ScheduleConfig | None" = None) -> torch.
     scaled-linear betas → cumprod → SNR shift by 3 → zero-terminal-SNR rescale); sampling must use exactly
     the schedule the model was trained with, so pass the model's ``objective.schedule`` where it has one.
     """
-    from training.diffusion.schedule import alphas_cumprod
     return alphas_cumprod(schedule)
 
 

@@ -26,7 +26,7 @@ from typing import Literal
 
 import torch
 
-from resim.config import ConfigError
+from resim.config import ConfigError, from_dict
 
 ScheduleKind = Literal["constant", "linear", "cosine"]
 
@@ -117,7 +117,6 @@ GUIDANCE_PRESETS: dict[str, dict] = {
 def guidance_preset(name: str, **overrides) -> GuidanceConfig:
     if name not in GUIDANCE_PRESETS:
         raise ConfigError(f"unknown guidance preset {name!r}; known: {sorted(GUIDANCE_PRESETS)}")
-    from resim.config import from_dict
     return from_dict(GuidanceConfig, {**GUIDANCE_PRESETS[name], **overrides})
 
 

@@ -16,6 +16,9 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from PIL import Image, ImageDraw
+
+from shards.video import encode_mp4
 
 SHEET_BG = (24, 24, 24)
 TEXT = (235, 235, 235)
@@ -38,7 +41,7 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     the decoded frames do not depend on the padding at all. Every other batch (and any odd ``T``) is diffusers'
     decode unchanged.
     """
-    import torch
+    import torch   # only to decode latents: writing videos and sheets needs numpy and PIL alone
 
     model = getattr(vae, "model", vae)
     if scaling_factor is None:
@@ -80,7 +83,7 @@ def _group_norm_without_padding(model: Any, num_frames: int):
     ``(T' - L % 2) / (L - L % 2)`` frames: frame 0 of an odd batch is upsampled alone, the others 2× in time
     (nearest) per temporal upsampling. A batching other than this is refused (AssertionError), never guessed.
     """
-    import torch
+    import torch   # see decode_latents
     import torch.nn.functional as F
 
     decoder = getattr(model, "decoder", None)
@@ -146,8 +149,6 @@ def decode_rollout(vae: Any, latents, num_history: int, frames_per_round: int, h
 
 def draw_trajectory(traj: np.ndarray | None, size_px: int = 96, label: str = "", score: float | None = None):
     """BEV panel (PIL image): ego at the bottom centre, x forward = up, y left = left; range fits the path."""
-    from PIL import Image, ImageDraw
-
     img = Image.new("RGB", (size_px, size_px), (40, 40, 40))
     d = ImageDraw.Draw(img)
     cx, cy = size_px / 2, size_px - 10
@@ -183,8 +184,6 @@ def contact_sheet(frames: np.ndarray, num_history_px: int, fps_hz: float, *, tit
                   trajectory: np.ndarray | None = None, count: int = 8, thumb_w: int = 160):
     """A one-row sheet (PIL image) of ``frames`` (T, H, W, 3) uint8: history frame (blue edge) + future (orange),
     time stamps, the ``title`` (command) and a BEV panel of ``trajectory``."""
-    from PIL import Image, ImageDraw
-
     t, h, w, _ = frames.shape
     th = max(8, round(h * thumb_w / w))
     idx = _pick(num_history_px, t, count)
@@ -208,8 +207,6 @@ def contact_sheet(frames: np.ndarray, num_history_px: int, fps_hz: float, *, tit
 
 
 def write_gif(frames: np.ndarray, path: Path, fps_hz: float, max_width: int = 320) -> Path:
-    from PIL import Image
-
     h, w = frames.shape[1:3]
     size = (min(w, max_width), round(h * min(w, max_width) / w))
     ims = [Image.fromarray(f).resize(size) for f in frames]
@@ -223,8 +220,6 @@ def write_rollout(out_dir: str | Path, name: str, frames: np.ndarray, latents: n
                   num_history_px: int, fps_hz: float, title: str = "", trajectory: np.ndarray | None = None,
                   meta: dict | None = None) -> dict[str, Path]:
     """Write one rollout's files; returns their paths by kind (mp4, gif, sheet, latents, meta)."""
-    from shards.video import encode_mp4
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"mp4": out / f"{name}.mp4", "gif": out / f"{name}.gif", "sheet": out / f"{name}_sheet.png",
@@ -249,8 +244,6 @@ def grid_with_scores(rows: Sequence[dict], fps_hz: float, count: int = 6, thumb_
 
     Each row dict: ``name``, ``score``, ``rank``, ``frames`` (T, H, W, 3) uint8, ``num_history_px``, ``trajectory``.
     """
-    from PIL import Image, ImageDraw
-
     sheets = [contact_sheet(r["frames"], r["num_history_px"], fps_hz, count=count, thumb_w=thumb_w,
                             title=f"#{r['rank']}  {r['name']}   reward {r['score']:.4f}",
                             trajectory=r.get("trajectory")) for r in rows]

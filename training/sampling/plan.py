@@ -15,6 +15,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from training.reward.score import score_videos
+from training.sampling.outputs import decode_rollout
 from training.sampling.rollout import Condition, RolloutConfig, rollout
 
 CANDIDATE_NAMES = ("keep_lane", "turn_left", "turn_right", "brake", "swerve")
@@ -108,9 +110,6 @@ def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
     them with the trajectory, see ``rollout``). ``log(message)`` hears about the steps after the rollouts
     (decoding, scoring: minutes on a CPU, after a progress bar of the rollouts has reached its end).
     """
-    from training.reward.score import score_videos
-    from training.sampling.outputs import decode_rollout
-
     if history.dim() != 5 or history.shape[0] != 1:
         raise ValueError(f"history must be (1, H, C, h, w), got {tuple(history.shape)}")
     if not candidates:
