@@ -37,6 +37,24 @@ def _reference():
     return (r["x"], r["t"], r["text"], r["trajectory"], r["actions"]), r["v"]
 
 
+def test_unusable_world_checkpoints_are_one_line_naming_the_file(tmp_path):
+    """training.exported's errors, as the sampler's SamplingInputError ("checkpoint ...")."""
+    from training.sampling.load import SamplingInputError, run_objective
+
+    run = tmp_path / "run"
+    shutil.copytree(V1, run)
+    (run / "config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {**V1_MODEL, "lora_rank": 2}}))
+    with pytest.raises(SamplingInputError, match=f"^checkpoint {run / 'model.safetensors'}: weights do not match "
+                                                 "config.yaml"):
+        load_world_model(run)
+    (run / "config.yaml").write_text("model: [\n")
+    for f in (load_world_model, run_objective):
+        with pytest.raises(SamplingInputError, match=f"^checkpoint {run / 'config.yaml'}: invalid YAML"):
+            f(run)
+    with pytest.raises(SamplingInputError, match=f"^checkpoint {tmp_path}: expected config.yaml \\+ model.safetensors"):
+        load_world_model(tmp_path)
+
+
 def test_old_layout_checkpoint_reproduces_its_reference_output():
     model, info = load_world_model(V1)
     assert info["weights"] == "model.safetensors"

@@ -4,7 +4,8 @@ World-model checkpoint (the trainer's export): ``RUN_DIR/final/`` (or ``RUN_DIR`
 ``final`` folder) holding ``config.yaml`` (the resolved ``RunConfig``: ``model_name`` + ``model`` dict) and
 ``model.safetensors`` (+ ``ema.safetensors``, preferred for sampling when present). The model is built through
 ``training.registry`` by ``model_name`` ("world": ``training.world.build_world``, the same builder training used,
-so LoRA layers and overrides match the saved tensors), then the saved weights are loaded strictly.
+so LoRA layers and overrides match the saved tensors), then the saved weights are loaded strictly; finding,
+checking and loading are ``training.exported``'s, shared with the IDM and the reward model.
 
 History: a video file (resampled to the clip rate the model was trained at, 10 Hz for video sources, then its
 last ``1 + 4 (H - 1)`` frames, resized, encoded with the VAE) or a shard sample key (its stored latents' first
@@ -26,6 +27,7 @@ import yaml
 from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
 from resim.config import from_dict, safe_yaml
 from training.diffusion.config import ObjectiveConfig
+from training.exported import ExportError, find_export, load_exported, read_config
 from training.models.lora import to_peft_layout
 
 
@@ -48,51 +50,42 @@ def video_clip_fps_hz(objective: Any, temporal_compression: int = 4) -> float:
 
 
 def _checkpoint_dir(ckpt: str | Path) -> Path:
-    from resim.models import shipped_model
-
-    p = Path(shipped_model(ckpt))   # a run folder, its final/, or a shipped model's name (synth-world)
-    for cand in (p, p / "final"):
-        if (cand / "model.safetensors").is_file() and (cand / "config.yaml").is_file():
-            return cand
-    raise SamplingInputError(f"checkpoint {p}: expected config.yaml + model.safetensors in it or in {p / 'final'} "
-                             "(the trainer writes them at the end of a run)")
+    """The folder of a world-model export: a run folder, its final/, or a shipped model's name (synth-world)."""
+    try:
+        return find_export(ckpt, shipped=True)
+    except ExportError as e:
+        raise SamplingInputError(f"checkpoint {e} (the trainer writes them at the end of a run)") from None
 
 
 def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype = torch.float32,
                      prefer_ema: bool = True) -> tuple[Any, dict]:
-    """Build + load the world model of a training run; returns (model in eval mode, info dict)."""
-    from safetensors.torch import load_file
+    """Build + load the world model of a training run (``training.exported``); returns (model in eval mode, info
+    dict). A config without ``model_name`` is a world model's."""
+    _checkpoint_dir(ckpt)   # its own message when the files are not there
 
-    from training import registry
-
-    d = _checkpoint_dir(ckpt)
-    run_cfg = safe_yaml((d / "config.yaml").read_text()) or {}
-    name = run_cfg.get("model_name", "world")
-    model_cfg = dict(run_cfg.get("model") or {})
-    if "init_weights" in model_cfg:
+    def without_init_weights(model_cfg: dict, state: Any) -> dict:
         # the previous stage's weights are replaced by this checkpoint's anyway; don't require that file here
-        model_cfg["init_weights"] = None
+        return {**model_cfg, "init_weights": None} if "init_weights" in model_cfg else model_cfg
+
     try:
-        model = registry.build(name, model_cfg, device="cpu")
-    except KeyError as e:
-        raise SamplingInputError(f"checkpoint {d}: model_name {name!r} has no builder in training.registry "
-                                 f"({e})") from e
-    builder = f"registry:{name}"
-    weights = d / "ema.safetensors" if prefer_ema and (d / "ema.safetensors").is_file() else d / "model.safetensors"
-    state = to_peft_layout(load_file(str(weights)), model)   # LoRA saved before peft: its keys renamed
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    if missing or unexpected:
-        raise SamplingInputError(f"checkpoint {weights}: does not fit the model built from its config "
-                                 f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
-    model = model.to(device=device, dtype=dtype).eval().requires_grad_(False)
-    return model, {"checkpoint": str(d), "weights": weights.name, "builder": builder, "model_name": name}
+        ex = load_exported(ckpt, shipped=True, default_name="world", prefer_ema=prefer_ema,
+                           adapt_config=without_init_weights,
+                           adapt_state=to_peft_layout)   # LoRA saved before peft: its keys renamed
+    except ExportError as e:
+        raise SamplingInputError(f"checkpoint {e}") from None
+    model = ex.model.to(device=device, dtype=dtype).eval().requires_grad_(False)
+    return model, {"checkpoint": str(ex.folder), "weights": ex.weights.name, "builder": f"registry:{ex.model_name}",
+                   "model_name": ex.model_name}
 
 
 def run_objective(ckpt: str | Path) -> ObjectiveConfig:
     """The diffusion objective a checkpoint's run trained with, from its saved config (not from the model object):
     its ``schedule`` is what the sampler steps over, its ``latent_frame_dt_s`` the time between latent frames."""
-    run_cfg = safe_yaml((_checkpoint_dir(ckpt) / "config.yaml").read_text()) or {}
-    return from_dict(ObjectiveConfig, (run_cfg.get("model") or {}).get("objective") or {}, prefix="model.objective")
+    try:
+        cfg = read_config(_checkpoint_dir(ckpt), default_name="world")
+    except ExportError as e:
+        raise SamplingInputError(f"checkpoint {e}") from None
+    return from_dict(ObjectiveConfig, cfg.model.get("objective") or {}, prefix="model.objective")
 
 
 @dataclass
