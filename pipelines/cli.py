@@ -1,24 +1,18 @@
 """`resim pipeline run|check|submit|status|logs`: the Ray data pipeline from the command line.
 
-Light at import time (argparse, PyYAML and the pipeline's light modules): every `resim` call imports this
-module to register its subcommands, so the runner and what it pulls in (Ray, torch, OpenCV, numpy) are imported
-inside the handlers that need them, to keep `resim --help` fast.
+Light at import time (argparse, PyYAML): every `resim` call imports this module to register its subcommands, so
+the pipeline's modules (and Ray, torch, OpenCV, numpy behind them) are imported inside the handlers that need
+them, to keep `resim --help` fast.
 """
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 import yaml
 
-from pipelines import submit
-from pipelines.config import to_dict
-from pipelines.out_lock import OutBusy
-from pipelines.ray_connect import ClusterError
-from pipelines.video_preflight import opendv_warnings
 from resim.argtypes import wrap as _wrap
 from resim.config import ConfigError
 
@@ -94,7 +88,11 @@ JOB_ERRORS = (OSError, ValueError, RuntimeError)
 
 
 def _cmd_run(args) -> int:
+    import logging
+
     from pipelines import runner
+    from pipelines.out_lock import OutBusy
+    from pipelines.ray_connect import ClusterError
     from pipelines.report import format_summary
     from pipelines.stages.base import OUTPUT_ERRNOS, OutputError
 
@@ -127,6 +125,9 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_check(args) -> int:
+    from pipelines.config import to_dict
+    from pipelines.video_preflight import opendv_warnings
+
     try:
         cfg = _load(args)
     except ConfigError as e:
@@ -139,6 +140,8 @@ def _cmd_check(args) -> int:
 
 
 def _cmd_submit(args) -> int:
+    from pipelines import submit   # asyncio and the job client: not at the top, every `resim` call imports this module
+
     try:
         cfg = _load(args)
     except ConfigError as e:
@@ -161,6 +164,8 @@ def _cmd_submit(args) -> int:
 
 
 def _cmd_status(args) -> int:
+    from pipelines import submit
+
     try:
         print(submit.status(args.address, args.job_id))
     except JOB_ERRORS as e:
@@ -169,6 +174,8 @@ def _cmd_status(args) -> int:
 
 
 def _cmd_logs(args) -> int:
+    from pipelines import submit
+
     try:
         if args.follow:
             submit.follow_logs(args.address, args.job_id)

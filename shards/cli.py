@@ -6,18 +6,14 @@ import argparse
 import functools
 import json
 import os
-import random
 import sys
 from pathlib import Path
 
 from resim.argtypes import positive_int as _positive_int, wrap as _wrap
-from shards.confine import UnsafePathError, confined
-from shards.errors import ShardReadError
-from shards.schema import schema_dict
 
-# Every `resim` call imports this module to register its subcommands, so `resim --help` stays fast only if the
-# rest of shards (numpy, pyarrow; webdataset, which pulls in torch; matplotlib for previews) is imported inside
-# the handler that needs it: the imports inside the _cmd_* functions below are that, not an oversight.
+# Every `resim` call imports this module to register its subcommands, so `resim --help` stays fast only if shards
+# itself (and numpy, pyarrow; webdataset, which pulls in torch; matplotlib for previews) is imported inside the
+# handler that needs it: the imports inside the functions below are that, not an oversight.
 
 DATASET_HELP = "dataset folder (holds shards/, index/, manifest/, prompts/)"
 KEY_HELP = "sample key (list them with `resim shards ls DIR --samples`)"
@@ -51,6 +47,8 @@ example:
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:
+    from shards.schema import schema_dict
+
     print(json.dumps(schema_dict(), indent=2))
     return 0
 
@@ -178,6 +176,10 @@ def _cmd_verify(args) -> int:
 
 
 def _cmd_preview(args) -> int:
+    import random
+
+    from shards.confine import UnsafePathError, confined
+    from shards.errors import ShardReadError
     from shards.manifest import read_manifest
     from shards.preview import render_preview
     from shards.reader import find_sample
@@ -225,6 +227,7 @@ def _on_dataset(cmd):
     @functools.wraps(cmd)
     def run(args) -> int:
         from shards import layout
+        from shards.errors import ShardReadError
 
         if not Path(args.dir).is_dir():
             print(f"resim shards {args.shards_command}: error: {args.dir} is not a folder", file=sys.stderr)
