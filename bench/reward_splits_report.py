@@ -1,6 +1,6 @@
 """Report Video2Reward runs trained on several held-out splits of one world (docs/reward.md).
 
-Reads the folders written by ``resim train reward`` (meta.json, heldout_predictions.json; one
+Reads the folders written by ``resim train reward`` (final/meta.json, heldout_predictions.json; one
 folder per ``data.split_seed``) and prints a markdown table of every split (n, MAE, Spearman,
 hazard AUC, train MAE), the held-out error per kind of synthetic episode (the kind is read from
 the `resim synth` route name, e.g. ``SynthExplorerStop_...``), and writes one predicted-vs-true
@@ -22,7 +22,8 @@ import numpy as np
 def load_run(d: Path) -> dict:
     import yaml
 
-    meta = json.loads((d / "meta.json").read_text())
+    meta_p = d / "final" / "meta.json"   # runs written before the shared export layout: d / "meta.json"
+    meta = json.loads((meta_p if meta_p.is_file() else d / "meta.json").read_text())
     for split in ("heldout_metrics", "train_metrics"):   # meta.json writes an undefined metric as null
         m = meta.get(split) or {}
         meta[split] = {k: float("nan") if v is None else v for k, v in m.items()}

@@ -377,7 +377,7 @@ def write_report(out: Path, cfg: DemoConfig, timings: dict[str, float], key: str
         _img(out / "world_model/loss_curve.png", out, "world model loss (the demo's own run)"),
         _img(out / "reward_model/trainer/loss_curve.png", out, "Video2Reward loss"),
         _img(out / "reward_model/heldout_pred_vs_true.png", out, "Video2Reward: held-out predicted vs true infraction score"),
-        _reward_metrics(out / "reward_model/meta.json"),
+        _reward_metrics(out / "reward_model/final/meta.json"),
     ]
     parts += _commands_section(out, cfg)
     parts += [f"<h2>5. Rollouts from history <code>{html.escape(key)}</code> (resim sample)</h2>"]

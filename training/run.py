@@ -47,8 +47,10 @@ class HeldRun:
 
 # what a `resim train` run writes into its folder: --overwrite removes these (and nothing else)
 TRAINER_RUN_FILES = ("checkpoints", "final", "metrics.jsonl", "tensorboard", "loss_curve.png", "config.yaml")
-REWARD_RUN_FILES = ("trainer", "reward.safetensors", "meta.json", "config.yaml", "heldout_predictions.json",
-                    "history.json", "heldout_pred_vs_true.png")
+# a reward run: final/ (training.exported's layout) + its own outputs; reward.safetensors and meta.json are
+# what runs written before that layout hold in their place
+REWARD_RUN_FILES = ("trainer", "final", "config.yaml", "heldout_predictions.json", "history.json",
+                    "heldout_pred_vs_true.png", "reward.safetensors", "meta.json")
 
 
 def _config_kind(path: Path) -> str | None:
@@ -81,8 +83,9 @@ def describe_run(out: str | Path) -> HeldRun | None:
     """The run (or dataset) a folder already holds, or None for a missing, empty or unrelated folder.
 
     A run is what would be lost or mixed up by training into the folder: trainer checkpoints or final weights
-    (world, idm, ...; the kind is config.yaml's model_name), a Video2Reward checkpoint (reward.safetensors, or
-    the checkpoints of its trainer/ folder), or a shard dataset. A folder with only a config.yaml or a partial
+    (world, idm, reward, ...; the kind is config.yaml's model_name, else final/config.yaml's), a Video2Reward run
+    of the older layout (reward.safetensors) or one still training (the checkpoints of its trainer/ folder), or a
+    shard dataset. A folder with only a config.yaml or a partial
     metrics.jsonl (a run stopped before its first checkpoint) holds nothing to resume and is not a run."""
     out = Path(out)
     if not out.is_dir():
@@ -96,7 +99,7 @@ def describe_run(out: str | Path) -> HeldRun | None:
     done = _checkpoints(out)
     final = out / "final" / "model.safetensors"
     if done or final.is_file():
-        kind = cfg_kind
+        kind = cfg_kind or (_config_kind(final.parent / "config.yaml") if final.is_file() else None)
         if kind is None and done:
             import json
 

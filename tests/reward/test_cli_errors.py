@@ -1,6 +1,7 @@
 """User mistakes in `resim reward`, `resim train reward`, `resim reward-features`: one line on stderr naming
 the item and the reason, a non-zero exit, no traceback."""
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,37 +69,57 @@ def _corrupt(src, dst, edit):
     return dst
 
 
-def test_score_corrupt_checkpoints_name_the_file(ckpt, tmp_path, capsys):
+OLD_RUN = Path(__file__).resolve().parents[1] / "data" / "reward-v1-run"   # the layout before final/
+
+
+@pytest.mark.parametrize("layout", ["final", "old"])
+def test_score_corrupt_checkpoints_name_the_file(ckpt, tmp_path, capsys, layout):
+    """Both layouts: a run's final/ (config.yaml in the run config form, model.safetensors) and a run written
+    before it (RUN/config.yaml a RewardTrainConfig, RUN/reward.safetensors)."""
     ck, vid = ckpt
+    if layout == "old":
+        ck = OLD_RUN
+    cfg_f, weights_f = ("final/config.yaml", "final/model.safetensors") if layout == "final" else \
+        ("config.yaml", "reward.safetensors")
     assert main(["reward", str(vid), "--checkpoint", str(ck)]) == 0
     capsys.readouterr()
 
     def bad_config(d):
-        (d / "config.yaml").write_text("model: {num_frames: 0}\n")
+        head = "model_name: reward\n" if layout == "final" else ""
+        (d / cfg_f).write_text(head + "model: {num_frames: 0}\n")
 
     def truncated_weights(d):
-        (d / "reward.safetensors").write_bytes((d / "reward.safetensors").read_bytes()[:100])
+        (d / weights_f).write_bytes((d / weights_f).read_bytes()[:100])
 
     def gone_backbone(d):
-        c = yaml.safe_load((d / "config.yaml").read_text())
+        c = yaml.safe_load((d / cfg_f).read_text())
         c["model"]["backbone_dir"] = "/nonexistent/dinov2"
-        (d / "config.yaml").write_text(yaml.safe_dump(c))
+        (d / cfg_f).write_text(yaml.safe_dump(c))
 
     def other_head(d):   # config.yaml no longer matches the stored weights
-        c = yaml.safe_load((d / "config.yaml").read_text())
+        c = yaml.safe_load((d / cfg_f).read_text())
         c["model"]["head_dim"] = 64
-        (d / "config.yaml").write_text(yaml.safe_dump(c))
+        (d / cfg_f).write_text(yaml.safe_dump(c))
 
-    cases = [(bad_config, "config.yaml", "num_frames and frame_step must be >= 1"),
-             (truncated_weights, "reward.safetensors", "not a readable safetensors file"),
-             (gone_backbone, "config.yaml", "/nonexistent/dinov2"),
-             (other_head, "reward.safetensors", "do not match config.yaml")]
+    cases = [(bad_config, cfg_f, "num_frames and frame_step must be >= 1"),
+             (truncated_weights, weights_f, "not a readable safetensors file"),
+             (gone_backbone, cfg_f, "/nonexistent/dinov2"),
+             (other_head, weights_f, "do not match config.yaml")]
+    if layout == "final":
+        def world_run(d):   # another model's export in the reward's place
+            c = yaml.safe_load((d / cfg_f).read_text())
+            (d / cfg_f).write_text(yaml.safe_dump({**c, "model_name": "world"}))
+
+        cases.append((world_run, cfg_f, "model_name is 'world', not a reward run"))
     for edit, name, reason in cases:
         d = _corrupt(ck, tmp_path / edit.__name__, edit)
         assert main(["reward", str(vid), "--checkpoint", str(d)]) == 1, edit.__name__
         _one_line_error(capsys, f"{d / name}", reason)
     assert main(["reward", str(vid), "--checkpoint", str(tmp_path / "nope")]) == 1
     _one_line_error(capsys, "no such checkpoint folder")
+    (tmp_path / "empty").mkdir()
+    assert main(["reward", str(vid), "--checkpoint", str(tmp_path / "empty")]) == 1
+    _one_line_error(capsys, "is not a reward checkpoint: no config.yaml + model.safetensors in it")
 
 
 def test_score_stride_zero_is_refused(ckpt, capsys):

@@ -121,13 +121,19 @@ def test_temporal_diff_feeds_the_head_frame_changes(tiny_cfg):
 
 
 def test_old_checkpoint_without_output_activation_loads_raw(tiny_train_cfg, tmp_path):
-    """A checkpoint saved before the sigmoid existed (no output_activation in config.yaml) keeps its raw head."""
+    """A checkpoint saved before the sigmoid existed (no output_activation in config.yaml) keeps its raw head.
+    Such runs are of the layout before final/: RUN/config.yaml (a RewardTrainConfig) + RUN/reward.safetensors
+    (the head's tensors as head.*, what final/model.safetensors holds for a frozen backbone)."""
+    import shutil
+
     import yaml
 
     from training.reward.checkpoint import load_checkpoint, save_checkpoint
 
     m = Video2Reward(dataclasses.replace(tiny_train_cfg.model, output_activation="none"))
     save_checkpoint(m, tmp_path, dataclasses.replace(tiny_train_cfg, model=m.cfg))
+    (tmp_path / "final" / "model.safetensors").rename(tmp_path / "reward.safetensors")
+    shutil.rmtree(tmp_path / "final")
     cfg = yaml.safe_load((tmp_path / "config.yaml").read_text())
     assert cfg["model"]["output_activation"] == "none"
     del cfg["model"]["output_activation"]

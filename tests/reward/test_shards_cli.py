@@ -73,8 +73,19 @@ def test_cli_features_train_score(dataset, tmp_path, capsys):
     cap = capsys.readouterr()
     assert "held-out: MAE" in cap.out and "stored features" in cap.out
     assert "skipped clip synthetic_short" in cap.err and "5 frames" in cap.err  # named, and the run went on
-    meta = json.loads((run / "meta.json").read_text())
+    meta = json.loads((run / "final" / "meta.json").read_text())
     assert meta["backbone_placeholder"] is True and meta["used_stored_features"] is True
+    # final/ is the export every trained model has: the run config form (model_name, model = the reward
+    # model's config, the trainer's sections), loadable as a RunConfig; the run's own config beside it
+    import yaml
+
+    from resim.config import from_dict
+    from training.config import RunConfig
+
+    exported = from_dict(RunConfig, yaml.safe_load((run / "final" / "config.yaml").read_text()))
+    assert exported.model_name == "reward" and exported.trainer.steps == 12
+    assert exported.model == yaml.safe_load((run / "config.yaml").read_text())["model"]
+    assert not (run / "reward.safetensors").exists() and (run / "final" / "model.safetensors").is_file()
     assert (run / "heldout_pred_vs_true.png").stat().st_size > 1000
     preds = json.loads((run / "heldout_predictions.json").read_text())
     held_items = {p["item_id"] for p in preds}
@@ -110,7 +121,7 @@ def test_cli_train_overwrite_replaces_a_reward_run(dataset, tmp_path, capsys):
     steps_first = sorted(p.name for p in (run / "trainer" / "checkpoints").iterdir())
     capsys.readouterr()
     assert main([*args, "--set", "epochs=1"]) == 2
-    assert "holds a reward run (reward.safetensors); use --overwrite" in capsys.readouterr().err
+    assert f"holds a reward run (trainer/checkpoints/{steps_first[-1]}); use --overwrite" in capsys.readouterr().err
     assert main([*args, "--set", "epochs=1", "--overwrite"]) == 0
     steps_second = sorted(p.name for p in (run / "trainer" / "checkpoints").iterdir())
     assert len(steps_second) == 1 and steps_second[0] < steps_first[-1]   # only the new run's checkpoint

@@ -45,8 +45,8 @@ def test_one_heldout_clip_still_writes_the_checkpoint_with_null_metrics(tmp_path
     assert any("hazard AUC is undefined" in n for n in prepared.notes)
     r = train_reward(clips, _cfg(), tmp_path, prepared=prepared)
     assert r["n_heldout"] == 1 and np.isnan(r["metrics"]["spearman"]) and np.isfinite(r["metrics"]["mae"])
-    assert (tmp_path / "reward.safetensors").is_file()
-    meta = _strict_json(tmp_path / "meta.json")
+    assert (tmp_path / "final" / "model.safetensors").is_file()
+    meta = _strict_json(tmp_path / "final" / "meta.json")
     assert meta["heldout_metrics"]["spearman"] is None and meta["heldout_metrics"]["hazard_auc"] is None
     assert meta["heldout_metrics"]["mae"] == pytest.approx(r["metrics"]["mae"])
     assert meta["notes"] == r["notes"]

@@ -134,10 +134,11 @@ def test_plan_checks_the_reward_run_before_the_world_model(env, capsys, no_model
     # was a CheckpointError traceback, after the world model had been loaded
     _one_line_error(capsys, _base(env, "plan", "--reward", str(tmp_path / "nope")),
                     "--reward: " + str(tmp_path / "nope") + ": no such checkpoint folder", "plan")
-    _one_line_error(capsys, _base(env, "plan", "--reward", str(env["run"])),   # a world-model run
-                    "is not a reward checkpoint: config.yaml is missing", "plan")
-    _one_line_error(capsys, _base(env, "plan", "--reward", str(env["run"] / "final")),
-                    "is not a reward checkpoint: reward.safetensors is missing", "plan")
+    for world_run in (env["run"], env["run"] / "final"):   # a world-model run, or its export
+        _one_line_error(capsys, _base(env, "plan", "--reward", str(world_run)),
+                        f"{env['run'] / 'final' / 'config.yaml'}: model_name is 'world', not a reward run", "plan")
+    _one_line_error(capsys, _base(env, "plan", "--reward", str(tmp_path)),
+                    f"{tmp_path} is not a reward checkpoint: no config.yaml + model.safetensors in it", "plan")
 
 
 def test_shard_history_shorter_than_the_rollouts_says_what_to_do(env, capsys):

@@ -168,7 +168,8 @@ def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
         save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
                                           "heldout_items": result["heldout_items"],
                                           "used_stored_features": use_features, "skipped_clips": skipped,
-                                          "notes": result["notes"]})
+                                          "notes": result["notes"]},
+                        run_cfg=run_config(cfg, fitted["steps"]))   # final/config.yaml: the trainer's run config
         write_json([{"key": c.key, "item_id": c.item_id, "true": float(t), "pred": float(p),
                      "hazard": bool(c.hazard)} for c, t, p in zip(held, true_h, pred_h)],
                    out / "heldout_predictions.json", indent=1)
