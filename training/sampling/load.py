@@ -14,21 +14,29 @@ Prompts: the dataset's prompt table when it holds the prompt, else the T5 encode
 """
 from __future__ import annotations
 
+import json
 import math
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 import yaml
 
+from media.encoders import TextEncoder
 from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
 from resim.config import from_dict, safe_yaml
+from resim.models import PLACEHOLDER_VAE, shipped_dir, shipped_model
+from shards.prompts import PromptTable, PromptTableError
+from shards.reader import ShardReadError, find_sample
+from shards.schema import prompt_id, prompt_text
 from training.diffusion.config import ObjectiveConfig
 from training.exported import ExportError, find_export, load_exported, read_config
 from training.models.lora import to_peft_layout
+from training.sampling.plan import CANDIDATE_NAMES, make_candidate
 
 
 class SamplingInputError(ValueError):
@@ -99,8 +107,6 @@ class History:
 
 
 def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> History:
-    from shards.reader import ShardReadError, find_sample
-
     try:
         s = find_sample(root, key, decode_video=True, attach_prompts=False)
     except KeyError as e:
@@ -127,8 +133,6 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
     so the file is resampled first, as the pipeline's OpenDV reader does: clip frame k takes the source frame
     nearest to its time, counted back from the last frame (the "now" the rollout continues from). A file slower
     than the clip rate is refused: its missing frames would have to be invented."""
-    import cv2
-
 
     p = Path(path)
     if not p.is_file():
@@ -178,16 +182,12 @@ class PromptSource:
                  device: str = "cpu", max_tokens: int = 226):
         self.table = None
         if prompt_root is not None:
-            from shards.prompts import PromptTable
             self.table = PromptTable(prompt_root)
         self.encoder_dir, self.device, self.max_tokens = text_encoder_dir, device, max_tokens
         self._encoder = None
         self.used: dict[str, str] = {}
 
     def __call__(self, command: str | None) -> torch.Tensor:
-        from shards.prompts import PromptTableError
-        from shards.schema import prompt_id, prompt_text
-
         text = prompt_text(command)
         pid = prompt_id(text)
         try:
@@ -200,7 +200,6 @@ class PromptSource:
             raise SamplingInputError(f"prompt {text!r} is not in the dataset's prompt table and no --text-encoder "
                                      "was given to encode it")
         if self._encoder is None:
-            from media.encoders import TextEncoder
             self._encoder = TextEncoder(self.encoder_dir, device=self.device, max_tokens=self.max_tokens)
         self.used[text] = f"t5:{self._encoder.info.encoder_id}"
         return torch.from_numpy(self._encoder.encode([text]))
@@ -209,11 +208,8 @@ class PromptSource:
 def load_trajectory(spec: str | None) -> np.ndarray | None:
     """``--trajectory``: a candidate name (keep_lane, turn_left, …), a .npy file (8, 3), or JSON [[x, y, yaw], …]
     inline or in a .json file."""
-    import json
-
     if spec is None:
         return None
-    from training.sampling.plan import CANDIDATE_NAMES, make_candidate
     if spec in CANDIDATE_NAMES:
         return make_candidate(spec).trajectory
     p = Path(spec)
@@ -254,8 +250,6 @@ def _encode_section(path: Path) -> dict | None:
 def trained_size_hw(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> tuple[int, int] | None:
     """(H, W) pixels of the clips the latents were encoded from (``shards``' pipeline config, else the world
     model's ``final/data_encode.yaml``); None when neither says. A history video must be encoded at this size."""
-    from resim.models import shipped_model
-
     encs = []
     if shards is not None:
         encs.append(_encode_section(Path(shards) / "config.yaml"))
@@ -272,8 +266,6 @@ def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None
     """The VAE folder the latents were encoded with: that of ``shards`` (its pipeline ``config.yaml``), else
     that of the world model's training data (``RUN/final/data_encode.yaml``, written at the end of training),
     else the shipped placeholder. Rollouts must be decoded by the VAE whose latents the model learnt."""
-    from resim.models import PLACEHOLDER_VAE, shipped_dir, shipped_model
-
     enc = None
     if shards is not None:
         enc = _encode_section(Path(shards) / "config.yaml")
