@@ -19,9 +19,11 @@ Conventions (all sources, after conversion by the reader):
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
+import cv2
 import numpy as np
 
 from media.frames import resize_rgb
@@ -153,8 +155,6 @@ def decode_image_file(path, item: str, size_hw: tuple[int, int] | None = None,
     decodes at that reduced scale directly (``IMREAD_REDUCED_COLOR_*``), which is what
     'resize as early as possible' buys for 1600x900 / 1920x1080 frames.
     """
-    import cv2
-
     if not _exists(path):
         raise SourceError(item, f"missing image {path}")
     data = np.fromfile(str(path), dtype=np.uint8)
@@ -173,8 +173,6 @@ def decode_image_file(path, item: str, size_hw: tuple[int, int] | None = None,
 
 
 def _exists(path) -> bool:
-    import os
-
     return os.path.isfile(str(path))
 
 
