@@ -1,6 +1,7 @@
 """Build a run from a config and train it: what ``resim train NAME`` executes on every rank."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import sys
@@ -8,16 +9,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
+import yaml
+
 from resim.config import ConfigError, load, safe_yaml
+from resim.models import REPO_ROOT
+from training import registry
 from training.config import RunConfig
+from training.presets import get_preset
 
 
 def resolve_config(model_name: str, preset: str, *, config_file: str | Path | None = None,
                    overrides: Iterable[str] = (), shards: str | Path | None = None, steps: int | None = None,
                    checkpoint_every: int | None = None) -> RunConfig:
     """Preset <- YAML file <- ``--set`` overrides <- the explicit flags (``--shards``, ``--steps``, ...)."""
-    from training.presets import get_preset
-
     try:
         base = get_preset(model_name, preset)
     except KeyError as e:
@@ -55,8 +59,6 @@ REWARD_RUN_FILES = ("trainer", "final", "config.yaml", "heldout_predictions.json
 
 def _config_kind(path: Path) -> str | None:
     """model_name of a run's config.yaml; "reward" for a RewardTrainConfig (no model_name); None if unreadable."""
-    import yaml
-
     try:
         d = safe_yaml(path.read_text())
     except (OSError, yaml.YAMLError, UnicodeDecodeError):
@@ -101,8 +103,6 @@ def describe_run(out: str | Path) -> HeldRun | None:
     if done or final.is_file():
         kind = cfg_kind or (_config_kind(final.parent / "config.yaml") if final.is_file() else None)
         if kind is None and done:
-            import json
-
             try:
                 kind = json.loads((done[-1] / "meta.json").read_text())["config"]["model_name"]
             except (OSError, ValueError, KeyError, TypeError):
@@ -171,8 +171,6 @@ def finished_step(out: str | Path) -> int | None:
 def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
     """``RUN/final/data_encode.yaml``: the ``encode`` section (VAE, text encoder, sizes) of the training data's
     pipeline config, so a sampler decodes with the VAE the model learnt the latents of, at their size."""
-    import yaml
-
     if cfg.data.shards is None or not (Path(cfg.data.shards) / "config.yaml").is_file():
         return None
     try:
@@ -181,7 +179,6 @@ def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
         return None
     if not isinstance(enc, dict):
         return None
-    from resim.models import REPO_ROOT
 
     models = (REPO_ROOT / "configs" / "models").resolve()
     for k in ("vae", "text_encoder"):   # a shipped model by its name: the file stays valid in another checkout
@@ -195,10 +192,11 @@ def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
 
 def run_training(cfg: RunConfig, out: str | Path, *, resume: bool = False) -> dict:
     """Every rank: join the process group, build the model and the data stream, train, clean up."""
+    # torch and the trainer only here: resolve_config and the run-folder checks answer `resim train` (its
+    # --print-config, a bad config or --out) before torch loads
     import torch
     import torch.distributed as dist
 
-    from training import registry
     from training.data import StreamLoader
     from training.distributed import init_distributed
     from training.trainer import Trainer
