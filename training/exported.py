@@ -154,17 +154,22 @@ def load_exported(path: str | Path, *, expect: str | None = None, label: str | N
     return Exported(model.eval(), folder, weights, cfg)
 
 
-def write_export(folder: str | Path, state: Mapping[str, torch.Tensor], config: Any) -> Path:
-    """Write ``folder/model.safetensors`` and ``folder/config.yaml`` (``config``: a run config dataclass or a
-    mapping with ``model_name`` + ``model``), each atomically (a reader never sees half a file)."""
+def write_export(folder: str | Path, state: Mapping[str, torch.Tensor], config: Any,
+                 ema: Mapping[str, torch.Tensor] | None = None) -> Path:
+    """Write ``folder/model.safetensors`` (+ ``ema.safetensors``, a complete state dict too) and
+    ``folder/config.yaml`` (``config``: a run config dataclass or a mapping with ``model_name`` + ``model``), each
+    atomically (a reader never sees half a file). The Trainer's ``final/`` and the reward model's are written here."""
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     cfg = to_dict(config) if not isinstance(config, Mapping) else dict(config)
     if not isinstance(cfg.get("model_name"), str) or not isinstance(cfg.get("model"), Mapping):
         raise ValueError(f"an export's config needs model_name and model, got keys {sorted(cfg)}")   # our bug
-    tmp = out / (WEIGHTS_FILE + ".tmp")
-    save_file({k: v.detach().contiguous().cpu() for k, v in state.items()}, str(tmp))
-    os.replace(tmp, out / WEIGHTS_FILE)
+    for name, sd in ((WEIGHTS_FILE, state), (EMA_FILE, ema)):
+        if sd is None:
+            continue
+        tmp = out / (name + ".tmp")
+        save_file({k: v.detach().contiguous().cpu() for k, v in sd.items()}, str(tmp))
+        os.replace(tmp, out / name)
     tmp = out / (CONFIG_FILE + ".tmp")
     tmp.write_text(yaml.safe_dump(cfg, sort_keys=False))
     os.replace(tmp, out / CONFIG_FILE)

@@ -29,7 +29,6 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 import torch
-from safetensors.torch import save_file
 from torch import nn
 from torch.distributed.checkpoint.state_dict import (StateDictOptions, get_model_state_dict, get_state_dict,
                                                      set_state_dict)
@@ -39,6 +38,7 @@ from training import checkpoint as ckpt
 from training.config import RunConfig
 from training.distributed import DistEnv, all_reduce_sum, barrier, init_distributed, resolve_parallel, wrap_model
 from training.ema import EMA
+from training.exported import write_export
 from training.metrics import MetricsLogger, truncate_after
 from training.schedule import lr_at
 
@@ -424,11 +424,9 @@ class Trainer:
                 ema_full[n] = t.full_tensor() if hasattr(t, "full_tensor") else t
         if not self.env.is_main:
             return
-        out = self.run_dir / "final"
-        out.mkdir(parents=True, exist_ok=True)
         strip = lambda n: n[len("model."):] if n.startswith("model.") else n  # noqa: E731  (LossModule prefix)
         full = {strip(_clean_name(k)): v.detach().cpu().contiguous() for k, v in sd.items()}
-        save_file(full, str(out / "model.safetensors"))
+        ema_sd = None
         if ema_full:
             ema_sd = dict(full)
             for n, t in ema_full.items():
@@ -437,5 +435,4 @@ class Trainer:
                     raise RuntimeError(f"EMA tensor {n!r} has no counterpart in the model state dict "
                                        f"(e.g. {sorted(full)[:3]})")
                 ema_sd[k] = t.detach().cpu().contiguous()   # float32, as the EMA keeps it
-            save_file(ema_sd, str(out / "ema.safetensors"))
-        save_config(self.cfg, out / "config.yaml")
+        write_export(self.run_dir / "final", full, self.cfg, ema=ema_sd)   # the one layout (training.exported)
