@@ -19,6 +19,19 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
+@pytest.fixture
+def one_torch_thread():
+    """torch on one thread for the test, restored after (a test module opts in with
+    ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``): tiny models run fastest so, and a reduction
+    order that does not depend on the thread count lets the exact-resume tests compare bits."""
+    import torch   # imported when a test asks for it: a session of torch-free tests (shards) does not load it
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
     """../shared beside the checkout (real dashcam clips, format fixtures); skip where absent."""

@@ -8,11 +8,9 @@ TINY_COGVIDEOX = dict(num_attention_heads=2, attention_head_dim=16, in_channels=
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _one_thread(one_torch_thread):
+    """Every test of tests/models on one torch thread (tests/conftest.py)."""
     yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture

@@ -15,12 +15,7 @@ ARGS = ["--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=fal
         "--set", "trainer.loss_curve_png=false"]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _smooth_video(seed=0, t=9, h=32, w=48):

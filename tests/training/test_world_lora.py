@@ -24,12 +24,7 @@ V1_MODEL = yaml.safe_load((V1 / "config.yaml").read_text())["model"]
 V1_SET = (".lora_B", "trajectory_encoder.head.", "action_encoder.proj_out.")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _reference():
