@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import shutil
 import subprocess
 import sys
@@ -33,13 +34,17 @@ from pathlib import Path
 import cv2
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from labeling.config import preset  # noqa: E402
+from labeling.windows import label_video  # noqa: E402
+from media.video import iter_samples  # noqa: E402
+from media.video_probe import probe  # noqa: E402
 
 
 def make_video(out: Path, fps: float) -> str:
     if shutil.which("ffmpeg") is None:
         sys.exit("ffmpeg is needed to make the benchmark video (apt-get install -y ffmpeg), or pass --video")
-    import os
-
     shared = Path(os.environ.get("RESIM_SHARED_DIR", REPO.parent / "shared"))
     clip = shared / "data" / "dashcam" / "solidWhiteRight.mp4"
     enc = ["-an", "-vf", f"scale=1280:720,fps={fps}", "-c:v", "libx264", "-preset", "medium", "-crf", "23",
@@ -47,8 +52,10 @@ def make_video(out: Path, fps: float) -> str:
     if clip.exists():
         subprocess.run(["ffmpeg", "-v", "error", "-y", "-stream_loop", "2", "-i", str(clip), *enc], check=True)
         return f"{clip.name} looped 3x, upscaled"
+    # the tests' tiny renderer, only where the dashcam clip is absent: it lives in the tests' conftest, which is
+    # importable only once its folder is on the path
     sys.path.insert(0, str(REPO / "tests" / "labeling"))
-    from conftest import render_drive  # noqa: E402  (the tests' tiny renderer)
+    from conftest import render_drive  # noqa: E402
 
     frames, _ = render_drive(int(20 * fps), fps, 5.0, speed_mps=8.0, size_hw=(360, 640))
     p = subprocess.Popen(["ffmpeg", "-v", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", "640x360",
@@ -76,9 +83,6 @@ def decode_only(path: str, sample_hz: float) -> int:
 
 
 def decode_pyav(path: str, sample_hz: float) -> int:
-    from media.video import iter_samples
-    from media.video_probe import probe
-
     info = probe(path)
     n = 0
     # plain frames: the decoder's luma plane as it is (no copy, no resize), so this is the decode of exactly the
@@ -104,11 +108,6 @@ def main() -> int:
     args = ap.parse_args()
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
-    sys.path.insert(0, str(REPO))
-    from labeling.config import preset
-    from labeling.windows import label_video
-    from media.video_probe import probe
-
     cv2.setNumThreads(1)
     tmp = tempfile.TemporaryDirectory()
     if args.video:
@@ -130,7 +129,7 @@ def main() -> int:
         sys.exit(f"presets sample at different rates {sorted(hz)}: time them in separate runs")
     sample_hz = hz.pop()
     dur = info.num_frames / info.fps_hz
-    try:
+    try:   # PyAV is optional (the labeler falls back to OpenCV): time (a') only where it is installed
         import av  # noqa: F401
         have_av = True
     except ImportError:

@@ -32,7 +32,6 @@ ALLOWED = {
     "training/reward/cli.py": (20, CLI),
     "resim/demo.py": (1, CLI),
     "training/run.py": (3, TORCH_LATE),
-    "bench/label_throughput.py": (5, SEPARATE),
     "media/encoders.py": (2, SEPARATE),
     "pipelines/config.py": (1, SEPARATE),
     "pipelines/sources/opendv.py": (1, SEPARATE),
