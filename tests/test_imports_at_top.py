@@ -41,8 +41,6 @@ ALLOWED = {
     "pipelines/stages/label.py": (3, SEPARATE),
     "pipelines/stages/prompts.py": (3, SEPARATE),
     "pipelines/stages/write.py": (2, SEPARATE),
-    "training/eval/idm.py": (2, SEPARATE),
-    "training/eval/idm_train.py": (2, SEPARATE),
     "training/reward/data.py": (1, SEPARATE),
     "training/reward/features.py": (6, SEPARATE),
     "training/reward/score.py": (1, SEPARATE),

@@ -46,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from resim.config import ConfigError
+from resim.config import ConfigError, from_dict
 
 
 @dataclass
@@ -133,8 +133,6 @@ IDM_PRESETS: dict[str, dict] = {
 
 
 def idm_preset(name: str, **overrides: Any) -> IDMConfig:
-    from resim.config import from_dict
-
     if name not in IDM_PRESETS:
         raise ConfigError(f"unknown IDM preset {name!r}; known: {sorted(IDM_PRESETS)}")
     return from_dict(IDMConfig, {**IDM_PRESETS[name], **overrides})
@@ -350,8 +348,6 @@ def num_parameters(model: nn.Module) -> int:
 
 def build_idm(model_cfg: dict, *, device: str | torch.device = "cpu") -> InverseDynamicsModel:
     """Registry builder (``training.registry``: "idm"): ``{"preset": NAME, **IDMConfig overrides}``."""
-    from resim.config import from_dict
-
     d = dict(model_cfg)
     name = d.pop("preset", None)
     cfg = idm_preset(name, **d) if name else from_dict(IDMConfig, d, prefix="model")

@@ -33,9 +33,11 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 
 from resim.config import ConfigError, check_positive, to_dict
+from shards.reader import iter_samples
 from training import smallfit
 from training.config import OptimConfig, RunConfig
 from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
+from training.eval.report import plot_bars, write_json
 from training.exported import ExportNotFoundError, load_exported
 from training.smallfit import frames_to_tensor
 
@@ -109,8 +111,6 @@ def resize_frames(frames: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
 
 def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list[TrajClip], dict]:
     """Clips with a trajectory from every committed shard of ``root``; returns (clips, counts)."""
-    from shards.reader import iter_samples
-
     if not Path(root).is_dir():
         raise FileNotFoundError(f"dataset folder {root} does not exist")
     clips, counts = [], {"samples": 0, "without_trajectory": 0}
@@ -294,8 +294,6 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
 
     ``data``: :func:`prepare_idm_data`'s result for the same root/config (callers that check the input
     first, e.g. the CLI, pass it on)."""
-    from training.eval.report import plot_bars, write_json
-
     mcfg = tcfg.model_cfg()
     if data is None:
         data = prepare_idm_data(root, tcfg, clips)
