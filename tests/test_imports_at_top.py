@@ -41,10 +41,6 @@ ALLOWED = {
     "pipelines/stages/label.py": (3, SEPARATE),
     "pipelines/stages/prompts.py": (3, SEPARATE),
     "pipelines/stages/write.py": (2, SEPARATE),
-    "training/reward/data.py": (1, SEPARATE),
-    "training/reward/features.py": (6, SEPARATE),
-    "training/reward/score.py": (1, SEPARATE),
-    "training/reward/train.py": (1, SEPARATE),
     "training/world.py": (2, SEPARATE),
 }
 

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from shards import safejson
+from shards.video import VideoError, decode_mp4
 from training import smallfit
 from training.reward.config import RewardModelConfig
 # ClipError and frames_to_tensor are the small-model harness's (the IDM uses them too); imported under these
@@ -44,8 +45,6 @@ class RewardClip:
         if self.frames is None:
             if self.mp4 is None:
                 raise ClipError(f"clip {self.key} has no frames")
-            from shards.video import VideoError, decode_mp4
-
             try:
                 self.frames = decode_mp4(self.mp4)
             except VideoError as e:

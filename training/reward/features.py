@@ -10,11 +10,20 @@ stored features and through the backbone see the same numbers.
 from __future__ import annotations
 
 import copy
+import shutil
+from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import torch
+from tqdm import tqdm
 
+from shards import layout
+from shards.reader import decode_sample, iter_raw_shard
+from shards.video import VideoError, decode_mp4
+from shards.writer import ShardWriter
 from training.reward.data import ClipError, RewardClip, frames_to_tensor, window_indices
 from training.reward.model import Video2Reward
 
@@ -49,8 +58,6 @@ def add_clip_features(model: Video2Reward, clips: Iterable[RewardClip], where: s
 def add_sample_features(model: Video2Reward, sample: dict, where: str = "end") -> dict:
     """A shard sample (writer form: ``meta.json`` dict, ``frames.mp4`` bytes, ...) plus ``dino.npy``
     and ``meta.dino_id``. The input sample is not modified."""
-    from shards.video import decode_mp4
-
     frames = sample["frames.mp4"]
     if isinstance(frames, (bytes, bytearray)):
         frames = decode_mp4(bytes(frames))
@@ -70,10 +77,6 @@ def iter_samples_with_features(model: Video2Reward, samples: Iterable[dict], whe
 def check_feature_paths(src_root, dst_root) -> list:
     """The committed shards of ``src_root``; ValueError naming the folder when it has none (or does not
     exist) or when ``dst_root`` is the same folder (the copy would overwrite its own source)."""
-    from pathlib import Path
-
-    from shards import layout
-
     src, dst = Path(src_root), Path(dst_root)
     if not src.is_dir():
         raise ValueError(f"{src}: no such dataset folder")
@@ -98,14 +101,6 @@ def add_features_to_dataset(src_root, dst_root, model: Video2Reward, where: str 
     ``dst/quarantine/reward-features.parquet`` (item, source, stage, reason, attempts); the job goes on.
     Returns {"samples", "with_features", "quarantined", "shards", "dino_id", "dino_bytes_per_sample"}.
     """
-    import shutil
-    from pathlib import Path
-
-    from shards import layout
-    from shards.reader import iter_raw_shard, decode_sample
-    from shards.video import VideoError
-    from shards.writer import ShardWriter
-
     src, dst = Path(src_root), Path(dst_root)
     shards = check_feature_paths(src, dst)
     if layout.prompts_dir(src).is_dir():
@@ -119,7 +114,6 @@ def add_features_to_dataset(src_root, dst_root, model: Video2Reward, where: str 
     infos = []
     it = shards
     if progress:
-        from tqdm import tqdm
         it = tqdm(shards, desc="dino features", unit="shard")
     for shard in it:
         with ShardWriter(dst, layout.stem(shard.name), max_samples_per_shard=max_samples_per_shard,
@@ -140,9 +134,6 @@ def add_features_to_dataset(src_root, dst_root, model: Video2Reward, where: str 
                 w.write(s)
             infos.extend(w.close())
     if quarantine:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
         layout.quarantine_dir(dst).mkdir(parents=True, exist_ok=True)
         tmp = layout.quarantine_dir(dst) / ".reward-features.parquet.tmp"
         pq.write_table(pa.Table.from_pylist(quarantine), tmp)

@@ -18,6 +18,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from shards.video import read_rgb_frames
 from training.reward.model import Video2Reward
 
 
@@ -113,8 +114,6 @@ def score_videos(model: Video2Reward, videos, stride: int | None = None, batch_s
 
 def read_video_file(path: str | Path) -> np.ndarray:
     """Read a video file with OpenCV -> (T, H, W, 3) uint8 RGB; ScoreError on unreadable files/frames."""
-    from shards.video import read_rgb_frames
-
     p = Path(path)
     if not p.is_file():
         raise ScoreError(f"{p}: no such video file")

@@ -22,6 +22,7 @@ import torch
 from resim.config import from_dict, to_dict
 from training import smallfit
 from training.config import OptimConfig, RunConfig
+from training.reward.checkpoint import save_checkpoint, write_json
 from training.reward.config import RewardModelConfig, RewardTrainConfig
 from training.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
 from training.reward.features import add_clip_features
@@ -162,8 +163,6 @@ def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
               "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h,
               "notes": list(prepared.notes)}
     if out_dir is not None:
-        from training.reward.checkpoint import save_checkpoint, write_json
-
         out = Path(out_dir)
         save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
                                           "heldout_items": result["heldout_items"],
@@ -179,6 +178,7 @@ def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
 
 
 def plot_predictions(pred, true, hazard, path: str | Path, metrics: dict | None = None) -> Path:
+    # matplotlib is slow to import and only the plot needs it
     import matplotlib
 
     matplotlib.use("Agg")
