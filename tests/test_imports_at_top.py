@@ -41,7 +41,6 @@ ALLOWED = {
     "pipelines/stages/label.py": (3, SEPARATE),
     "pipelines/stages/prompts.py": (3, SEPARATE),
     "pipelines/stages/write.py": (2, SEPARATE),
-    "training/world.py": (2, SEPARATE),
 }
 
 

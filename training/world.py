@@ -19,11 +19,13 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import torch
+from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict
 from training.diffusion.config import ObjectiveConfig
 from training.diffusion.losses import training_losses
-from training.models.config import check_noise_levels
+from training.models.blocks import LayerNormZero
+from training.models.config import check_noise_levels, preset as model_preset
 from training.models.dit import NEW_MODULE_PREFIXES, WorldModel
 from training.models.lora import add_lora, is_lora_param, pre_peft_name, to_peft_layout
 
@@ -109,8 +111,6 @@ class TrainableWorldModel(WorldModel):
         walking the (FSDP-sharded) modules each time is wasted work on the hot path."""
         counts = getattr(self, "_flop_param_counts", None)
         if counts is None:
-            from training.models.blocks import LayerNormZero
-
             blocks = sum(p.numel() for p in self.transformer_blocks.parameters())
             mod = sum(p.numel() for m in self.transformer_blocks.modules() if isinstance(m, LayerNormZero)
                       for p in m.linear.parameters())
@@ -131,8 +131,6 @@ class TrainableWorldModel(WorldModel):
 
 
 def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> TrainableWorldModel:
-    from training.models.config import preset as model_preset
-
     cfg = from_dict(WorldTrainConfig, model_cfg, prefix="model")
     objective = from_dict(ObjectiveConfig, cfg.objective, prefix="model.objective")
     if cfg.pretrained is not None:
@@ -159,8 +157,6 @@ def build_world(model_cfg: dict, *, device: str | torch.device = "cpu") -> Train
 def _load_init(model: torch.nn.Module, path: Path) -> None:
     """Load the previous stage's weights; only LoRA tensors and new conditioning modules (which start at zero
     output, so the loaded model computes what the previous stage did) may be missing; nothing may be unexpected."""
-    from safetensors.torch import load_file
-
     if not path.is_file():
         raise ConfigError(f"model.init_weights={path} does not exist (expected RUN_DIR/final/model.safetensors)")
     sd = to_peft_layout(load_file(str(path)), model)   # a stage-1 file, or LoRA in the pre-peft layout
