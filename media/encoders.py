@@ -14,6 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+# torch, diffusers and transformers (and media.device, which imports torch) are imported where a model is built or
+# run, not here: the pipeline's driver imports this module with the encode and prompt stages and stays torch-free;
+# the models load in the stages' actors.
+
 WEIGHT_FILES = ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin", "model.safetensors",
                 "pytorch_model.bin", "diffusion_pytorch_model.safetensors.index.json",
                 "model.safetensors.index.json", "pytorch_model.bin.index.json")
@@ -64,7 +68,7 @@ class VideoVAE:
         import torch
         from diffusers import AutoencoderKLCogVideoX
 
-        from media.device import resolve_device   # imports torch: lazy as the rest of this module's torch
+        from media.device import resolve_device   # imports torch: lazy, see the note at the top
 
         folder = _resolve(Path(folder), "vae")
         self.device = device or resolve_device()
@@ -151,7 +155,7 @@ class TextEncoder:
         import torch
         from transformers import AutoTokenizer, T5Config, T5EncoderModel
 
-        from media.device import resolve_device   # imports torch: lazy as the rest of this module's torch
+        from media.device import resolve_device   # imports torch: lazy, see the note at the top
 
         folder = Path(folder)
         enc_dir = _resolve(folder, "text_encoder")

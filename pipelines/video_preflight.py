@@ -10,17 +10,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from media.video_probe import VideoError, probe
 from pipelines.config import PipelineConfig
+from pipelines.sources.episode import SourceError
+from pipelines.units import make_reader, source_specs
 
 MAX_PROBED = 8          # files probed per source
 
 
 def opendv_warnings(cfg: PipelineConfig, max_probed: int = MAX_PROBED) -> list[str]:
     """One line per problem found in the first ``max_probed`` videos of ``sources.opendv`` (none: [])."""
-    from media.video_probe import VideoError, probe
-    from pipelines.sources.episode import SourceError
-    from pipelines.units import make_reader, source_specs
-
     warnings = []
     for spec in source_specs(cfg):
         if spec.section != "sources.opendv":   # the synthetic world is generated to fit its config

@@ -30,9 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
+import cv2
 import numpy as np
 
 from media.frames import MIN_RATE_SLACK, resize_rgb
+from media.video_probe import first_stream_not_video
 from resim.config import ConfigError, from_dict
 from resim.folders import folder_problem
 
@@ -166,8 +168,6 @@ class OpenDVReader:
         return sorted(p.relative_to(root).as_posix() for p in walk_files(root, self.cfg.exclude, exts))
 
     def open(self, item_id: str) -> Episode:
-        import cv2
-
         path = self.cfg.root / item_id
         if not path.is_file():
             raise SourceError(item_id, f"video file {path} does not exist")
@@ -224,8 +224,6 @@ def _refuse_cover_first(path: Path, item_id: str) -> None:
     """``SourceError`` where OpenCV would decode a cover picture instead of the video: the first video stream is
     an attached or still picture stored before the video (``media.video_probe``; needs PyAV, without it nothing
     is checked here). Every other problem is left to ``open``'s own checks, which name it as before."""
-    from media.video_probe import first_stream_not_video
-
     found = first_stream_not_video(path)
     if found is None:
         return
@@ -251,8 +249,6 @@ def _opt_float(v) -> float | None:
 def _decode(path: Path, item_id: str, wanted: np.ndarray, src_fps: float, size_hw, seek_gap_s: float,
             count: int) -> Iterator[np.ndarray]:
     """Decode the source frames ``wanted`` (non-decreasing indices) one at a time."""
-    import cv2
-
     if len(wanted) == 0:
         return
     cap = cv2.VideoCapture(str(path))

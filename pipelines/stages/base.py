@@ -28,13 +28,8 @@ import numpy as np
 
 from pipelines import quarantine
 from pipelines.config import PipelineConfig, config_from_dict
+from pipelines.sources.episode import SourceError
 from pipelines.units import dumps, loads
-
-
-def _source_error():
-    from pipelines.sources.episode import SourceError
-
-    return SourceError
 
 
 def source_error_reason(e, item_id: str) -> str:
@@ -68,7 +63,6 @@ class Stage:
 
     def __init__(self, cfg: dict | PipelineConfig, progress=None):
         self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
-        self._source_error = _source_error()
         self.progress = progress       # a ProgressBoard actor handle (Ray executor) or None
 
     # --- per unit --------------------------------------------------------------------------------
@@ -89,7 +83,7 @@ class Stage:
             try:
                 self.process(state)
                 break
-            except self._source_error as e:
+            except SourceError as e:
                 quarantine.quarantine_unit(state, self.name, source_error_reason(e, state["item_id"]),
                                            attempts=state["attempts"])
                 break

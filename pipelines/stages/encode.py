@@ -20,16 +20,22 @@ import shutil
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from media.encoders import VideoVAE, to_storage
 from media.frames import center_crop, clip_frames, cover_size, sliding_windows
 from pipelines import quarantine
+from pipelines.config import absolute_paths
 from pipelines.dedup import clip_signature
 from pipelines.quality import clip_quality, quality_problem
 from pipelines.stages.base import BadInput
 from pipelines.stages.cut import CutStage
 from pipelines.units import clip_of
-from resim.config import config_hash
+from resim import __version__
+from resim.config import config_hash, to_dict
+from shards.schema import SCHEMA_VERSION, make_key, prompt_id, prompt_text
+from shards.video import encode_mp4
 
 
 def staging_dir(out: str | Path, unit_id: str) -> Path:
@@ -39,9 +45,6 @@ def staging_dir(out: str | Path, unit_id: str) -> Path:
 def data_config_hash(cfg) -> str:
     """Hash of what determines the data (sources, clip, labels, balance, encode, shards), with paths absolute
     (``config.absolute_paths``: a no-op on the runner's config, which is absolute already, on any worker)."""
-    from pipelines.config import absolute_paths
-    from resim.config import to_dict
-
     d = to_dict(absolute_paths(cfg))
     return config_hash(_without_new_defaults(
         {k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")}))
@@ -69,9 +72,8 @@ class EncodeStage(CutStage):
 
     def __init__(self, cfg, progress=None, device: str | None = None):
         super().__init__(cfg, progress)
+        # torch only here, in the actor: the driver imports this module (data_config_hash) and stays torch-free
         import torch
-
-        from media.encoders import VideoVAE
 
         e = self.cfg.encode
         torch.set_num_threads(e.torch_threads)
@@ -80,14 +82,6 @@ class EncodeStage(CutStage):
         self.config_hash = data_config_hash(self.cfg)
 
     def process(self, state: dict) -> None:
-        import cv2
-
-        from resim import __version__
-        from shards.schema import SCHEMA_VERSION, make_key, prompt_id, prompt_text
-        from shards.video import encode_mp4
-
-        from media.encoders import to_storage
-
         cfg, e, enc, clip = self.cfg, state["episode"], self.cfg.encode, clip_of(state)
         N, H = clip.num_frames, clip.num_history_frames
         out_hw = (enc.height_px, enc.width_px)

@@ -26,8 +26,10 @@ import warnings
 
 import numpy as np
 
+from labeling.commands import command_from_trajectory, command_from_yaw
 from labeling.cuts import CutDetector
-from labeling.flow import ego_motion_pct_s, window_quality
+from labeling.flow import FlowLabeler, ego_motion_pct_s, window_quality
+from labeling.trajectory import trajectory_from_poses
 from pipelines import quarantine
 from media.frames import clip_frames
 from pipelines.stages.base import BadInput
@@ -43,8 +45,6 @@ class LabelStage(CutStage):   # shares the reader cache
 
     def __init__(self, cfg, progress=None):
         super().__init__(cfg, progress)
-        from labeling.flow import FlowLabeler
-
         self.lcfg = self.cfg.labels.labeler
         self.flow = FlowLabeler(self.lcfg)
 
@@ -55,9 +55,6 @@ class LabelStage(CutStage):   # shares the reader cache
         return max(2, int(round(h * ww / w))), ww
 
     def process(self, state: dict) -> None:
-        from labeling.commands import command_from_trajectory, command_from_yaw
-        from labeling.trajectory import trajectory_from_poses
-
         cfg, e, clip = self.cfg, state["episode"], clip_of(state)
         fps, step = clip.fps_hz, e["step"]
         H, N = clip.num_history_frames, clip.num_frames

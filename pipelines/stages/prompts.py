@@ -11,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from media.encoders import TextEncoder
+from pipelines.config import PipelineConfig, config_from_dict
+from shards.prompts import PromptTable
 from shards.schema import COMMANDS, prompt_id, prompt_text
 
 
@@ -25,20 +28,16 @@ class PromptStage:
     name = "prompts"
 
     def __init__(self, cfg, device: str | None = None):
-        from pipelines.config import PipelineConfig, config_from_dict
-        from media.encoders import TextEncoder
+        # torch only here, in the actor: the driver imports this module (all_prompts) and stays torch-free
+        import torch
 
         self.cfg = cfg if isinstance(cfg, PipelineConfig) else config_from_dict(cfg)
         e = self.cfg.encode
-        import torch
-
         torch.set_num_threads(e.torch_threads)
         self.encoder = TextEncoder(e.text_encoder_path, max_tokens=e.max_text_tokens,
                                    placeholder_seed=e.placeholder_seed, device=device)
 
     def __call__(self, batch: dict) -> dict:
-        from shards.prompts import PromptTable
-
         table = PromptTable(Path(self.cfg.out))
         have = set(table.ids())
         texts = [str(t) for t in batch["text"]]

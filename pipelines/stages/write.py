@@ -24,6 +24,8 @@ import numpy as np
 from pipelines import quarantine, resume
 from pipelines.stages.base import Stage
 from pipelines.stages.encode import data_config_hash
+from pipelines.units import dumps, loads
+from shards.writer import ShardWriter
 
 
 def remove_unit_files(out: Path, unit_id: str) -> int:
@@ -55,8 +57,6 @@ class WriteStage(Stage):
 
     def __call__(self, batch: dict) -> dict:
         """Rows leaving the pipeline carry only the unit's summary (the driver needs no more)."""
-        from pipelines.units import dumps, loads
-
         out = [dumps(resume.summary(self.run_one(loads(s)))) for s in batch["unit"]]
         self._mark(len(out))
         return {"unit": np.array(out, dtype=object)}
@@ -86,8 +86,6 @@ class WriteStage(Stage):
             shutil.rmtree(state["staging"], ignore_errors=True)
 
     def _write(self, state: dict, t0: float) -> None:
-        from shards.writer import ShardWriter
-
         uid = state["unit_id"]
         shards: list[dict] = []
         keys = state["clips"] if state["status"] == "ok" else []
