@@ -31,6 +31,7 @@ from typing import Literal, Optional
 from labeling.config import CutConfig, LabelerConfig, StillConfig
 from resim.config import ConfigError, check_positive, from_dict, to_dict
 from resim.models import shipped_dir, shipped_model
+from shards.schema import ClipSpec
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,9 +87,7 @@ class ClipConfig:
     def num_frames(self) -> int:
         return self.num_history_frames + self.num_future_frames
 
-    def spec(self):
-        from shards.schema import ClipSpec
-
+    def spec(self) -> ClipSpec:
         return ClipSpec(fps_hz=self.fps_hz, num_history_frames=self.num_history_frames,
                         num_future_frames=self.num_future_frames, num_waypoints=self.num_waypoints,
                         waypoint_dt_s=self.waypoint_dt_s)

@@ -15,7 +15,6 @@ OURS = ("shards", "labeling", "pipelines", "training", "media", "resim", "bench"
 # Every `resim` call imports the CLI modules to register their subcommands (resim/cli.py COMMANDS), so their
 # handlers import what they need (numpy, torch, the models) when they run: `resim --help` stays fast.
 CLI = "CLI module: the handlers import their command's modules lazily, so `resim --help` stays fast"
-SEPARATE = "restructured separately"
 TORCH_LATE = ("resolve_config and the run-folder checks answer `resim train` (--print-config, a bad config) "
               "before torch loads; run_training imports the trainer")
 ENCODERS_TORCH_LATE = ("media.device imports torch, which loads only where an encoder is built: the pipeline's driver "
@@ -35,7 +34,6 @@ ALLOWED = {
     "resim/demo.py": (1, CLI),
     "training/run.py": (3, TORCH_LATE),
     "media/encoders.py": (2, ENCODERS_TORCH_LATE),
-    "pipelines/config.py": (1, SEPARATE),
 }
 
 
