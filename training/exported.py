@@ -34,7 +34,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from resim.config import ConfigError, safe_yaml, to_dict
+from resim.config import ConfigError, safe_yaml, save as save_config, to_dict
 from resim.models import shipped_model
 from training import registry
 
@@ -161,7 +161,7 @@ def write_export(folder: str | Path, state: Mapping[str, torch.Tensor], config: 
     atomically (a reader never sees half a file). The Trainer's ``final/`` and the reward model's are written here."""
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = to_dict(config) if not isinstance(config, Mapping) else dict(config)
+    cfg = to_dict(config)   # a dataclass or a mapping
     if not isinstance(cfg.get("model_name"), str) or not isinstance(cfg.get("model"), Mapping):
         raise ValueError(f"an export's config needs model_name and model, got keys {sorted(cfg)}")   # our bug
     for name, sd in ((WEIGHTS_FILE, state), (EMA_FILE, ema)):
@@ -170,7 +170,5 @@ def write_export(folder: str | Path, state: Mapping[str, torch.Tensor], config: 
         tmp = out / (name + ".tmp")
         save_file({k: v.detach().contiguous().cpu() for k, v in sd.items()}, str(tmp))
         os.replace(tmp, out / name)
-    tmp = out / (CONFIG_FILE + ".tmp")
-    tmp.write_text(yaml.safe_dump(cfg, sort_keys=False))
-    os.replace(tmp, out / CONFIG_FILE)
+    save_config(cfg, out / CONFIG_FILE)   # atomic, the same YAML as every resolved config
     return out
