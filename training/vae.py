@@ -5,10 +5,13 @@ The model *is* diffusers' ``AutoencoderKLCogVideoX`` (a subclass adding ``loss``
 reads: the pipeline's ``VideoVAE`` loads a trained synthetic-world VAE with the same code as CogVideoX-2B's.
 
 Objective: reconstruction MSE in [-1, 1] pixels + ``kl_weight`` x the posterior's KL to N(0, I) per latent
-value. CogVideoX trained its VAE with L1 + LPIPS + KL + a GAN loss (Yang et al. 2024, Sec. 2.1); we keep
-MSE + KL: our target is reconstruction PSNR, which MSE optimises directly, and LPIPS/GAN need networks we do
-not ship. The small KL weight keeps the latent close to a unit Gaussian scale without limiting detail (as
-Stable Diffusion's 1e-6).
+value. CogVideoX trained its VAE with L1 + LPIPS + KL + a GAN loss (Yang et al. 2024, Sec. 2.1); by default we
+keep MSE + KL: our target is reconstruction PSNR, which MSE optimises directly. Optional terms: L1, L1 on the
+spatial gradients, and an adversarial term against a spatio-temporal patch discriminator trained from scratch
+with the VAE (``adversarial_weight``, training/vae_gan.py); LPIPS needs downloaded weights and is left out. The
+small KL weight keeps the latent close to a unit Gaussian scale without limiting detail (as Stable Diffusion's
+1e-6). The discriminator lives in the trained model (``discriminator.*`` in the run's weights) and is dropped
+from the exported folder.
 
 Each step crops ``clip_frames`` (1 + 8k) consecutive frames of every clip: 17 frames run the encoder's first
 9-frame chunk and one cached 8-frame chunk, i.e. the same causal-cache path as a 49-frame clip at inference.
@@ -31,6 +34,9 @@ from diffusers import AutoencoderKLCogVideoX
 from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict, safe_yaml
+from training.vae_gan import PatchDiscriminator3D, adversarial_losses
+
+DISCRIMINATOR_PREFIX = "discriminator."   # its weights in a run's state dict; never in an exported VAE
 
 
 @dataclass
@@ -52,6 +58,10 @@ class VaeTrainConfig:
     # the spatial gradients (the edges and texture the optical-flow labeler tracks; MSE alone averages them away)
     l1_weight: float = 0.0
     gradient_weight: float = 0.0
+    # adversarial term (0 = off): weight of the generator's hinge loss against a 3D patch discriminator
+    # (training/vae_gan.py) that is trained in the same step; discriminator_width: its first layer's channels
+    adversarial_weight: float = 0.0
+    discriminator_width: int = 32
     init_weights: Optional[Path] = None   # a run's final/model.safetensors to start from
 
     def __post_init__(self):
@@ -72,8 +82,10 @@ class VaeTrainConfig:
                               f"{f}, got {list(self.crop_hw)}")
         if self.kl_weight < 0 or self.latent_channels < 1 or self.layers_per_block < 1:
             raise ConfigError("model.kl_weight must be >= 0, latent_channels and layers_per_block >= 1")
-        if not (self.l1_weight >= 0 and self.gradient_weight >= 0):
-            raise ConfigError("model.l1_weight and model.gradient_weight must be >= 0")
+        if not (self.l1_weight >= 0 and self.gradient_weight >= 0 and self.adversarial_weight >= 0):
+            raise ConfigError("model.l1_weight, model.gradient_weight and model.adversarial_weight must be >= 0")
+        if self.discriminator_width < 8 or self.discriminator_width % 8:
+            raise ConfigError(f"model.discriminator_width must be a multiple of 8, got {self.discriminator_width}")
 
 
 def diffusers_config(cfg: VaeTrainConfig) -> dict[str, Any]:
@@ -109,7 +121,8 @@ class TrainableVAE(AutoencoderKLCogVideoX):
 
     def loss(self, batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``batch.frames`` uint8 ``(B, T, 3, H, W)`` (``data.load_frames``) → (MSE + kl_weight * KL [+ l1_weight *
-        L1 + gradient_weight * gradient L1], logs)."""
+        L1 + gradient_weight * gradient L1 + adversarial_weight * generator hinge + discriminator hinge], logs).
+        The two hinge terms reach only their own player's weights (training/vae_gan.py)."""
         frames = batch.frames if not isinstance(batch, dict) else batch["frames"]
         if frames is None:
             raise ConfigError("resim train vae needs the clips' frames: set data.load_frames=true")
@@ -144,6 +157,11 @@ class TrainableVAE(AutoencoderKLCogVideoX):
             g = gradient_l1(rec, x)
             loss = loss + c.gradient_weight * g
             logs["gradient_l1"] = g.detach()
+        disc = getattr(self, "discriminator", None)   # build_vae sets it (a module, or None: no adversarial term)
+        if disc is not None:
+            g_loss, d_loss = adversarial_losses(disc, x, rec)
+            loss = loss + c.adversarial_weight * g_loss + d_loss
+            logs["g_loss"], logs["d_loss"] = g_loss.detach(), d_loss.detach()
         return loss, logs
 
     def export_run(self, run_dir: str | Path, data: Iterable) -> Path:
@@ -165,11 +183,28 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
     with torch.device(device):
         model = TrainableVAE.from_config(diffusers_config(cfg))
     model.train_cfg = cfg
+    with torch.device(device):
+        model.discriminator = PatchDiscriminator3D(cfg.discriminator_width) if cfg.adversarial_weight > 0 else None
     if cfg.init_weights is not None:
         if not Path(cfg.init_weights).is_file():
             raise ConfigError(f"model.init_weights={cfg.init_weights} does not exist")
-        model.load_state_dict(load_file(str(cfg.init_weights)))
+        # a VAE folder's or a run's weights; a discriminator missing from them starts fresh, one in them that
+        # this model does not have is left out: the VAE's own weights must all be there
+        state = load_file(str(cfg.init_weights))
+        if model.discriminator is None:
+            state = vae_weights(state)
+        missing, unexpected = model.load_state_dict(state, strict=False)
+        missing = [k for k in missing if not k.startswith(DISCRIMINATOR_PREFIX)]
+        if missing or unexpected:
+            raise ConfigError(f"model.init_weights={cfg.init_weights} does not fit this VAE: "
+                              f"{len(missing)} missing weights (e.g. {missing[:2]}), "
+                              f"{len(unexpected)} unexpected (e.g. {unexpected[:2]})")
     return model
+
+
+def vae_weights(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A run's state dict without the discriminator's weights: what ``AutoencoderKLCogVideoX`` loads."""
+    return {k: v for k, v in state.items() if not k.startswith(DISCRIMINATOR_PREFIX)}
 
 
 @torch.inference_mode()
@@ -196,7 +231,7 @@ def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = 
     vae = AutoencoderKLCogVideoX.from_config(diffusers_config(cfg))
     weights = run_dir / "final" / ("ema.safetensors" if (run_dir / "final" / "ema.safetensors").is_file()
                                    else "model.safetensors")
-    vae.load_state_dict(load_file(str(weights)))
+    vae.load_state_dict(vae_weights(load_file(str(weights))))
     vae.eval()
     std = latent_std(vae, batches)
     vae.register_to_config(scaling_factor=round(1.0 / std, 6))

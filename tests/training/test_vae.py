@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from resim.cli import main
 from resim.config import ConfigError
@@ -123,3 +124,73 @@ def test_train_export_load_and_exact_resume(tmp_path):
     assert not vae.info.placeholder and abs(vae.info.scaling_factor - cfg["scaling_factor"]) < 1e-9
     frames = np.random.default_rng(0).integers(0, 255, (1, 9, 16, 24, 3), dtype=np.uint8)
     assert vae.encode(frames, seeds=[0]).shape == (1, 3, 16, 2, 3)
+
+
+def test_adversarial_terms_reach_only_their_own_player():
+    """One backward of the summed loss gives the VAE the generator's gradient and the discriminator its own:
+    the generator term leaves the discriminator's weights untouched, the discriminator term the VAE's."""
+    from training.vae_gan import adversarial_losses
+
+    base = {"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "clip_frames": 9}
+    torch.manual_seed(0)
+    vae = build_vae({**base, "adversarial_weight": 0.5, "discriminator_width": 8})
+    x = _smooth_video().permute(0, 2, 1, 3, 4).float() / 127.5 - 1.0
+    rec = vae.decode(vae.encode(x).latent_dist.mean).sample
+    g_loss, d_loss = adversarial_losses(vae.discriminator, x, rec)
+    disc = list(vae.discriminator.parameters())
+    own = [p for n, p in vae.named_parameters() if not n.startswith("discriminator.")]
+    g_grads = torch.autograd.grad(g_loss, own + disc, retain_graph=True, allow_unused=True)
+    assert all(g is None for g in g_grads[len(own):])
+    assert sum(float(g.abs().sum()) for g in g_grads[:len(own)] if g is not None) > 0
+    d_grads = torch.autograd.grad(d_loss, own + disc, allow_unused=True)
+    assert all(g is None for g in d_grads[:len(own)])
+    # (the last bias gets -1 + 1 = 0 while every hinge is active: check the weights)
+    assert all(g is not None for g in d_grads[len(own):])
+    assert all(float(g.abs().sum()) > 0 for g, (n, _) in zip(d_grads[len(own):], vae.discriminator.named_parameters())
+               if n.endswith("weight"))
+    # the summed loss that the trainer back-propagates holds both terms and logs them
+    torch.manual_seed(1)
+    loss, logs = vae.loss({"frames": _smooth_video()})
+    assert {"g_loss", "d_loss"} <= set(logs) and torch.isfinite(loss)
+    with pytest.raises(ConfigError, match="adversarial_weight"):
+        build_vae({**base, "adversarial_weight": -1})
+
+
+def test_discriminator_learns_to_tell_a_blurred_video_from_the_real_one():
+    """The discriminator is trained by the summed loss alone: after some steps its hinge loss on real vs
+    box-blurred frames falls well below the value of a discriminator that cannot tell them apart (2.0)."""
+    from training.vae_gan import PatchDiscriminator3D, adversarial_losses
+
+    torch.manual_seed(0)
+    real = torch.rand(2, 3, 5, 32, 48) * 2 - 1                               # texture: noise
+    fake = F.avg_pool3d(real, (1, 5, 5), stride=1, padding=(0, 2, 2))          # the mean a blurred decoder returns
+    disc = PatchDiscriminator3D(8)
+    opt = torch.optim.AdamW(disc.parameters(), lr=2e-3)
+    for _ in range(40):
+        _, d_loss = adversarial_losses(disc, real, fake)
+        opt.zero_grad()
+        d_loss.backward()
+        opt.step()
+    assert float(d_loss) < 1.0, float(d_loss)
+
+
+def test_adversarial_run_exports_a_plain_diffusers_vae_and_restarts_from_it(tmp_path):
+    """A run with the adversarial term keeps the discriminator in its weights, exports the VAE without it
+    (the folder loads as CogVideoX's does), and a new adversarial run starts from the exported folder with a
+    fresh discriminator."""
+    from media.encoders import VideoVAE
+    from safetensors.torch import load_file
+
+    ds = write_world_dataset(tmp_path / "ds", num_samples=2, per_shard=2)
+    adv = ["--set", "model.adversarial_weight=0.1", "--set", "model.discriminator_width=8"]
+    run = tmp_path / "adv"
+    common = ["train", "vae", "--preset", "tiny", "--shards", str(ds), *ARGS, *adv]
+    assert main([*common, "--out", str(run), "--steps", "2"]) == 0
+    rows = [json.loads(line) for line in open(run / "metrics.jsonl")]
+    assert all("d_loss" in r and "g_loss" in r for r in rows)
+    assert any(k.startswith("discriminator.") for k in load_file(str(run / "final" / "model.safetensors")))
+    exported = run / "final" / "vae" / "diffusion_pytorch_model.safetensors"
+    assert not any(k.startswith("discriminator.") for k in load_file(str(exported)))
+    VideoVAE(run / "final" / "vae", device="cpu")
+    again = tmp_path / "again"
+    assert main([*common, "--out", str(again), "--steps", "1", "--set", f"model.init_weights={exported}"]) == 0
