@@ -166,9 +166,8 @@ class TrainableVAE(AutoencoderKLCogVideoX):
             g = gradient_l1(rec, x)
             loss = loss + c.gradient_weight * g
             logs["gradient_l1"] = g.detach()
-        disc = getattr(self, "discriminator", None)   # build_vae sets it (a module, or None: no adversarial term)
-        if disc is not None:
-            g_loss, d_loss = adversarial_losses(disc, x, rec)
+        if self.discriminator is not None:   # build_vae sets it: a module, or None (no adversarial term)
+            g_loss, d_loss = adversarial_losses(self.discriminator, x, rec)
             loss = loss + c.adversarial_weight * g_loss + c.discriminator_loss_scale * d_loss
             logs["g_loss"], logs["d_loss"] = g_loss.detach(), d_loss.detach()
         return loss, logs
@@ -191,9 +190,8 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
     cfg = from_dict(VaeTrainConfig, model_cfg, prefix="model")
     with torch.device(device):
         model = TrainableVAE.from_config(diffusers_config(cfg))
-    model.train_cfg = cfg
-    with torch.device(device):
         model.discriminator = PatchDiscriminator3D(cfg.discriminator_width) if cfg.adversarial_weight > 0 else None
+    model.train_cfg = cfg
     if cfg.init_weights is not None:
         if not Path(cfg.init_weights).is_file():
             raise ConfigError(f"model.init_weights={cfg.init_weights} does not exist")

@@ -7,10 +7,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from safetensors.torch import load_file
+
+from media.encoders import VideoVAE
 from resim.cli import main
 from resim.config import ConfigError
 from training.testing import write_world_dataset
 from training.vae import build_vae, psnr_db
+from training.vae_gan import PatchDiscriminator3D, adversarial_losses
 
 ARGS = ["--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false",
         "--set", "trainer.loss_curve_png=false"]
@@ -104,8 +108,6 @@ def test_psnr_of_mse_in_minus_one_one():
 
 
 def test_train_export_load_and_exact_resume(tmp_path):
-    from media.encoders import VideoVAE
-
     ds = write_world_dataset(tmp_path / "ds", num_samples=4, per_shard=2)
     full, part = tmp_path / "full", tmp_path / "part"
     common = ["train", "vae", "--preset", "tiny", "--shards", str(ds), *ARGS]
@@ -129,8 +131,6 @@ def test_train_export_load_and_exact_resume(tmp_path):
 def test_adversarial_terms_reach_only_their_own_player():
     """One backward of the summed loss gives the VAE the generator's gradient and the discriminator its own:
     the generator term leaves the discriminator's weights untouched, the discriminator term the VAE's."""
-    from training.vae_gan import adversarial_losses
-
     base = {"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "clip_frames": 9}
     torch.manual_seed(0)
     vae = build_vae({**base, "adversarial_weight": 0.5, "discriminator_width": 8})
@@ -159,8 +159,6 @@ def test_adversarial_terms_reach_only_their_own_player():
 def test_discriminator_learns_to_tell_a_blurred_video_from_the_real_one():
     """The discriminator is trained by the summed loss alone: after some steps its hinge loss on real vs
     box-blurred frames falls well below the value of a discriminator that cannot tell them apart (2.0)."""
-    from training.vae_gan import PatchDiscriminator3D, adversarial_losses
-
     torch.manual_seed(0)
     real = torch.rand(2, 3, 5, 32, 48) * 2 - 1                               # texture: noise
     fake = F.avg_pool3d(real, (1, 5, 5), stride=1, padding=(0, 2, 2))          # the mean a blurred decoder returns
@@ -178,9 +176,6 @@ def test_adversarial_run_exports_a_plain_diffusers_vae_and_restarts_from_it(tmp_
     """A run with the adversarial term keeps the discriminator in its weights, exports the VAE without it
     (the folder loads as CogVideoX's does), and a new adversarial run starts from the exported folder with a
     fresh discriminator."""
-    from media.encoders import VideoVAE
-    from safetensors.torch import load_file
-
     ds = write_world_dataset(tmp_path / "ds", num_samples=2, per_shard=2)
     adv = ["--set", "model.adversarial_weight=0.1", "--set", "model.discriminator_width=8"]
     run = tmp_path / "adv"
