@@ -155,9 +155,14 @@ class SyntheticSource:
     layouts: tuple[str, ...] = ("opendv", "navsim", "carla")
     clip: dict[str, ClipConfig] = field(default_factory=dict)   # per-layout clip geometry overrides
     preset: str = "demo"                      # resim synth preset (demo: 128x224, 16 s episodes)
+    # share of the episodes made as counterfactual triples: one history, then left / straight / right at a
+    # junction (docs/sources.md, "Counterfactual forks"); 0 = none
+    fork_fraction: float = 0.0
 
     def __post_init__(self):
         check_positive("episodes", self.episodes)
+        if not 0 <= self.fork_fraction <= 1:
+            raise ConfigError(f"fork_fraction must be in [0, 1], got {self.fork_fraction}")
         bad = [x for x in list(self.layouts) + list(self.clip) if x not in ("opendv", "navsim", "carla")]
         if bad:
             raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")

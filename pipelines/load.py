@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from pipelines.config import PipelineConfig, absolute_paths
-from pipelines.sources.synth.generate import preset
+from pipelines.sources.synth.generate import SynthConfig, preset
 from pipelines.units import make_reader, source_specs
 from resim.config import ConfigError, load, to_dict
 from resim.folders import folder_problem
@@ -59,7 +59,7 @@ def check_synthetic_world(cfg: PipelineConfig) -> None:
     if s.root is None:
         return
     try:
-        made_with = preset(s.preset)
+        made_with = preset(s.preset, fork_fraction=s.fork_fraction)
     except ConfigError as e:
         raise ConfigError(f"sources.synthetic.preset: {e}") from None
     root = Path(s.root)
@@ -77,10 +77,13 @@ def check_synthetic_world(cfg: PipelineConfig) -> None:
     if not isinstance(have, dict):
         raise ConfigError(f"sources.synthetic.root: {p} is not a JSON object")
     want = json.loads(json.dumps({"episodes": s.episodes, "seed": s.seed, **to_dict(made_with)}))
+    # a field the generator did not have yet when it wrote the file had its default's effect
+    have = {**json.loads(json.dumps(to_dict(SynthConfig()))), **have}
     diff = [k for k in sorted(want) if have.get(k) != want[k]]
     if diff:
         raise ConfigError(
-            f"sources.synthetic: the world in {root} was not made with this config's episodes/seed/preset ("
+            f"sources.synthetic: the world in {root} was not made with this config's "
+            "episodes/seed/preset/fork_fraction ("
             + ", ".join(f"{k}: {have.get(k)!r} on disk, {want[k]!r} by the config" for k in diff)
-            + "); set sources.synthetic.episodes/seed/preset to the world's values, or point "
+            + "); set sources.synthetic.episodes/seed/preset/fork_fraction to the world's values, or point "
               "sources.synthetic.root at a new folder (the world is generated there)")

@@ -247,3 +247,22 @@ def test_quality_warnings_are_printed_once(world, capsys, recwarn):
     said = [line for line in (text.out + text.err).splitlines() if "biased upwards" in line]
     assert said and len(said) == len(set(said)), said          # each warning once (per horizon + overall)
     assert not [w for w in recwarn if "biased" in str(w.message)]
+
+
+def test_command_loss_command(world, capsys):
+    root, ds = world
+    out = root / "command-loss"
+    args = ["eval", "command-loss", "--checkpoint", str(root / "wm"), "--shards", str(ds), "--out", str(out),
+            "--device", "cpu"]
+    with pytest.raises(SystemExit, match="--heldout-from .* or --all-clips"):
+        main(args)
+    with pytest.raises(SystemExit, match="--levels 1000 is outside 0..999"):
+        main([*args, "--all-clips", "--levels", "1000"])
+    assert main([*args, "--all-clips", "--levels", "900", "300"]) == 0
+    rep = json.loads((out / "command_loss.json").read_text())
+    assert list(rep["levels"]) == ["900", "300"] and (out / "command_loss.png").is_file()
+    n = rep["protocol"]["clips"]
+    assert n == len(rep["per_clip"]) >= 1 and all(len(c["loss"]) == 2 and len(c["loss"][0]) == 4
+                                                 for c in rep["per_clip"])
+    assert sum(sum(row) for row in rep["levels"]["900"]["confusion"]) == n
+    assert "command read by the model's own loss" in capsys.readouterr().out

@@ -1,4 +1,7 @@
 """Config validation: every error names its key, before any work starts."""
+import json
+from pathlib import Path
+
 import pytest
 
 from pipelines.config import PipelineConfig, config_from_dict, to_dict
@@ -130,9 +133,20 @@ def test_reused_synthetic_world_must_match_the_config(synth_world, tmp_path):
     assert _load(root).sources.synthetic.episodes == 6
     for override, words in (("sources.synthetic.episodes=5", "episodes: 6 on disk, 5 by the config"),
                             ("sources.synthetic.seed=3", "seed: 0 on disk, 3 by the config"),
-                            ("sources.synthetic.preset=demo", "height_px: 64 on disk, 128 by the config")):
+                            ("sources.synthetic.preset=demo", "height_px: 64 on disk, 128 by the config"),
+                            ("sources.synthetic.fork_fraction=0.5", "fork_fraction: 0.0 on disk, 0.5 by the config")):
         with pytest.raises(ConfigError, match=words):                 # was: the world reused as is
             _load(root, override)
+    # a world written before a SynthConfig field existed had that field's default: still the config's world
+    older = tmp_path / "older"
+    older.mkdir()
+    (older / "ground_truth.json").write_text("{}")
+    made = json.loads((Path(synth_world) / "synth_config.json").read_text())
+    del made["fork_fraction"]
+    (older / "synth_config.json").write_text(json.dumps(made))
+    assert _load(f"sources.synthetic.root={older}").sources.synthetic.fork_fraction == 0.0
+    with pytest.raises(ConfigError, match="fork_fraction: 0.0 on disk, 0.5 by the config"):
+        _load(f"sources.synthetic.root={older}", "sources.synthetic.fork_fraction=0.5")
     # a config that skipped load_config (built from a dict) is checked where the world is reused
     d = to_dict(_load(root))
     d["sources"]["synthetic"]["episodes"] = 5

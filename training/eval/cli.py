@@ -84,6 +84,18 @@ history under the three commands beside the recorded future). Clips are picked w
 in turn, so straight-road histories are asked to turn too.
 """
 
+COMMAND_LOSS_EPILOG = """\
+example (held-out clips of a world the model never saw):
+  resim eval command-loss --checkpoint synth-world --shards data/heldout --all-clips --limit 48 --out out/closs
+
+No sampling and no labeler: each clip's future is noised to each --levels value (one noise draw, history
+clean) and denoised under "Turning left", "Moving forward", "Turning right" and the null prompt. Accuracy =
+share of clips whose recorded command gives the lowest v-loss of the three (chance 0.33); worth = how much
+higher the loss is under the opposite turn / the null prompt. It reads the model itself, where `resim eval
+commands` reads decoded rollouts (capped by the VAE, see its recorded_through_vae). Writes
+OUT/command_loss.json (per level, per command, per clip) and OUT/command_loss.png.
+"""
+
 DRIFT_EPILOG = """\
 example (the shipped synthetic-world model, 30 s from held-out histories):
   resim eval drift --checkpoint synth-world --shards data/heldout --all-clips --limit 4 --out out/drift
@@ -187,6 +199,27 @@ def register(subparsers) -> None:
     cm.add_argument("--horizons", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0],
                     help="fidelity horizons in s after the last history frame (default 0.5 1 2 4)")
     cm.set_defaults(func=_cmd_commands)
+
+    cl = sub.add_parser("command-loss", help="does the model use the command? its loss under each command (no sampling)",
+                        description="Read the command off the world model's own denoising loss: each clip's future "
+                                    "under left / forward / right and the null prompt, same noise; accuracy of the "
+                                    "lowest loss against the recorded command, and the worth of the command.",
+                        epilog=COMMAND_LOSS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    cl.add_argument("--checkpoint", required=True,
+                    help="world-model run folder (or its final/), or a shipped model name (synth-world)")
+    cl.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
+    cl.add_argument("--out", required=True, help="output folder")
+    cl.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
+    cl.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
+    cl.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
+    cl.add_argument("--levels", type=int, nargs="+", default=[950, 700, 400],
+                    help="noise levels of the future, 0..N-1 of the run's schedule (default 950 700 400)")
+    cl.add_argument("--batch-size", type=_positive_int, default=8, help="clips per forward pass")
+    cl.add_argument("--seed", type=int, default=0, help="seed of the noise draws (default 0)")
+    cl.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
+                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
+    cl.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+    cl.set_defaults(func=_cmd_command_loss)
 
     d = sub.add_parser("drift", help="long autoregressive rollouts (30 s): frame statistics vs real frames, per second",
                        description="Roll each clip's history out far past the training horizon and measure how the "
@@ -507,6 +540,28 @@ def _cmd_commands(args) -> int:
     rep["figure_clip"] = clips[idx].key
     _finish(out, "commands", rep, "\n".join([format_protocol(rep["protocol"]), format_commands(rep)]),
             lambda p: plot_commands(rep, p, title=f"{len(clips)} held-out histories x 3 commands"))
+    return 0
+
+
+def _cmd_command_loss(args) -> int:
+    from training.eval.command_loss import CommandLossInputError, plot_command_loss, run_command_loss
+
+    if not _device(args, "command-loss"):
+        return 2
+    items = _heldout_items(args.heldout_from, args.all_clips)
+    if items is None and not args.all_clips:
+        raise SystemExit("resim eval command-loss: give --heldout-from (the episodes to evaluate) or --all-clips")
+    try:
+        rep, text = run_command_loss(args.checkpoint, args.shards, items, limit=args.limit, levels=args.levels,
+                                     seed=args.seed, batch_size=args.batch_size, text_encoder=args.text_encoder,
+                                     device=args.device, heldout_from="ALL CLIPS of --shards (--all-clips)"
+                                     if args.all_clips else args.heldout_from)
+    except CommandLossInputError as e:
+        raise SystemExit(f"resim eval command-loss: {e}") from None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _finish(out, "command_loss", rep, text,
+            lambda p: plot_command_loss(rep, p, title=f"{rep['clips']} clips: the command read by the model's loss"))
     return 0
 
 

@@ -90,7 +90,8 @@ def _pure_pursuit(world: World, lane, j, x, y, yaw, v):
 
 def _curve_speed(world: World, j, v_max):
     ds = world.route.s[1] - world.route.s[0]
-    k = np.abs(world.route.curvature[j: j + int(30 / ds)])
+    plan = world.route.curvature if world.speed_curvature is None else world.speed_curvature
+    k = np.abs(plan[j: j + int(30 / ds)])
     kmax = float(k.max()) if k.size else 0.0
     return min(v_max, math.sqrt(A_LAT_MAX / kmax)) if kmax > 1e-6 else v_max
 

@@ -4,6 +4,10 @@ Episode i (of N) gets its own ``numpy`` generator seeded with ``(seed, i)``, so 
 seed fixes every byte written. Episodes are split round-robin over the parts
 ``opendv, navsim, carla``; OpenDV and NAVSIM episodes are expert drives, CARLA
 episodes alternate expert and hazardous explorer (``carla_hazard_fraction``).
+With ``fork_fraction`` > 0 the last episodes come in counterfactual triples (fork.py): one world and one
+expert drive, identical until a four-way junction where they turn left, go straight and turn right; a
+triple's three episodes are written to the same part, and ``ground_truth.json`` names each one's
+``fork`` (group, branch, where it splits).
 Each part is written in its real layout (see writers.py), and
 ``ground_truth.json`` holds, per episode, the exact simulation-rate poses,
 heading and speed, the outcome, and how each reader's frame k maps to a
@@ -25,6 +29,7 @@ from tqdm import tqdm
 from resim.config import ConfigError, from_dict, to_dict
 
 from .drivers import EXPLORER_PATTERNS, Trace, simulate
+from .fork import FORK_BRANCHES, build_fork_world
 from .ground_truth import command_share
 from .render import Camera, Renderer
 from .score import Score, score_trace
@@ -48,6 +53,7 @@ class SynthConfig:
     carla_hazard_fraction: float = 0.5
     jpeg_quality: int = 90
     navsim_split: str = "synth"
+    fork_fraction: float = 0.0        # share of the episodes made as counterfactual triples (whole triples)
 
     def __post_init__(self):
         if self.height_px < 16 or self.width_px < 16:
@@ -60,6 +66,8 @@ class SynthConfig:
             raise ConfigError("opendv_fps_hz must be >= 10 (the reader resamples to 10 Hz)")
         if not 0 <= self.carla_hazard_fraction <= 1:
             raise ConfigError("carla_hazard_fraction must be in [0, 1]")
+        if not 0 <= self.fork_fraction <= 1:
+            raise ConfigError(f"fork_fraction must be in [0, 1], got {self.fork_fraction}")
         if self.episode_s < 2:
             raise ConfigError("episode_s must be >= 2")
         if not 0 < self.nominal_speed_mps[0] <= self.nominal_speed_mps[1]:
@@ -85,11 +93,16 @@ class EpisodePlan:
     driver: str
     pattern: str | None
     name: str
+    fork_group: int | None = None     # counterfactual triple this episode belongs to (fork.py)
+    fork_branch: str | None = None    # left / straight / right
 
 
 def plan_episodes(n: int, cfg: SynthConfig) -> list[EpisodePlan]:
+    """Episode i's part and driver. Ordinary episodes first (their plans do not depend on ``fork_fraction``),
+    then the fork triples, each triple in one part (parts in turn), expert-driven."""
+    n_forks = int(n * cfg.fork_fraction) // 3
     plans, k_carla, k_expl = [], 0, 0
-    for i in range(n):
+    for i in range(n - 3 * n_forks):
         part = PARTS[i % 3]
         driver, pattern = "expert", None
         if part == "carla":
@@ -99,6 +112,10 @@ def plan_episodes(n: int, cfg: SynthConfig) -> list[EpisodePlan]:
                 k_expl += 1
             k_carla += 1
         plans.append(EpisodePlan(i, part, driver, pattern, f"synth_{i:04d}"))
+    for g in range(n_forks):
+        for b in FORK_BRANCHES:
+            i = len(plans)
+            plans.append(EpisodePlan(i, PARTS[g % len(PARTS)], "expert", None, f"synth_{i:04d}", g, b))
     return plans
 
 
@@ -116,6 +133,12 @@ def turn_labels(world: World, route_s: np.ndarray) -> list[str]:
 
 
 def _simulate_episode(plan: EpisodePlan, seed: int, cfg: SynthConfig):
+    if plan.fork_group is not None:
+        # a stream of its own per triple (the entropy [seed, group, 3] is no ordinary episode's [seed, index])
+        rng = np.random.default_rng([seed, plan.fork_group, len(FORK_BRANCHES)])
+        world = build_fork_world(rng, cfg.episode_s, float(rng.uniform(*cfg.nominal_speed_mps)), plan.fork_branch)
+        trace = simulate(world, cfg.episode_s, cfg.sim_hz, rng, "expert")
+        return rng, world, trace, None, score_trace(trace, cfg.sim_hz, None)
     rng = np.random.default_rng([seed, plan.index])
     v_nom = float(rng.uniform(*cfg.nominal_speed_mps))
     world = build_road(rng, cfg.episode_s, v_nom, first_turn_sign=1 if plan.index % 2 == 0 else -1)
@@ -188,7 +211,8 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
     tmp.rename(out)
     summary = {"out": str(out), "episodes": episodes, "parts": {p: sum(e["layout"]["reader"] == p for e in gt_eps)
                                                                  for p in PARTS},
-               "hazardous": sum(e["driver"] == "explorer" for e in gt_eps), "command_share": share}
+               "hazardous": sum(e["driver"] == "explorer" for e in gt_eps),
+               "fork_triples": len({e["fork"]["group"] for e in gt_eps if e["fork"]}), "command_share": share}
     return summary
 
 
@@ -259,6 +283,9 @@ def _gt_entry(plan: EpisodePlan, pattern, tr: Trace, score: Score, layout: dict,
         "sim_hz": sim_hz, "num_steps": int(len(tr.t_s)), "layout": layout,
         "appearance": world.appearance.name, "nominal_speed_mps": world.nominal_speed_mps,
         "route_segments": [[sg.kind, round(sg.s_start, 3), round(sg.length_m, 3), sg.curvature] for sg in world.segments],
+        "fork": None if plan.fork_group is None else {
+            "group": plan.fork_group, **world.fork,
+            "reach_t_s": float(tr.t_s[min(len(tr.t_s) - 1, int(np.searchsorted(tr.route_s_m, world.fork["route_s_m"])))])},
         "t_s": tr.t_s.tolist(), "x_m": tr.poses[:, 0].tolist(), "y_m": tr.poses[:, 1].tolist(),
         "yaw_rad": tr.poses[:, 2].tolist(), "speed_mps": tr.speed_mps.tolist(),
         "outcome": {"hazard": plan.driver == "explorer", "infraction_score": score.score_penalty,

@@ -161,6 +161,10 @@ class World:
     start_s_m: float
     nominal_speed_mps: float
     roads: list[Road] = field(default_factory=list)   # route + crossings (for off-road tests)
+    # |curvature| per route sample the driver plans its speed on (None: the route's own); a counterfactual
+    # fork (fork.py) sets the sharpest of its branches, so every branch slows for the junction alike
+    speed_curvature: np.ndarray | None = None
+    fork: dict | None = None      # a fork's branch, where it splits (route_s_m) and the junction's centre
 
     def lane_path(self) -> np.ndarray:
         return self.route.offset(LANE_OFFSET_M)
