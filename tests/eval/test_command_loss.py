@@ -21,8 +21,8 @@ def _clips(n=9, t_lat=5, h=2):
         c = COMMANDS[i % 3]
         lat = np.zeros((t_lat, 2, 3, 3), np.float32)
         lat[h:] = PATTERN[c]
-        out.append(EvalClip(f"k{i}", f"ep{i}", lat, np.zeros((1, 8, 8, 3), np.uint8), None, c, 1 + 4 * (h - 1),
-                            10.0, False))
+        out.append(EvalClip(f"k{i}", f"ep{i}", lat, np.zeros((1 + 4 * (t_lat - 1), 8, 8, 3), np.uint8), None, c,
+                            1 + 4 * (h - 1), 10.0, False))
     return out
 
 
@@ -79,3 +79,20 @@ def test_history_is_clean_and_the_noise_is_shared_by_the_prompts():
 def test_levels_outside_the_schedule_are_refused():
     with pytest.raises(ValueError, match="noise levels"):
         clip_losses(Oracle(), _clips(3), TEXT.__getitem__, AC, levels=(1000,))
+
+
+def test_counterfactual_clips_are_those_sharing_a_history_with_another_command():
+    from training.eval.command_loss import counterfactual_clips
+
+    shared = _clips(6)                    # one (black) history under left / forward / right, twice
+    shared[0].frames[-1] = 9              # futures differ: still one history
+    shared[1].latents[0] += 0.5           # so do latents (posterior samples): still one history
+    pair = _clips(2)                      # another history, under left and forward
+    for c in pair:
+        c.frames[0] = 1
+    solo = _clips(1)                      # a history of its own: nothing to compare it with
+    solo[0].frames[0] = 2
+    idx, n = counterfactual_clips(shared + pair + solo)
+    assert idx == list(range(8)) and n == 2
+    twins = _clips(1) * 2                 # one history, one command: not counterfactual
+    assert counterfactual_clips(twins) == ([], 0)

@@ -12,12 +12,18 @@ losses are compared. Two numbers per noise level:
 * **worth**: ``loss(prompt) / loss(recorded command) − 1``, averaged over clips, for the opposite turn (turning
   clips) and for the null prompt: how much worse the model predicts the future when told the wrong thing.
 
+Reported again on the **counterfactual clips** where a dataset has them: clips with the same history (byte-identical
+history frames) and different recorded commands, as the synthetic world's forks make them
+(``resim synth --set fork_fraction=...``). There the history cannot tell the futures apart, only the command can.
+
 Reads clips with a recorded command; the model is an argument, as in ``training_losses``.
 """
 from __future__ import annotations
 
+import hashlib
 import sys
 import time
+from collections import defaultdict
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -79,6 +85,17 @@ def clip_losses(model: Any, clips: Sequence[EvalClip], text_for: Callable[[str |
                 err = ((pred.float() - target.float())[:, h:] ** 2).mean(dim=(1, 2, 3, 4))
                 out[i:i + b, j, k] = err.double().cpu().numpy()
     return out
+
+
+def counterfactual_clips(clips: Sequence[EvalClip]) -> tuple[list[int], int]:
+    """Indices of the clips that share their history frames with a clip of another recorded command, and the
+    number of such histories (a fork's split seen from before it). The frames, not the latents: the pipeline
+    encodes with a posterior *sample* (as CogVideoX trains), so one history's latents differ from clip to clip."""
+    groups: dict[str, list[int]] = defaultdict(list)
+    for i, c in enumerate(clips):
+        groups[hashlib.sha256(np.ascontiguousarray(c.frames[:c.num_history_frames]).tobytes()).hexdigest()].append(i)
+    keep = [g for g in groups.values() if len({clips[i].command for i in g}) > 1]
+    return sorted(i for g in keep for i in g), len(keep)
 
 
 def command_loss_report(losses: np.ndarray, recorded: Sequence[str], levels: Sequence[int]) -> dict:
@@ -147,6 +164,10 @@ def run_command_loss(checkpoint: str, shards: str | Path, items: Sequence[str] |
     losses = clip_losses(model, clips, prompts, ac, levels=levels, seed=seed, batch_size=batch_size, device=device)
     recorded = [c.command for c in clips]
     rep = command_loss_report(losses, recorded, levels)
+    idx, n_hist = counterfactual_clips(clips)
+    if idx:
+        rep["counterfactual"] = {"histories": n_hist,
+                                 **command_loss_report(losses[idx], [recorded[i] for i in idx], levels)}
     rep["per_clip"] = [{"key": c.key, "recorded": c.command, "loss": losses[i].round(6).tolist()}
                        for i, c in enumerate(clips)]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
@@ -155,7 +176,12 @@ def run_command_loss(checkpoint: str, shards: str | Path, items: Sequence[str] |
                        "conditions": "future noised to each level (one draw per clip and level, shared by the "
                                      "prompts), history clean, no trajectory; prompts left/forward/right/null",
                        "seconds": round(time.perf_counter() - t0, 2)}
-    return rep, "\n".join([format_protocol(rep["protocol"]), format_command_loss(rep)])
+    text = [format_protocol(rep["protocol"]), format_command_loss(rep)]
+    if "counterfactual" in rep:
+        cf = rep["counterfactual"]
+        text += [f"counterfactual clips: {cf['clips']} clips of {cf['histories']} histories shared by clips of another "
+                 "command (only the command tells their futures apart)", format_command_loss(cf)]
+    return rep, "\n".join(text)
 
 
 def plot_command_loss(rep: dict, path, title: str = ""):
