@@ -194,23 +194,29 @@ def plot_command_loss(rep: dict, path, title: str = ""):
 
     levels = list(rep["levels"])
     rows = [rep["levels"][k] for k in levels]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     ax = axes[0]
-    ax.bar(range(len(levels)), [r["accuracy"] for r in rows], color="tab:blue")
+    x = np.arange(len(levels))
+    cf = rep.get("counterfactual")
+    w = 0.4 if cf else 0.8
+    ax.bar(x - (w / 2 if cf else 0), [r["accuracy"] for r in rows], w, color="tab:blue", label=f"all {rep['clips']} clips")
+    if cf:
+        ax.bar(x + w / 2, [cf["levels"][k]["accuracy"] for k in levels], w, color="tab:green",
+               label=f"{cf['clips']} counterfactual clips")
     ax.axhline(rep["chance_accuracy"], color="k", ls="--", lw=1, label="chance")
-    ax.set_xticks(range(len(levels)), levels)
+    ax.set_xticks(x, levels)
     ax.set_ylim(0, 1)
     ax.set_xlabel("noise level of the future (t)")
     ax.set_ylabel("lowest loss = recorded command")
-    ax.legend()
+    ax.legend(fontsize=8)
     ax = axes[1]
-    x = np.arange(len(levels))
     ax.bar(x - 0.2, [100 * r.get("worth_opposite", np.nan) for r in rows], 0.4, label="opposite turn")
     ax.bar(x + 0.2, [100 * r["worth_null"] for r in rows], 0.4, label="null prompt")
     ax.axhline(0, color="k", lw=0.8)
     ax.set_xticks(x, levels)
     ax.set_xlabel("noise level of the future (t)")
-    ax.set_ylabel("loss increase over the recorded command (%)")
+    ax.set_ylabel("loss increase (%)")
+    ax.set_title("loss over the recorded command's, all clips", fontsize=10)
     ax.legend()
     fig.suptitle(title)
     fig.tight_layout()
