@@ -23,7 +23,9 @@ Generate a procedural driving world on the CPU and write it in the three real la
   OUT/ground_truth.json   exact per-step poses / heading per episode, outcome, reader frame alignment
 
 Episodes go round-robin to opendv, navsim, carla; CARLA episodes alternate expert and
-hazardous explorer. Same --seed, same bytes. See docs/sources.md.
+hazardous explorer. With --set fork_fraction=F that share of the episodes comes as counterfactual
+triples: one world and one history, identical frame for frame until a junction, then left / straight /
+right (for training a world model to follow the command). Same --seed, same bytes. See docs/sources.md.
 """
 
 EPILOG = """\
@@ -31,6 +33,7 @@ examples:
   resim synth --out data/synth --preset tiny --episodes 12     # what configs/pipeline/synthetic.yaml reads
                                                                # (with --set sources.synthetic.episodes=12)
   resim synth --out data/synth --episodes 6 --set episode_s=10 --contact-sheet sheet.png --overwrite
+  resim synth --out data/forks --episodes 12 --set fork_fraction=1.0          # 4 forks of 3 episodes
 """
 
 
