@@ -53,7 +53,8 @@ def data_config_hash(cfg) -> str:
 # Config fields added after datasets were made, with the default that reproduces the data made before them:
 # left out of the hash at that default, so those datasets keep their hash (a rerun resumes them, and every
 # sample's meta.config_hash stays what it was); any other value is hashed like every field.
-NEW_FIELD_DEFAULTS = {"max_held_frames": 0}    # ClipConfig, wherever a clip geometry is configured
+NEW_FIELD_DEFAULTS = {"max_held_frames": 0,   # ClipConfig, wherever a clip geometry is configured
+                      "fork_fraction": 0.0}    # sources.synthetic: no counterfactual forks
 
 
 def _without_new_defaults(d):

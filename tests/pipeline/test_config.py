@@ -159,6 +159,21 @@ def test_reused_synthetic_world_must_match_the_config(synth_world, tmp_path):
         _load(f"sources.synthetic.root={bare}")
 
 
+def test_fork_fraction_at_its_default_leaves_the_data_hash_as_it_was(tmp_path):
+    """Datasets made before the field existed keep their hash (a rerun resumes them); forks change it."""
+    from pipelines.config import absolute_paths
+    from pipelines.stages.encode import _without_new_defaults, data_config_hash
+    from resim.config import config_hash
+
+    cfg = _load()
+    d = to_dict(absolute_paths(cfg))
+    del d["sources"]["synthetic"]["fork_fraction"]     # the config as it was before the field existed
+    before = config_hash(_without_new_defaults(   # (the older max_held_frames at its default: left out as ever)
+        {k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")}))
+    assert data_config_hash(cfg) == before
+    assert data_config_hash(_load("sources.synthetic.fork_fraction=0.5")) != before
+
+
 # ------------------------------------------------------------------------------- paths made absolute
 def test_paths_are_saved_absolute_and_a_rerun_from_the_saved_config_resumes(tmp_path, monkeypatch):
     import yaml
