@@ -31,13 +31,13 @@ import numpy as np
 import torch
 
 from shards.reader import ShardReadError
+from shards.schema import COMMANDS
 from training.diffusion.schedule import add_noise, alphas_cumprod, v_target
 from training.eval.commands import balanced_clips
 from training.eval.report import format_protocol
 from training.eval.worldeval import EvalClip, eval_clips_from_dataset
 from training.sampling.load import PromptSource, SamplingInputError, load_world_model, run_objective
 
-COMMANDS = ("Turning left", "Moving forward", "Turning right")
 OPPOSITE = {"Turning left": "Turning right", "Turning right": "Turning left"}
 DEFAULT_LEVELS = (950, 700, 400)
 
