@@ -60,6 +60,11 @@ class TrainerConfig:
     loss_curve_png: bool = True
     peak_tflops_per_gpu: float = 989.0     # dense bf16 peak for MFU (H100 SXM); set for your GPU
     save_final_weights: bool = True        # final/model.safetensors (+ ema) consolidated on rank 0
+    # a wall-clock budget for this invocation's steps (None: none). When it runs out the loop stops after the step
+    # in flight, checkpoints and exports final/ as at the end; `--resume` later continues towards `steps`. For
+    # leased GPUs and CI slots with a hard limit; use a constant (or warm-up only) schedule, since a cosine is
+    # laid out over `steps` and would be cut off part-way
+    max_wall_s: Optional[float] = None
 
     def __post_init__(self):
         if self.steps < 1:
@@ -74,6 +79,8 @@ class TrainerConfig:
             raise ConfigError("trainer.checkpoint_every_steps must be >= 0 and keep_checkpoints >= 1")
         if self.log_every_steps < 1:
             raise ConfigError("trainer.log_every_steps must be >= 1")
+        if self.max_wall_s is not None and not self.max_wall_s >= 0:
+            raise ConfigError(f"trainer.max_wall_s must be >= 0 seconds (or null), got {self.max_wall_s}")
 
 
 @dataclass

@@ -309,6 +309,7 @@ class Trainer:
         step = start
         saved_at = start if latest is not None else -1
         t_start = time.perf_counter()
+        stopped_early = 0   # the step at which trainer.max_wall_s stopped the loop
         for step in range(start, tc.steps):
             t0 = time.perf_counter()
             lr = lr_at(step, base_lr=oc.lr, warmup_steps=oc.warmup_steps, total_steps=tc.steps,
@@ -354,7 +355,10 @@ class Trainer:
             stats = torch.stack([loss_sum / self.accum, grad_norm.detach().to(torch.float64).reshape(()),
                                  torch.tensor(float(n_samples), dtype=torch.float64, device=env.device)])
             finite = torch.isfinite(stats).all().to(torch.float64).reshape(1)
-            red = all_reduce_sum(torch.cat([torch.nan_to_num(stats, nan=0.0, posinf=0.0, neginf=0.0), 1 - finite]), env)
+            # every rank also agrees on whether the wall-clock budget is spent, so all stop after the same step
+            out_of_time = float(tc.max_wall_s is not None and time.perf_counter() - t_start >= tc.max_wall_s)
+            red = all_reduce_sum(torch.cat([torch.nan_to_num(stats, nan=0.0, posinf=0.0, neginf=0.0), 1 - finite,
+                                            torch.tensor([out_of_time], dtype=torch.float64, device=env.device)]), env)
             if red[3] > 0 or not bool(finite):
                 self._nonfinite(step, float(stats[0]), float(stats[1]))
             self.optimizer.step()
@@ -382,7 +386,12 @@ class Trainer:
                 saved_at = done
             if kill_at is not None and done == int(kill_at) and env.is_main:
                 os.kill(os.getpid(), signal.SIGKILL)  # fault injection for tests: a real kill, no clean-up
-        final_step = tc.steps if tc.steps > start else start
+            if red[4] > 0 and done < tc.steps:
+                stopped_early = done
+                self.log.message(f"[resim] trainer.max_wall_s={tc.max_wall_s:g} s spent: stopped at step {done} of "
+                                 f"{tc.steps}; `--resume` continues from here")
+                break
+        final_step = stopped_early or (tc.steps if tc.steps > start else start)
         if saved_at != final_step:
             self._save(final_step, data)
         if tc.save_final_weights:
@@ -390,6 +399,7 @@ class Trainer:
         png = self.log.close(loss_curve=tc.loss_curve_png)
         wall = time.perf_counter() - t_start
         summary = {"run_dir": str(self.run_dir), "start_step": start, "final_step": final_step,
+                   "stopped_by_max_wall_s": bool(stopped_early),
                    "last_loss": self._last_loss, "checkpoint": str(self._last_good), "wall_s": wall,
                    "global_batch_size": self.global_batch_size(), "layout": layout, "loss_curve": str(png) if png else None}
         if hasattr(data, "skipped"):

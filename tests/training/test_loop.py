@@ -6,7 +6,7 @@ import pickle
 import pytest
 import torch
 
-from resim.config import from_dict
+from resim.config import ConfigError, from_dict
 from training import checkpoint as ckpt
 from training.config import RunConfig
 from training.registry import build
@@ -205,3 +205,22 @@ def test_resume_is_exact_for_a_shuffled_dataloader(tmp_path, workers, first, ckp
     ref = run(tmp_path / "ref", 10)
     run(tmp_path / "res", first)
     assert run(tmp_path / "res", 10, resume=True) == ref       # bitwise
+
+
+def test_max_wall_s_stops_exports_and_resumes(tmp_path):
+    """A spent wall-clock budget stops the loop after the step in flight, with a checkpoint and final weights at
+    that step; --resume then runs on to trainer.steps."""
+    torch.manual_seed(0)
+    s = Trainer(build("toy", {}), _cfg(steps=6, max_wall_s=0.0), tmp_path).fit(_data())
+    assert s["final_step"] == 1 and s["stopped_by_max_wall_s"]
+    assert ckpt.latest_complete(tmp_path) == ckpt.checkpoint_path(tmp_path, 1)
+    assert (tmp_path / "final" / "model.safetensors").is_file()
+    assert [json.loads(line)["step"] for line in open(tmp_path / "metrics.jsonl")] == [1]
+    s = Trainer(build("toy", {}), _cfg(steps=6), tmp_path, resume=True).fit(_data())
+    assert s["start_step"] == 1 and s["final_step"] == 6 and not s["stopped_by_max_wall_s"]
+    assert [json.loads(line)["step"] for line in open(tmp_path / "metrics.jsonl")] == [1, 2, 3, 4, 5, 6]
+
+
+def test_max_wall_s_is_validated():
+    with pytest.raises(ConfigError, match="max_wall_s"):
+        _cfg(max_wall_s=-1)
