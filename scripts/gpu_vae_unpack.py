@@ -1,7 +1,7 @@
 """Reassemble a VAE of scripts/gpu_vae_sweep.sh into a diffusers folder (float32) that
 ``AutoencoderKLCogVideoX.from_pretrained`` and ``resim eval vae --vae`` load.
 
-    python scripts/gpu_vae_unpack.py SWEEP_OUT RUN DEST     # e.g. /work/.device/files B2 runs/gpu_vae/B2
+    python scripts/gpu_vae_unpack.py SWEEP_OUT RUN DEST     # e.g. OUT B2 runs/gpu_vae/B2
 
 The sweep brings each exported VAE back in float16, split into parts of at most 15 MB (a leased machine returns
 at most 8 files of 16 MB); logs.tgz holds each run's config.json, export.json, config.yaml and metrics.jsonl.
