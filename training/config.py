@@ -47,6 +47,9 @@ class TrainerConfig:
     global_batch_size: Optional[int] = None  # if set: accum = global / (batch_size_per_gpu * world); must divide
     precision: Literal["fp32", "bf16"] = "fp32"  # bf16 = autocast; falls back to fp32 where unsupported
     ema_decay: float = 0.0                 # 0 disables EMA; e.g. 0.9999
+    # the decay of update n is min(ema_decay, (1 + n) / (10 + n)) (diffusers' EMAModel): the EMA follows the
+    # weights early instead of keeping the initial ones for ~1 / (1 - ema_decay) steps (training/ema.py)
+    ema_warmup: bool = True
     activation_checkpointing: bool = False
     compile: bool = False                  # torch.compile the model's loss module
     parallel: Literal["auto", "none", "ddp", "fsdp"] = "auto"  # auto: DDP if world > 1 (FSDP for presets that say so)

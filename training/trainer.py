@@ -274,7 +274,7 @@ class Trainer:
                                            foreach=env.device.type == "cuda")
         self.ema = None
         if tc.ema_decay > 0:
-            self.ema = EMA(self.lm, tc.ema_decay)
+            self.ema = EMA(self.lm, tc.ema_decay, warmup=tc.ema_warmup)
             self.ema.params = {_clean_name(n): p for n, p in self.ema.params.items()}
             self.ema.shadow = {_clean_name(n): t for n, t in self.ema.shadow.items()}
         self._last_good: Path | None = None
@@ -363,9 +363,9 @@ class Trainer:
                 self._nonfinite(step, float(stats[0]), float(stats[1]))
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
-            if self.ema:
-                self.ema.update()
             done = step + 1
+            if self.ema:
+                self.ema.update(done)
             mean_loss = float(red[0]) / env.world_size
             self._last_loss = mean_loss
             dt = time.perf_counter() - t0
