@@ -29,7 +29,7 @@ from training.sampling.outputs import decode_latents
 def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarray:
     """uint8 ``(B, T, H, W, 3)`` → the VAE's reconstruction, same shape and dtype."""
     lat = vae.encode(frames, seeds=list(seeds))
-    return decode_latents(vae, torch.from_numpy(lat))
+    return decode_latents(vae, torch.from_numpy(lat), batch_size=len(lat))
 
 
 def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np.ndarray],

@@ -168,7 +168,7 @@ class WorldRollouts:
                       self.cfg, seed=seed, schedule=self.schedule)
         self.rollouts += len(clips)
         return decode_rollout(self.vae, res.latents, res.num_history_frames, self.cfg.frames_per_round,
-                              self.cfg.history_frames)
+                              self.cfg.history_frames, batch_size=self.batch_size)
 
 
     def decode_recorded(self, clips: Sequence[EvalClip]) -> np.ndarray:
@@ -179,7 +179,7 @@ class WorldRollouts:
             part = clips[i:i + self.batch_size]
             lat = torch.from_numpy(np.stack([c.latents for c in part])).to(self.device)
             out.append(decode_rollout(self.vae, lat, self.history_latents(part[0]), self.cfg.frames_per_round,
-                                      self.cfg.history_frames))
+                                      self.cfg.history_frames, batch_size=self.batch_size))
         return np.concatenate(out)
 
 

@@ -30,6 +30,12 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     """Latents ``(B, T, C, h, w)`` (torch or numpy, VAE latent × scaling factor) → uint8 ``(B, F, H, W, 3)``,
     ``F = 1 + 4 (T - 1)`` (frame 0 alone, then 4 pixel frames per latent frame, as the encoder made them).
 
+    ``batch_size``: samples decoded in one VAE call (it bounds the memory). diffusers' slicing, which
+    ``media.encoders.VideoVAE`` turns on to bound the encoder's memory, would split each call into one decode per
+    sample again; it is off during the call. One call for 4 clips of the synthetic world (64 x 96) takes 1/4.2 of
+    4 single-clip calls on a 2-core CPU (docs/benchmarks.md, "Decoding in batches"); the uint8 frames agree
+    with single-clip decoding up to 1 level in ~2e-5 of the values (floating-point summation order).
+
     ``vae``: a ``media.encoders.VideoVAE`` (uses its ``.model`` and ``.info.scaling_factor``) or a diffusers
     ``AutoencoderKLCogVideoX``. diffusers decodes in batches of 2 latent frames (the first batch takes 3 when ``T``
     is odd, so frame 0 is upsampled alone) and each batch's GroupNorms normalise over (group channels, time, H, W)
@@ -55,9 +61,11 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     padded = t % 2 == 0
     if padded:
         z = torch.cat([z, z[:, -1:]], dim=1)
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     p = next(model.parameters())
     out = []
-    with torch.inference_mode():
+    with torch.inference_mode(), _without_slicing(model):
         for i in range(0, z.shape[0], batch_size):
             zz = (z[i:i + batch_size].float() / scaling_factor).permute(0, 2, 1, 3, 4).to(p.device, p.dtype)
             with _group_norm_without_padding(model, zz.shape[2]) if padded else nullcontext():
@@ -68,6 +76,19 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
             x = ((x.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
             out.append(x.permute(0, 2, 3, 4, 1).cpu().numpy())
     return np.concatenate(out)
+
+
+@contextmanager
+def _without_slicing(model: Any):
+    """diffusers' ``use_slicing`` off for the block (a plain attribute of its autoencoders), restored after."""
+    had = getattr(model, "use_slicing", None)
+    if had:
+        model.use_slicing = False
+    try:
+        yield
+    finally:
+        if had:
+            model.use_slicing = had
 
 
 @contextmanager
@@ -128,20 +149,22 @@ def _group_norm_without_padding(model: Any, num_frames: int):
         raise AssertionError(f"diffusers called the decoder {state['calls']} times for batches of {lengths}")
 
 
-def decode_rollout(vae: Any, latents, num_history: int, frames_per_round: int, history_frames: int) -> np.ndarray:
+def decode_rollout(vae: Any, latents, num_history: int, frames_per_round: int, history_frames: int,
+                   batch_size: int = 1) -> np.ndarray:
     """Decode a rollout round by round, each VAE call on one round's window (≤ history + round frames, the
     clip length the VAE/model work at), as ReSim decodes each 4-s prediction:
 
     round 0: latents ``[0, H0 + F0)`` → all its pixel frames; round r ≥ 1 (starting at latent ``s``): the window
     ``[s - history_frames, s + F_r)`` → its last ``4 F_r`` pixel frames. Returns ``(B, 1 + 4 (T - 1), H, W, 3)``.
+    ``batch_size``: rollouts per VAE call (:func:`decode_latents`).
     """
     t = int(latents.shape[1])
     first_end = min(t, num_history + frames_per_round)
-    parts = [decode_latents(vae, latents[:, :first_end])]
+    parts = [decode_latents(vae, latents[:, :first_end], batch_size=batch_size)]
     s = first_end
     while s < t:
         e = min(t, s + frames_per_round)
-        win = decode_latents(vae, latents[:, max(0, s - history_frames):e])
+        win = decode_latents(vae, latents[:, max(0, s - history_frames):e], batch_size=batch_size)
         parts.append(win[:, -4 * (e - s):])
         s = e
     return np.concatenate(parts, axis=1)

@@ -126,7 +126,7 @@ def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
     say = log or (lambda _m: None)
     say(f"decoding {k} imagined futures with the VAE ...")
     frames = decode_rollout(vae, res.latents, res.num_history_frames, cfg.frames_per_round,
-                            cfg.history_frames)                      # (K, F, H, W, 3)
+                            cfg.history_frames, batch_size=min(k, 8))  # (K, F, H, W, 3)
     say(f"scoring {k} futures with Video2Reward ...")
     h0 = res.num_history_frames
     num_hist_px = 1 + 4 * (h0 - 1)
