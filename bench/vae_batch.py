@@ -1,10 +1,12 @@
-"""Decoding rollouts with the synthetic world's VAE: one VAE call per clip (diffusers' slicing, what evaluation
-did) against one call for a batch of clips (``decode_latents(batch_size=N)``), in the same process.
+"""The synthetic world's VAE one clip per call (diffusers' slicing) against a batch of clips per call, in the
+same process: decoding (``decode_latents(batch_size=N)``, what evaluation and planning do) and encoding
+(``VideoVAE.encode`` with slicing off, what the pipeline does with ``encode.batch_size`` > 1 and
+``encode.vae_slicing: false``).
 
-Latents of the shape `resim eval` decodes (13 latent frames of 16 x 8 x 12, the 64 x 96 synthetic world);
-random latents at the VAE's scale, which costs the same as real ones. Prints seconds per clip, the ratio and
-how far the uint8 frames of the two ways differ.
-Run: PYTHONPATH=. python bench/decode_batch.py [--clips 8] [--threads 2] [--vae configs/models/synth-vae]
+Clips of the shape the synthetic world uses (49 frames of 64 x 96 <-> 13 latent frames of 16 x 8 x 12); random
+latents and random pixels, which cost the same as real ones. Prints seconds per clip, the ratio and how far
+the results of the two ways differ.
+Run: PYTHONPATH=. python bench/vae_batch.py [--clips 8] [--threads 2] [--vae configs/models/synth-vae]
 """
 from __future__ import annotations
 
@@ -48,6 +50,22 @@ def main() -> None:
     print(f"{args.clips} clips of 13 latent frames (49 frames 64x96), {args.threads} torch thread(s), best of {args.repeats}")
     for name, _, t in rows:
         print(f"  {name:<28} {t:6.2f} s  {t / args.clips:5.2f} s/clip  x{t_one / t:4.1f}")
+
+    # encoding: the pipeline's encode stage hands VideoVAE.encode up to encode.batch_size clips of one episode
+    frames = np.random.default_rng(0).integers(0, 256, (args.clips, 49, 64, 96, 3), dtype=np.uint8)
+    seeds = list(range(args.clips))
+    vae.encode(frames[:1], seeds[:1])               # warm-up
+    t0 = time.perf_counter()
+    one = np.concatenate([vae.encode(frames[i:i + 1], seeds[i:i + 1]) for i in range(args.clips)])
+    t_enc1 = time.perf_counter() - t0
+    vae.model.disable_slicing()
+    t0 = time.perf_counter()
+    four = np.concatenate([vae.encode(frames[i:i + 4], seeds[i:i + 4]) for i in range(0, args.clips, 4)])
+    t_enc4 = time.perf_counter() - t0
+    print(f"encode {args.clips} clips of 49 frames 64x96:")
+    print(f"  {'1 clip per call (slicing)':<28} {t_enc1:6.2f} s  {t_enc1 / args.clips:5.2f} s/clip  x 1.0")
+    print(f"  {'4 clips per call':<28} {t_enc4:6.2f} s  {t_enc4 / args.clips:5.2f} s/clip  x{t_enc1 / t_enc4:4.1f}"
+          f"   (latents differ by at most {float(np.abs(one - four).max()):.1e})")
 
 
 if __name__ == "__main__":
