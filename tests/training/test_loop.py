@@ -5,10 +5,13 @@ import pickle
 
 import pytest
 import torch
+from diffusers.training_utils import EMAModel
+from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict
 from training import checkpoint as ckpt
 from training.config import RunConfig
+from training.ema import EMA, warmup_decay
 from training.registry import build
 from training.schedule import lr_at
 from training.trainer import NonFiniteLossError, Trainer
@@ -57,7 +60,6 @@ def test_ema_and_final_weights(tmp_path):
     m = build("toy", {})
     init = {n: p.detach().clone() for n, p in m.named_parameters()}
     Trainer(m, _cfg(steps=4, ema_decay=0.5), tmp_path).fit(_data())
-    from safetensors.torch import load_file
     w = load_file(str(tmp_path / "final" / "model.safetensors"))
     e = load_file(str(tmp_path / "final" / "ema.safetensors"))
     assert set(w) == set(init) == set(e)
@@ -114,7 +116,6 @@ def test_resume_with_no_checkpoint_starts_fresh(tmp_path, capsys):
 def test_ema_export_is_complete_with_frozen_weights(tmp_path):
     """EMA tracks only trainable parameters; final/ema.safetensors must still be a full state dict (frozen tensors
     from the model, EMA values over the trained ones), else sampling / init_weights cannot load it strictly."""
-    from safetensors.torch import load_file
     torch.manual_seed(0)
     m = build("toy", {})
     m.inp.requires_grad_(False)        # a frozen part, like the DiT in ReSim stage 2
@@ -157,7 +158,6 @@ def test_partial_training_ema_export_samples_and_inits(world_dataset, tmp_path):
     """ReSim stage 2 shape (only the new modules train) with EMA: the export loads for sampling (EMA preferred)
     and as the next stage's init_weights."""
     from resim.cli import main
-    from safetensors.torch import load_file
     from training.sampling.load import load_world_model
     from training.world import build_world
     run = tmp_path / "run"
@@ -224,3 +224,47 @@ def test_max_wall_s_stops_exports_and_resumes(tmp_path):
 def test_max_wall_s_is_validated():
     with pytest.raises(ConfigError, match="max_wall_s"):
         _cfg(max_wall_s=-1)
+
+
+# --- the EMA's warm-up: diffusers' EMAModel decay rule, its effect on a short run, exact resume
+def test_warmup_decay_is_diffusers_rule():
+    ref = EMAModel([torch.nn.Parameter(torch.zeros(1))], decay=0.999)
+    for n in (1, 2, 3, 10, 100, 1000, 5000):
+        assert warmup_decay(0.999, n) == pytest.approx(ref.get_decay(n)), n
+    with pytest.raises(ValueError):
+        warmup_decay(0.999, 0)
+
+
+def test_warmup_lets_a_short_run_forget_its_start():
+    """A weight walking 0 -> 1 over 300 updates: with warm-up the EMA ends near it, without warm-up it is still
+    mostly the initial 0 (0.999 ** 300 = 0.74 of it)."""
+    ends = {}
+    for warm in (True, False):
+        p = torch.nn.Linear(1, 1, bias=False)
+        with torch.no_grad():
+            p.weight.zero_()
+        ema = EMA(p, 0.999, warmup=warm)
+        for n in range(1, 301):
+            with torch.no_grad():
+                p.weight.fill_(n / 300)
+            ema.update(n)
+        ends[warm] = float(ema.shadow["weight"])
+    assert ends[True] > 0.8
+    assert ends[False] < 0.2
+
+
+def test_resumed_ema_equals_uninterrupted(tmp_path):
+    """The warm-up counts the trainer's steps, which a resume restores: the resumed EMA is the same."""
+    torch.manual_seed(0)
+    Trainer(build("toy", {}), _cfg(ema_decay=0.9), tmp_path / "ref").fit(_data())
+    torch.manual_seed(0)
+    s = Trainer(build("toy", {}), _cfg(ema_decay=0.9, max_wall_s=0.0, checkpoint_every_steps=1),
+                tmp_path / "cut").fit(_data())
+    assert s["final_step"] == 1
+    torch.manual_seed(0)
+    Trainer(build("toy", {}), _cfg(ema_decay=0.9), tmp_path / "cut", resume=True).fit(_data())
+    ref = load_file(str(tmp_path / "ref" / "final" / "ema.safetensors"))
+    cut = load_file(str(tmp_path / "cut" / "final" / "ema.safetensors"))
+    assert set(ref) == set(cut)
+    for k in ref:
+        torch.testing.assert_close(cut[k], ref[k], rtol=1e-6, atol=1e-7)
