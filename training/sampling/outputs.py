@@ -33,8 +33,9 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     ``batch_size``: samples decoded in one VAE call (it bounds the memory). diffusers' slicing, which
     ``media.encoders.VideoVAE`` turns on to bound the encoder's memory, would split each call into one decode per
     sample again; it is off during the call. One call for 4 clips of the synthetic world (64 x 96) takes 1/4.2 of
-    4 single-clip diffusers calls on a 2-core CPU (docs/benchmarks.md, "The VAE in batches"); the uint8 frames
-    agree with single-clip decoding up to 1 level in ~2e-5 of the values (floating-point summation order).
+    4 single-clip calls on a 2-core CPU (docs/benchmarks.md, "The VAE in batches": PyTorch's CPU convolution
+    skips oneDNN for small batches of one); the uint8 frames agree with single-clip decoding up to 1 level in
+    ~2e-5 of the values (floating-point summation order).
 
     ``vae``: a ``media.encoders.VideoVAE`` (uses its ``.model`` and ``.info.scaling_factor``) or a diffusers
     ``AutoencoderKLCogVideoX``. diffusers decodes in batches of 2 latent frames (the first batch takes 3 when ``T``
@@ -58,27 +59,18 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
         raise ValueError(f"latents must be (B, T, C, h, w) with T >= 1, got {tuple(z.shape)}")
     t = z.shape[1]
     want = 1 + 4 * (t - 1)
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     padded = t % 2 == 0
     if padded:
         z = torch.cat([z, z[:, -1:]], dim=1)
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     p = next(model.parameters())
     out = []
     with torch.inference_mode(), _without_slicing(model):
         for i in range(0, z.shape[0], batch_size):
             zz = (z[i:i + batch_size].float() / scaling_factor).permute(0, 2, 1, 3, 4).to(p.device, p.dtype)
-            single_on_cpu = zz.shape[0] == 1 and zz.device.type == "cpu"
-            if single_on_cpu:
-                # PyTorch's CPU convolution takes its native kernel instead of oneDNN's for a batch of one whose
-                # N*C*D*H <= 20480 (aten/src/ATen/native/Convolution.cpp, use_mkldnn), which is every 3-D conv of
-                # a small VAE: 7x slower per sample for 16 channels at 64 x 96. Two copies take the oneDNN path
-                # and cost 2.5x less than one (bench/vae_batch.py); the copy is dropped.
-                zz = zz.expand(2, -1, -1, -1, -1).contiguous()
             with _group_norm_without_padding(model, zz.shape[2]) if padded else nullcontext():
                 x = model.decode(zz).sample                              # (b, 3, F', H, W) in ~[-1, 1]
-            if single_on_cpu:
-                x = x[:1]
             if x.shape[2] < want:  # our bug (or a VAE with another temporal layout)
                 raise AssertionError(f"VAE decoded {x.shape[2]} frames from {t} latent frames, expected >= {want}")
             x = x[:, :, :want]                                           # the padding's frames never reach uint8
