@@ -22,6 +22,8 @@ examples:
   resim train world --preset stage2 --shards /data/resim --out runs/s2 \\
       --set model.init_weights=runs/s1/final/model.safetensors --set data.num_workers=8
   resim train launch --nnodes 5 --nproc-per-node 8 --dry-run -- world --preset stage1 --shards D --out R
+  resim train distill --preset synth --shards out/shards --out runs/student \
+      --set model.teacher=runs/wm --steps 1500                               # a 4-step student, no CFG
 
 An --out that holds a run of the same model is refused unless --resume (continue; a run already at
 trainer.steps has nothing to do and exits 0) or --overwrite (delete it, start over); an --out that holds
@@ -30,6 +32,14 @@ The run folder gets config.yaml (resolved), metrics.jsonl (one JSON object per o
 tensorboard/, checkpoints/step_XXXXXXXX/ (sharded, atomic), final/model.safetensors and loss_curve.png.
 Exit codes: 0 ok, 2 bad config or --out refused, 3 non-finite loss (message names the last good checkpoint), 4 bad data.
 """
+
+
+_WHAT = {"distill": "a few-step student of a world model (guidance + step distillation)"}
+_MORE = {"distill": (" The teacher (model.teacher: a world-model run or a shipped name; default synth-world) rolls "
+                     "each clip out once with its guided DDIM (model.teacher_steps, model.guidance); the student "
+                     "learns to reach the same frames in model.student_steps steps without guidance (CausVid's ODE "
+                     "regression, training/distill.py). The run's final/ is a world model that `resim sample`, "
+                     "`resim plan` and `resim eval` sample at its own steps, unguided.")}
 
 
 def add_train_arguments(p: argparse.ArgumentParser, presets: list[str]) -> None:
@@ -113,8 +123,9 @@ def register(subparsers) -> None:
         epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="train_command", metavar="SUBCOMMAND")
     for name, table in PRESETS.items():
-        s = sub.add_parser(name, help=f"train the {name} model (presets: {', '.join(table)})",
-                           description=f"Train the {name} model. Presets: {', '.join(table)}.",
+        what = _WHAT.get(name, f"the {name} model")
+        s = sub.add_parser(name, help=f"train {what} (presets: {', '.join(table)})",
+                           description=f"Train {what}. Presets: {', '.join(table)}." + _MORE.get(name, ""),
                            epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
         add_train_arguments(s, list(table))
         s.set_defaults(func=_cmd_train, model_name=name)

@@ -133,8 +133,31 @@ VAE_PRESETS: dict[str, dict] = {
     },
 }
 
+# guidance + step distillation of a world model into a few-step student (training/distill.py: CausVid's ODE
+# regression); --set model.teacher=RUN (default: the shipped synthetic world model)
+DISTILL_PRESETS: dict[str, dict] = {
+    # the shipped synthetic world model -> 4 steps without CFG, on clips of its own data pipeline; the first epoch
+    # rolls every clip out with the teacher (50 guided steps), later ones reuse those trajectories
+    "synth": {
+        "model_name": "distill", "preset": "synth",
+        "model": {"teacher": "synth-world", "student_steps": 4, "teacher_steps": 50, "guidance": "resim"},
+        "data": {"batch_size_per_gpu": 8, "num_workers": 1},
+        "optim": {"lr": 1e-4, "warmup_steps": 50, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
+        "trainer": {"steps": 2000, "checkpoint_every_steps": 250, "precision": "fp32", "ema_decay": 0.999,
+                    "log_every_steps": 20},
+    },
+    # seconds on a CPU (tests): --set model.teacher=A_TINY_WORLD_RUN
+    "tiny": {
+        "model_name": "distill", "preset": "tiny",
+        "model": {"teacher": "synth-world", "student_steps": 2, "teacher_steps": 8, "guidance": "resim"},
+        "data": {"batch_size_per_gpu": 2, "num_workers": 0},
+        "optim": {"lr": 1e-3, "warmup_steps": 2},
+        "trainer": {"steps": 20, "checkpoint_every_steps": 10, "precision": "fp32"},
+    },
+}
+
 # model name -> its presets; `resim train NAME` exists for every name here (the reward model adds "reward")
-PRESETS: dict[str, dict[str, dict]] = {"world": WORLD_PRESETS, "vae": VAE_PRESETS}
+PRESETS: dict[str, dict[str, dict]] = {"world": WORLD_PRESETS, "vae": VAE_PRESETS, "distill": DISTILL_PRESETS}
 
 
 def get_preset(model_name: str, preset: str) -> dict:

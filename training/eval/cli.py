@@ -139,7 +139,8 @@ def _world_args(p: argparse.ArgumentParser) -> None:
                    help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
     p.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, taken round-robin over the episodes (key order within each)")
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
-    p.add_argument("--steps", type=_positive_int, default=None, help="DDIM steps (default: the preset's 50)")
+    p.add_argument("--steps", type=_positive_int, default=None,
+                   help="DDIM steps (default: the preset's 50; a distilled student: its own, e.g. 4)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--guidance-scale", type=float, default=None,
                    help="start guidance scale (default: the preset's, 7.5 for resim, decreasing linearly to 1)")
@@ -323,7 +324,8 @@ def _runner(args):
 
     from media.encoders import VideoVAE
     from training.sampling.guidance import guidance_preset
-    from training.sampling.load import PromptSource, encoded_with, load_world_model, run_objective
+    from training.sampling.load import (PromptSource, encoded_with, load_world_model, resolve_steps_and_guidance,
+                                        run_objective)
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, ddim_schedule
     from training.eval.worldeval import WorldRollouts
 
@@ -340,10 +342,15 @@ def _runner(args):
     except SamplingInputError as e:
         raise SystemExit(f"resim eval: --vae: {e}") from None
     rc = dict(ROLLOUT_PRESETS[args.preset])
-    if args.steps is not None:   # not `if args.steps`: 0 must not quietly mean the preset's 50
-        rc["num_steps"] = args.steps
-    overrides = {} if args.guidance_scale is None or args.no_guidance else {"scale_start": args.guidance_scale}
-    rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **overrides)
+    # the command line, else a distilled student's own steps and no guidance (its config), else the preset's
+    steps, guidance, origin = resolve_steps_and_guidance(args.checkpoint, args.steps, args.preset, args.no_guidance,
+                                                         args.guidance_scale)
+    if origin:
+        print(f"[resim eval] {origin}", file=sys.stderr)
+    if steps is not None:   # not `if steps`: 0 must not quietly mean the preset's 50
+        rc["num_steps"] = steps
+    overrides = {} if args.guidance_scale is None or guidance == "none" else {"scale_start": args.guidance_scale}
+    rc["guidance"] = guidance_preset(guidance, **overrides)
     cfg = from_dict(RolloutConfig, rc)
     ddim_schedule(cfg, schedule)   # --steps vs the run's schedule, before any rollout
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
@@ -352,7 +359,7 @@ def _runner(args):
                            batch_size=args.batch_size, schedule=schedule)
     meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
             "rollout": {k: v for k, v in rc.items() if k != "guidance"},
-            "guidance": "none" if args.no_guidance else args.preset, "guidance_scale_start": args.guidance_scale,
+            "guidance": guidance, "guidance_scale_start": args.guidance_scale,
             "seed": args.seed}
     return runner, meta
 

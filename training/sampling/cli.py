@@ -63,7 +63,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"],
                    help="resim: 10-frame chunks, CFG 7.5->1; vid2world: frame by frame, action guidance 2.5, "
                         "rescale 0.7 (default resim)")
-    p.add_argument("--steps", type=positive_int, default=None, help="DDIM steps >= 1 (default 50)")
+    p.add_argument("--steps", type=positive_int, default=None,
+                   help="DDIM steps >= 1 (default 50; a distilled student: its own, e.g. 4)")
     p.add_argument("--chunk-frames", type=positive_int, default=None,
                    help="latent frames denoised together, 1..10 (default: the preset's, 10 resim / 1 vid2world)")
     p.add_argument("--history-frames", type=positive_int, default=None,
@@ -165,8 +166,12 @@ def _rollout_config(args):
     from training.sampling.guidance import guidance_preset
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
 
+    from training.sampling.load import resolve_steps_and_guidance
+
     rc = dict(ROLLOUT_PRESETS[args.preset])
-    for k, v in (("num_steps", args.steps), ("chunk_frames", args.chunk_frames),
+    steps, guidance, args.sampling_origin = resolve_steps_and_guidance(
+        args.checkpoint, args.steps, args.preset, args.no_guidance, args.guidance_scale)
+    for k, v in (("num_steps", steps), ("chunk_frames", args.chunk_frames),
                  ("history_frames", args.history_frames), ("history_noise_level", args.history_noise_level)):
         if v is not None:
             rc[k] = v
@@ -178,7 +183,7 @@ def _rollout_config(args):
     if args.preset == "vid2world" and args.guidance_scale is not None:
         g["scale_end"] = args.guidance_scale
     try:
-        rc["guidance"] = guidance_preset("none" if args.no_guidance else args.preset, **g)
+        rc["guidance"] = guidance_preset(guidance, **({} if guidance == "none" else g))
         return from_dict(RolloutConfig, rc)
     except ConfigError as e:
         raise UsageError(str(e)) from None
@@ -343,6 +348,8 @@ def _cmd_sample(args) -> int:
     t_start = time.perf_counter()
     try:
         device, cfg, trajs = _check_args(args, "sample")   # no model is loaded for a command-line mistake
+        if args.sampling_origin:
+            _say("sample")(args.sampling_origin)
         _say("sample")("loading the world model and VAE, reading the history ...")
         s = _Setup(args, device, cfg)
         enc = getattr(s.model, "trajectory_encoder", None)
@@ -373,7 +380,7 @@ def _cmd_sample(args) -> int:
         cmd = commands[min(r, len(commands) - 1)]
         return Condition(text=texts[cmd], null_text=null, trajectory=traj_at(r), label=cmd or "(no command)")
 
-    total = rollout_num_steps_total(s.cfg, s.num_future)
+    total = rollout_num_steps_total(s.cfg, s.num_future, s.objective.schedule)
     t0 = time.perf_counter()
     with s.progress(total, "sampling") as bar:
         res = rollout(s.model, s.history.latents.to(s.device), cond_at, s.num_future, s.cfg, seed=args.seed,
@@ -444,7 +451,7 @@ def _cmd_plan(args) -> int:
     cands = default_candidates(args.speed_mps, names)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    total = rollout_num_steps_total(s.cfg, s.num_future)
+    total = rollout_num_steps_total(s.cfg, s.num_future, s.objective.schedule)
     try:   # every prompt now, before the progress bar: an unusable prompt table (an entry outside prompts/, ...)
         texts = {c: s.text_for(c) for c in dict.fromkeys([None, *(c.command for c in cands)])}
     except SamplingInputError as e:

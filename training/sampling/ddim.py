@@ -24,7 +24,7 @@ the latents (e.g. ``(B, T, 1, 1, 1)`` for per-frame levels).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import torch
 
@@ -74,15 +74,21 @@ class DDIMSchedule:
     """The steps of a ``num_steps`` DDIM run over ``alphas_cumprod`` (default: CogVideoX's).
 
     Iterating yields :class:`DDIMStep` from the noisiest (``t = N - 1``) to the last (``t_prev = -1``), with
-    ``N = len(alphas_cumprod)``.
+    ``N = len(alphas_cumprod)``. ``include``: further levels to stop at (``num_steps`` then counts them too).
     """
 
-    def __init__(self, num_steps: int, alphas_cumprod: torch.Tensor | None = None):
+    def __init__(self, num_steps: int, alphas_cumprod: torch.Tensor | None = None, include: Sequence[int] = ()):
         self.alphas_cumprod = (cogvideox_alphas_cumprod() if alphas_cumprod is None
                                else alphas_cumprod.to(torch.float64).cpu())
         self.num_train_timesteps = int(self.alphas_cumprod.shape[0])
-        self.num_steps = num_steps
-        self.timesteps = ddim_timesteps(num_steps, self.num_train_timesteps)
+        ts = ddim_timesteps(num_steps, self.num_train_timesteps)
+        bad = [t for t in include if not 0 <= int(t) < self.num_train_timesteps]
+        if bad:
+            raise ValueError(f"levels to include {bad} not in [0, {self.num_train_timesteps})")
+        # ``include``: levels the run must also stop at (distillation records the teacher's trajectory at the
+        # student's levels, training/distill.py); DDIM's update holds for any decreasing sequence of levels
+        self.timesteps = sorted(set(ts) | {int(t) for t in include}, reverse=True)
+        self.num_steps = len(self.timesteps)
         prevs = self.timesteps[1:] + [-1]
         self.steps = [
             DDIMStep(i, t, tp, float(self.alphas_cumprod[t]), 1.0 if tp < 0 else float(self.alphas_cumprod[tp]))

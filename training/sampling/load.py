@@ -86,6 +86,39 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
                    "model_name": ex.model_name}
 
 
+SAMPLING_KEY = "sampling"   # a distilled student's export: how to sample it (training/distill.py)
+
+
+def sampling_defaults(ckpt: str | Path) -> dict:
+    """The ``sampling`` section of a world-model export, ``{}`` when it has none: a distilled student's
+    ``num_steps`` and ``guidance`` ("none"), which the samplers use where the command line does not say otherwise."""
+    try:
+        raw = read_config(find_export(ckpt, shipped=True), default_name="world").raw
+    except ExportError:
+        return {}
+    sec = raw.get(SAMPLING_KEY) or {}
+    return dict(sec) if isinstance(sec, dict) else {}
+
+
+def resolve_steps_and_guidance(ckpt: str | Path, steps: int | None, preset: str, no_guidance: bool,
+                               guidance_scale: float | None) -> tuple[int | None, str, str]:
+    """(DDIM steps or None = the preset's, guidance preset name, where they came from) for a sampling command:
+    the command line first, then the checkpoint's ``sampling`` section (a distilled student: its own steps, no
+    guidance), then the rollout preset's."""
+    d = sampling_defaults(ckpt)
+    if steps is None and d.get("num_steps") is not None:
+        steps = int(d["num_steps"])
+    if no_guidance:
+        guidance = "none"
+    elif guidance_scale is None and d.get("guidance") == "none":
+        guidance = "none"
+    else:
+        guidance = preset
+    origin = (f"distilled student of {d.get('distilled_from', '?')}: {d.get('num_steps')} steps, guidance "
+              f"{d.get('guidance')} (its config's sampling section)") if d else ""
+    return steps, guidance, origin
+
+
 def run_objective(ckpt: str | Path) -> ObjectiveConfig:
     """The diffusion objective a checkpoint's run trained with, from its saved config (not from the model object):
     its ``schedule`` is what the sampler steps over, its ``latent_frame_dt_s`` the time between latent frames."""

@@ -59,6 +59,8 @@ class RolloutConfig:
                                            # < the model's num_train_timesteps
     kv_cache: Literal["auto", "on", "off"] = "auto"   # auto: on for causal models
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
+    include_levels: tuple[int, ...] = ()   # further noise levels every chunk's DDIM run stops at (a distilled
+                                           # student's levels, where the teacher's trajectory is recorded)
 
     def __post_init__(self) -> None:
         # upper bounds depend on the model's schedule: check_schedule, at the start of every rollout
@@ -71,6 +73,8 @@ class RolloutConfig:
                               f"({self.frames_per_round})")
         if self.history_noise_level < 0:
             raise ConfigError(f"history_noise_level={self.history_noise_level} must be >= 0")
+        if any(int(t) < 0 for t in self.include_levels):
+            raise ConfigError(f"include_levels={list(self.include_levels)} must be >= 0")
 
     def check_schedule(self, num_train_timesteps: int) -> None:
         """The steps and levels this config asks for must exist in a schedule of ``num_train_timesteps`` levels
@@ -81,6 +85,9 @@ class RolloutConfig:
                               f"(DDIM steps are distinct noise levels: at most {n})")
         if self.history_noise_level >= n:
             raise ConfigError(f"history_noise_level={self.history_noise_level} not in [0, {n}) "
+                              f"(the model's num_train_timesteps={n})")
+        if any(int(t) >= n for t in self.include_levels):
+            raise ConfigError(f"include_levels={list(self.include_levels)} not all in [0, {n}) "
                               f"(the model's num_train_timesteps={n})")
 
 
@@ -149,17 +156,18 @@ def ddim_schedule(cfg: RolloutConfig, schedule: Any = None) -> DDIMSchedule:
     ``training.sampling.load.run_objective``), None = CogVideoX's; checked first with :meth:`RolloutConfig.check_schedule`."""
     ac = cogvideox_alphas_cumprod(schedule)
     cfg.check_schedule(int(ac.shape[0]))
-    return DDIMSchedule(cfg.num_steps, ac)
+    return DDIMSchedule(cfg.num_steps, ac, include=cfg.include_levels)
 
 
-def rollout_num_steps_total(cfg: RolloutConfig, num_future_frames: int) -> int:
-    """DDIM steps a rollout takes (for a progress bar): steps × number of chunks over all rounds."""
+def rollout_num_steps_total(cfg: RolloutConfig, num_future_frames: int, schedule: Any = None) -> int:
+    """DDIM steps a rollout takes (for a progress bar): steps × number of chunks over all rounds (``schedule``:
+    the model's, as for :func:`rollout`)."""
     chunks, left = 0, num_future_frames
     while left > 0:
         in_round = min(cfg.frames_per_round, left)
         chunks += math.ceil(in_round / cfg.chunk_frames)
         left -= in_round
-    return chunks * cfg.num_steps
+    return chunks * len(ddim_schedule(cfg, schedule))
 
 
 def rollout_num_future_frames(seconds: float, fps_hz: float = 10.0, temporal_compression: int = 4) -> int:
@@ -173,8 +181,12 @@ class _Roller:
     """State of one rollout; see :func:`rollout` (split out to keep each method about one thing)."""
 
     def __init__(self, model, history, cfg: RolloutConfig, generator, history_actions, use_cache, progress,
-                 same_noise: bool = False, actions_from_trajectory: bool = False, schedule: Any = None):
+                 same_noise: bool = False, actions_from_trajectory: bool = False, schedule: Any = None,
+                 on_step: "Callable[[torch.Tensor, Any], None] | None" = None,
+                 generators: "Sequence[torch.Generator] | None" = None):
         self.model, self.cfg, self.gen = model, cfg, generator
+        self.gens = generators   # one per batch element (``seeds``), else None: the batch shares ``generator``
+        self.on_step = on_step
         self.same_noise = same_noise
         self.device, self.mdtype = history.device, _model_dtype(model)
         self.schedule = ddim_schedule(cfg, schedule)
@@ -196,7 +208,7 @@ class _Roller:
             self.action_derived = torch.zeros(history.shape[:2], dtype=torch.bool, device=self.device)
         self.use_cache = use_cache
         self.guided = cfg.guidance.enabled
-        self.scales = cfg.guidance.scales(cfg.num_steps)
+        self.scales = cfg.guidance.scales(len(self.schedule))
         self.forwards = 0
         self.progress = progress
 
@@ -234,6 +246,9 @@ class _Roller:
         if self.same_noise:
             one = torch.randn((1,) + tuple(shape[1:]), generator=self.gen, dtype=torch.float32)
             return one.expand(tuple(shape)).contiguous().to(self.device)
+        if self.gens is not None:   # each element's draws depend on its own seed alone, not on its batch
+            return torch.stack([torch.randn(tuple(shape[1:]), generator=g, dtype=torch.float32)
+                                for g in self.gens]).to(self.device)
         return torch.randn(shape, generator=self.gen, dtype=torch.float32).to(self.device)
 
     def _noise_history(self, x: torch.Tensor) -> torch.Tensor:
@@ -313,6 +328,8 @@ class _Roller:
                                   hist_acts, hist_keep, return_cache=True)
         x = self._randn(shape)
         for step in self.schedule:
+            if self.on_step is not None:
+                self.on_step(x, step)
             t_new = torch.full((nb, new), step.t, dtype=torch.long, device=self.device)
             x_in = self._two(x) if self.guided else x
             if self.use_cache:
@@ -356,7 +373,9 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
             num_future_frames: int, cfg: RolloutConfig | None = None, *, seed: int = 0,
             actions: torch.Tensor | None = None, history_actions: torch.Tensor | None = None,
             policy: Policy | None = None, progress: Any = None, same_noise: bool = False,
-            actions_from_trajectory: bool = False, schedule: Any = None) -> RolloutResult:
+            actions_from_trajectory: bool = False, schedule: Any = None,
+            on_step: Callable[[torch.Tensor, Any], None] | None = None,
+            seeds: Sequence[int] | None = None) -> RolloutResult:
     """Roll the world model out for ``num_future_frames`` latent frames after ``history``.
 
     Args:
@@ -375,6 +394,11 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
         same_noise: every batch element gets the same noise draws (compare conditions, not noise).
         schedule: the noise schedule the model was trained with (the run's ``model.objective.schedule``, as
             ``run_objective(checkpoint).schedule``); None = CogVideoX's (1000 levels).
+        on_step: called as ``on_step(x, step)`` before every DDIM step of every chunk, with the chunk's frames
+            ``x`` (B, c, C, h, w) at level ``step.t`` (a :class:`~training.sampling.ddim.DDIMStep`): the sampler's
+            trajectory, e.g. for distillation.
+        seeds: one seed per batch element instead of ``seed``: element ``i``'s noise is then the same whatever
+            else is in the batch (distillation caches each clip's teacher trajectory by its key).
     Returns:
         :class:`RolloutResult` with all latents (history + generated), float32.
     """
@@ -396,9 +420,13 @@ def rollout(model: Any, history: torch.Tensor, conditions: Condition | Sequence[
     if actions is not None and tuple(actions.shape[:2]) != (b, num_future_frames):
         raise ValueError(f"actions must be (B, num_future_frames, A) = ({b}, {num_future_frames}, A), "
                          f"got {tuple(actions.shape)}")
+    if seeds is not None and (len(seeds) != history.shape[0] or same_noise):
+        raise ValueError(f"seeds: one per batch element ({history.shape[0]}), and not with same_noise; "
+                         f"got {len(seeds)}")
     gen = torch.Generator().manual_seed(seed)
+    gens = None if seeds is None else [torch.Generator().manual_seed(int(s)) for s in seeds]
     r = _Roller(model, history, cfg, gen, history_actions, use_cache, progress, same_noise, actions_from_trajectory,
-                schedule)
+                schedule, on_step, gens)
     acting = actions is not None or policy is not None
     h0 = history.shape[1]
     labels: list[str] = []
