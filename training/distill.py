@@ -45,7 +45,7 @@ from training.sampling.ddim import ddim_timesteps
 from training.sampling.guidance import GUIDANCE_PRESETS, guidance_preset
 from training.sampling.load import SAMPLING_KEY, SamplingInputError, load_world_model
 from training.sampling.rollout import Condition, RolloutConfig, rollout
-from training.world import TrainableWorldModel
+from training.world import TrainableWorldModel, build_world
 
 @dataclass
 class DistillConfig:
@@ -258,7 +258,6 @@ def build_distill(model_cfg: dict, *, device: str | torch.device = "cpu") -> Dis
     if (teacher_cfg.model.get("lora_rank") or 0) > 0:
         raise ConfigError(f"model.teacher={cfg.teacher}: has LoRA adapters; merge them into its weights first")
     if str(device) == "meta":   # the launcher's dry run: the student's shape only
-        from training.world import build_world
         proto = build_world({**teacher_cfg.model, "init_weights": None}, device="meta")
         with torch.device("meta"):
             return DistilledWorldModel(copy.deepcopy(proto.cfg), proto.objective, cfg, dict(teacher_cfg.model))

@@ -163,3 +163,10 @@ def test_resumed_distillation_equals_an_uninterrupted_one(world, tmp_path):
     resumed = run(tmp_path / "b", 12, resume=True)
     for k in whole:
         torch.testing.assert_close(resumed[k], whole[k], rtol=0, atol=0, msg=k)
+
+
+def test_dry_run_builds_the_student_on_the_meta_device(world):
+    """`resim train launch --dry-run` builds models on the meta device: the student's shape only, no teacher."""
+    m = build_distill({"teacher": str(world["teacher"])}, device="meta")
+    assert all(p.device.type == "meta" for p in m.parameters())
+    assert sum(p.numel() for p in m.parameters()) == sum(p.numel() for p in WorldModel(preset("tiny")).parameters())

@@ -160,17 +160,16 @@ def _trajectories(specs: list[str] | None) -> list:
     return out
 
 
-def _rollout_config(args):
+def _rollout_config(args, resolved: tuple):
     """The resolved RolloutConfig from the preset and the overrides; checked before any model is loaded (the
-    bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded)."""
+    bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded).
+    ``resolved``: (steps, guidance preset, where they came from) of ``resolve_steps_and_guidance``: the command line,
+    else a distilled student's own sampling section."""
     from training.sampling.guidance import guidance_preset
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
 
-    from training.sampling.load import resolve_steps_and_guidance
-
     rc = dict(ROLLOUT_PRESETS[args.preset])
-    steps, guidance, args.sampling_origin = resolve_steps_and_guidance(
-        args.checkpoint, args.steps, args.preset, args.no_guidance, args.guidance_scale)
+    steps, guidance, args.sampling_origin = resolved
     for k, v in (("num_steps", steps), ("chunk_frames", args.chunk_frames),
                  ("history_frames", args.history_frames), ("history_noise_level", args.history_noise_level)):
         if v is not None:
@@ -204,9 +203,10 @@ def _check_args(args, command: str):
         if not Path(args.shards).is_dir():
             raise UsageError(f"--shards {args.shards}: no such folder")
     trajs = _trajectories(trajectory)
-    cfg = _rollout_config(args)
-    from training.sampling.load import _checkpoint_dir   # the world-model checkpoint's files exist
-    _checkpoint_dir(args.checkpoint)
+    from training.sampling.load import _checkpoint_dir, resolve_steps_and_guidance
+    cfg = _rollout_config(args, resolve_steps_and_guidance(args.checkpoint, args.steps, args.preset, args.no_guidance,
+                                                           args.guidance_scale))
+    _checkpoint_dir(args.checkpoint)   # the world-model checkpoint's files exist
     return resolve_device(args.device), cfg, trajs
 
 
