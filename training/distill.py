@@ -103,7 +103,9 @@ class TeacherPairs:
         """(null prompt?, trajectory kept?, noise seed) of a clip: a function of its key and the config's seed."""
         u_null, noise_seed = _unit(key, self.cfg.seed, "null")
         u_traj, _ = _unit(key, self.cfg.seed, "trajectory")
-        return u_null < self.cfg.null_prompt_prob, has_trajectory and u_traj < self.cfg.trajectory_keep_prob, noise_seed
+        takes = getattr(self.teacher, "trajectory_encoder", None) is not None   # a model without one refuses it
+        keep = takes and has_trajectory and u_traj < self.cfg.trajectory_keep_prob
+        return u_null < self.cfg.null_prompt_prob, keep, noise_seed
 
     @torch.no_grad()
     def make(self, history: torch.Tensor, text: torch.Tensor, null_text: torch.Tensor, trajectory: torch.Tensor | None,
@@ -222,8 +224,10 @@ class DistilledWorldModel(TrainableWorldModel):
         # the trajectory always goes in, with its keep mask: a batch where every row drops it still gives the
         # encoder a (zero) gradient, so the optimizer holds a state for every trained parameter (exact resume)
         levels = self.distill.student_levels(self.objective.schedule.num_train_timesteps)
+        traj = batch.trajectory.float() if self.trajectory_encoder is not None else None
         loss, logs = distill_losses(self, batch.latents[:, :h].float(), states, x0, levels,
-                                    alphas_cumprod(self.objective.schedule), text, batch.trajectory.float(), keep)
+                                    alphas_cumprod(self.objective.schedule), text, traj,
+                                    keep if traj is not None else None)
         logs["teacher_clips"] = float(self._pairs.made)
         return loss, logs
 

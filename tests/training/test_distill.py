@@ -170,3 +170,19 @@ def test_dry_run_builds_the_student_on_the_meta_device(world):
     m = build_distill({"teacher": str(world["teacher"])}, device="meta")
     assert all(p.device.type == "meta" for p in m.parameters())
     assert sum(p.numel() for p in m.parameters()) == sum(p.numel() for p in WorldModel(preset("tiny")).parameters())
+
+
+def test_a_teacher_without_a_trajectory_encoder_is_distilled_without_trajectories(world, tmp_path):
+    """The clips carry trajectories, the teacher takes none: neither the teacher's rollouts nor the student's loss
+    may feed them (the model refuses a trajectory it has no encoder for)."""
+    wm = WorldModel(preset("tiny", trajectory={"enabled": False}))
+    final = tmp_path / "t" / "final"
+    final.mkdir(parents=True)
+    (final / "config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {
+        "preset": "tiny", "overrides": {"trajectory": {"enabled": False}}}}))
+    save_file({k: v.contiguous() for k, v in wm.state_dict().items()}, str(final / "model.safetensors"))
+    student = build_distill({"teacher": str(tmp_path / "t"), "student_steps": 2, "teacher_steps": 4})
+    batch = _batch(world["data"], 4)
+    assert bool(batch.has_trajectory.all())
+    loss, _ = student.loss(batch)
+    assert torch.isfinite(loss)

@@ -163,13 +163,13 @@ def _trajectories(specs: list[str] | None) -> list:
 def _rollout_config(args, resolved: tuple):
     """The resolved RolloutConfig from the preset and the overrides; checked before any model is loaded (the
     bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded).
-    ``resolved``: (steps, guidance preset, where they came from) of ``resolve_steps_and_guidance``: the command line,
-    else a distilled student's own sampling section."""
+    ``resolved``: (steps, guidance preset) from ``resolve_steps_and_guidance``: the command line, else a distilled
+    student's own sampling section."""
     from training.sampling.guidance import guidance_preset
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
 
     rc = dict(ROLLOUT_PRESETS[args.preset])
-    steps, guidance, args.sampling_origin = resolved
+    steps, guidance = resolved
     for k, v in (("num_steps", steps), ("chunk_frames", args.chunk_frames),
                  ("history_frames", args.history_frames), ("history_noise_level", args.history_noise_level)):
         if v is not None:
@@ -204,9 +204,12 @@ def _check_args(args, command: str):
             raise UsageError(f"--shards {args.shards}: no such folder")
     trajs = _trajectories(trajectory)
     from training.sampling.load import _checkpoint_dir, resolve_steps_and_guidance
-    cfg = _rollout_config(args, resolve_steps_and_guidance(args.checkpoint, args.steps, args.preset, args.no_guidance,
-                                                           args.guidance_scale))
+    steps, guidance, origin = resolve_steps_and_guidance(args.checkpoint, args.steps, args.preset, args.no_guidance,
+                                                         args.guidance_scale)
+    cfg = _rollout_config(args, (steps, guidance))
     _checkpoint_dir(args.checkpoint)   # the world-model checkpoint's files exist
+    if origin:
+        _say(command)(origin)
     return resolve_device(args.device), cfg, trajs
 
 
@@ -348,8 +351,6 @@ def _cmd_sample(args) -> int:
     t_start = time.perf_counter()
     try:
         device, cfg, trajs = _check_args(args, "sample")   # no model is loaded for a command-line mistake
-        if args.sampling_origin:
-            _say("sample")(args.sampling_origin)
         _say("sample")("loading the world model and VAE, reading the history ...")
         s = _Setup(args, device, cfg)
         enc = getattr(s.model, "trajectory_encoder", None)
