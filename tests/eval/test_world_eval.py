@@ -164,7 +164,10 @@ def test_quality_eval_batches_get_the_seeds_of_one_generate_call():
     class Recorded(WorldRollouts):
         def _batch(self, clips, trajs, commands, seed, num_future_latents=None):
             seen.append(seed)
-            return np.stack([c.frames for c in clips])
+            return torch.from_numpy(np.stack([c.frames for c in clips]))
+
+        def decode(self, clips, latents):          # the "latents" above are the frames
+            return latents.numpy()
 
     clips = [_eval_clip(i, f"e{i % 3}") for i in range(7)]
     r = Recorded(None, None, None, None, seed=5, batch_size=2)
@@ -227,7 +230,10 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
     assert fl["recorded_through_vae"]["n"] == fl["recorded_future"]["n"] == n
     assert "recorded through the VAE" in fl["mean_yaw_deg"]
     assert all("recorded_through_vae_flow" in c for c in rep["clips"])
+    assert "no counterfactual clips" in rep["branches"]["skipped"]      # the road world has no forks
     assert "recorded_through_vae" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--counterfactual-only: no two clips .* share a history"):
+        main(["eval", "commands", *_common(root, ds, root / "commands-cf"), "--all-clips", "--counterfactual-only"])
 
 
 def test_protocol_text_gives_a_count_not_a_dump_of_records():

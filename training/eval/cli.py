@@ -82,6 +82,12 @@ future turns. Writes OUT/commands.json (confusion matrices, accuracy, per-clip l
 beside copy-last-frame, the protocol), OUT/commands.png, OUT/commands_strip.png and OUT/commands.gif (one
 history under the three commands beside the recorded future). Clips are picked with the recorded commands
 in turn, so straight-road histories are asked to turn too.
+
+Forks (one history recorded under several commands: resim synth --set fork_fraction=F) are also scored
+without the labeler: each rollout lands on the nearest recorded sibling future (latents), right when that
+sibling had the command it was given ("counterfactual branches"; the VAE does not cap it). Only the fork clips:
+  resim eval commands --checkpoint synth-world --shards data/forks --all-clips --counterfactual-only \
+      --steps 25 --out out/branches
 """
 
 COMMAND_LOSS_EPILOG = """\
@@ -199,6 +205,9 @@ def register(subparsers) -> None:
     cm.add_argument("--idm", default=None, help="IDM run folder: also classify by the IDM's trajectory")
     cm.add_argument("--horizons", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0],
                     help="fidelity horizons in s after the last history frame (default 0.5 1 2 4)")
+    cm.add_argument("--counterfactual-only", action="store_true",
+                    help="only the clips whose history other clips share under another command (the synthetic "
+                         "world's forks), whole groups; --limit then caps the clips, group by group")
     cm.set_defaults(func=_cmd_commands)
 
     cl = sub.add_parser("command-loss", help="does the model use the command? its loss under each command (no sampling)",
@@ -497,7 +506,8 @@ def _cmd_control(args) -> int:
 
 
 def _cmd_commands(args) -> int:
-    from training.eval.commands import balanced_clips, commands_eval
+    # commands.py imports counterfactual_groups from training.eval.branches (one import line here, as for the others)
+    from training.eval.commands import balanced_clips, commands_eval, counterfactual_groups
     from training.eval.commands_report import command_gif, command_strip, format_commands, plot_commands
     from training.eval.report import format_protocol
     from training.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
@@ -512,7 +522,21 @@ def _cmd_commands(args) -> int:
     except (FileNotFoundError, ShardReadError) as e:
         raise SystemExit(f"resim eval commands: --shards: {e}") from None
     clips = [c for c in clips if c.command is not None]
-    if args.limit is not None:
+    if args.counterfactual_only:
+        groups = counterfactual_groups(clips)
+        if not groups:
+            raise SystemExit(f"resim eval commands: --counterfactual-only: no two clips of {args.shards} share a "
+                             "history under different commands (resim synth --set fork_fraction=... makes them)")
+        keep: list[int] = []
+        for g in groups:                   # whole groups: a fork's siblings are what its rollouts are scored on
+            if args.limit is not None and len(keep) + len(g) > args.limit:
+                break
+            keep += g
+        if not keep:
+            raise SystemExit(f"resim eval commands: --limit {args.limit} is smaller than the first fork's "
+                             f"{len(groups[0])} sibling clips")
+        clips = [clips[i] for i in sorted(keep)]
+    elif args.limit is not None:
         clips = balanced_clips(clips, args.limit)
     if not clips:
         raise SystemExit(f"resim eval commands: no clips with a command in {args.shards}")

@@ -20,10 +20,8 @@ Reads clips with a recorded command; the model is an argument, as in ``training_
 """
 from __future__ import annotations
 
-import hashlib
 import sys
 import time
-from collections import defaultdict
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -33,6 +31,7 @@ import torch
 from shards.reader import ShardReadError
 from shards.schema import COMMANDS
 from training.diffusion.schedule import add_noise, alphas_cumprod, v_target
+from training.eval.branches import counterfactual_clips
 from training.eval.commands import balanced_clips
 from training.eval.report import format_protocol
 from training.eval.worldeval import EvalClip, eval_clips_from_dataset
@@ -85,17 +84,6 @@ def clip_losses(model: Any, clips: Sequence[EvalClip], text_for: Callable[[str |
                 err = ((pred.float() - target.float())[:, h:] ** 2).mean(dim=(1, 2, 3, 4))
                 out[i:i + b, j, k] = err.double().cpu().numpy()
     return out
-
-
-def counterfactual_clips(clips: Sequence[EvalClip]) -> tuple[list[int], int]:
-    """Indices of the clips that share their history frames with a clip of another recorded command, and the
-    number of such histories (a fork's split seen from before it). The frames, not the latents: the pipeline
-    encodes with a posterior *sample* (as CogVideoX trains), so one history's latents differ from clip to clip."""
-    groups: dict[str, list[int]] = defaultdict(list)
-    for i, c in enumerate(clips):
-        groups[hashlib.sha256(np.ascontiguousarray(c.frames[:c.num_history_frames]).tobytes()).hexdigest()].append(i)
-    keep = [g for g in groups.values() if len({clips[i].command for i in g}) > 1]
-    return sorted(i for g in keep for i in g), len(keep)
 
 
 def command_loss_report(losses: np.ndarray, recorded: Sequence[str], levels: Sequence[int]) -> dict:

@@ -16,6 +16,9 @@ anything". The protocol (counterfactual commands from one history):
   the ego motion caps every model's accuracy here);
 * **fidelity per horizon** of the rollouts under the recorded command against the recorded future, beside
   the copy-last-frame baseline (the last history frame held).
+* **counterfactual branches**, where the clips hold forks (one history recorded under several commands): each
+  rollout is scored by the recorded sibling future it lands on, in latent space (``training.eval.branches``), a
+  reading of the model that the VAE and the labeler do not cap.
 
 The rollouts are done by :class:`training.eval.worldeval.WorldRollouts`, so they use the sampler users use.
 """
@@ -29,6 +32,7 @@ import torch
 from labeling.commands import command_from_trajectory
 from labeling.config import preset as labeler_preset
 from shards.schema import COMMANDS
+from training.eval.branches import branch_matching, counterfactual_groups
 from training.eval.fidelity import psnr, ssim
 from training.eval.worldeval import EvalClip, WorldRollouts, _idm_on
 
@@ -90,8 +94,12 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     n = len(clips)
     videos: dict[str, np.ndarray] = {}
+    futures: dict[str, np.ndarray] = {}
+    h = runner.history_latents(clips[0])
     for c in (*COMMANDS, None):
-        videos[c or NULL] = runner.generate(clips, [None] * n, [c] * n)
+        lat = runner.generate_latents(clips, [None] * n, [c] * n)
+        futures[c or NULL] = lat[:, h:].numpy()
+        videos[c or NULL] = runner.decode(clips, lat)
     gt = np.stack([c.frames for c in clips])
     if gt.shape[2:4] != videos[COMMANDS[0]].shape[2:4]:
         raise ValueError(f"recorded frames {gt.shape[2:4]} and decoded rollouts {videos[COMMANDS[0]].shape[2:4]} "
@@ -124,6 +132,13 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     under_recorded = np.stack([videos[c.command][i] if c.command in COMMANDS else videos[NULL][i]
                                for i, c in enumerate(clips)])
     rep["fidelity"] = fidelity_per_horizon(under_recorded, gt, nh, fps, horizons_s)
+    # forks: the same history recorded under different commands; where the clips have them, score each rollout by
+    # the recorded sibling future it lands on (training/eval/branches.py: not capped by the VAE or the labeler)
+    groups = counterfactual_groups(clips)
+    rep["branches"] = (branch_matching(futures, np.stack([c.latents[h:] for c in clips]), recorded, groups,
+                                       null_key=NULL) if groups else
+                       {"skipped": "no counterfactual clips (no two clips share a history under different commands; "
+                                   "resim synth --set fork_fraction=... makes them)"})
     rep["clips"] = [{"key": c.key, "episode": c.item_id, "recorded_command": c.command,
                      "recorded_future_flow": gt_flow[i], "recorded_through_vae_flow": vae_flow[i],
                      **{f"flow_{k}": flow[k][0][i] for k in videos}} for i, c in enumerate(clips)]

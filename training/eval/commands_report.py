@@ -8,6 +8,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from shards.schema import COMMANDS
+from training.eval.branches import format_branches
 from training.sampling.outputs import write_gif
 
 SHORT = {"Turning left": "left", "Moving forward": "forward", "Turning right": "right"}
@@ -28,6 +29,8 @@ def format_commands(rep: dict) -> str:
             lines.append(f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']})")
     lines.append("mean heading change of the future (deg, left +): " + "  ".join(
         f"{SHORT.get(k, k)} {v:+.1f}" for k, v in fl["mean_yaw_deg"].items()))
+    if "branches" in rep:                             # reports written before forks were scored have none
+        lines.append(format_branches(rep["branches"]))
     lines.append("fidelity under the recorded command (PSNR dB / SSIM; copy-last-frame baseline):")
     for r in rep["fidelity"]["per_horizon"]:
         lines.append(f"  {r['horizon_s']:>4g} s  model {r['psnr_model']:.2f} / {r['ssim_model']:.3f}   "

@@ -142,14 +142,30 @@ class WorldRollouts:
         ``offset`` is the position of ``clips[0]`` in that set, for callers that pass it in parts (e.g.
         :func:`quality_eval`): without it every part would restart at ``seed`` and draw the same starting
         noise, correlating the samples that FID/FVD assume independent."""
+        return self.decode(clips, self.generate_latents(clips, trajectories, commands, offset, num_future_latents))
+
+    def generate_latents(self, clips: Sequence[EvalClip], trajectories: Sequence[np.ndarray | None],
+                         commands: Sequence[str | None], offset: int = 0,
+                         num_future_latents: int | None = None) -> torch.Tensor:
+        """The rollouts of :meth:`generate` before decoding: ``(N, H + F, C, h, w)`` float32 latents, history then
+        generated frames (same seeds as ``generate``)."""
         out = []
         for i in range(0, len(clips), self.batch_size):
             out.append(self._batch(clips[i:i + self.batch_size], trajectories[i:i + self.batch_size],
                                    commands[i:i + self.batch_size], seed=self.seed + offset + i,
                                    num_future_latents=num_future_latents))
+        return torch.cat(out)
+
+    def decode(self, clips: Sequence[EvalClip], latents: torch.Tensor) -> np.ndarray:
+        """Rollout latents ``(N, H + F, C, h, w)`` of ``clips`` → videos ``(N, T, H, W, 3)`` uint8, round by round
+        as the sampler decodes (``decode_rollout``)."""
+        h = self.history_latents(clips[0])
+        out = [decode_rollout(self.vae, latents[i:i + self.batch_size].to(self.device), h, self.cfg.frames_per_round,
+                              self.cfg.history_frames, batch_size=self.batch_size)
+               for i in range(0, len(clips), self.batch_size)]
         return np.concatenate(out)
 
-    def _batch(self, clips, trajs, commands, seed: int, num_future_latents: int | None = None) -> np.ndarray:
+    def _batch(self, clips, trajs, commands, seed: int, num_future_latents: int | None = None) -> torch.Tensor:
         h = self.history_latents(clips[0])
         t_lat = clips[0].latents.shape[0]
         if any(c.latents.shape[0] != t_lat or self.history_latents(c) != h for c in clips):
@@ -167,20 +183,12 @@ class WorldRollouts:
         res = rollout(self.model, hist, cond, t_lat - h if num_future_latents is None else num_future_latents,
                       self.cfg, seed=seed, schedule=self.schedule)
         self.rollouts += len(clips)
-        return decode_rollout(self.vae, res.latents, res.num_history_frames, self.cfg.frames_per_round,
-                              self.cfg.history_frames, batch_size=self.batch_size)
-
+        return res.latents.cpu()
 
     def decode_recorded(self, clips: Sequence[EvalClip]) -> np.ndarray:
         """The clips' own latents decoded as a rollout's are (``decode_rollout``, round by round): the video a
         world model that predicted the recorded future exactly would show, ``(N, T, H, W, 3)`` uint8."""
-        out = []
-        for i in range(0, len(clips), self.batch_size):
-            part = clips[i:i + self.batch_size]
-            lat = torch.from_numpy(np.stack([c.latents for c in part])).to(self.device)
-            out.append(decode_rollout(self.vae, lat, self.history_latents(part[0]), self.cfg.frames_per_round,
-                                      self.cfg.history_frames, batch_size=self.batch_size))
-        return np.concatenate(out)
+        return self.decode(clips, torch.from_numpy(np.stack([c.latents for c in clips])))
 
 
 def _idm_on(idm, videos: np.ndarray, num_history_frames: int, batch_size: int = 16) -> np.ndarray:

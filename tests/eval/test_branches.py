@@ -1,0 +1,60 @@
+"""Counterfactual branches: a rollout is scored by the recorded sibling future it lands on (no labeler)."""
+import numpy as np
+import pytest
+
+from shards.schema import COMMANDS
+from training.eval.branches import branch_matching, counterfactual_groups, format_branches
+from training.eval.worldeval import EvalClip
+
+LEVEL = {c: float(k - 1) for k, c in enumerate(COMMANDS)}          # left -1, forward 0, right +1
+
+
+def _forks(histories=3, commands=COMMANDS, f=4):
+    """``histories`` forks, each recorded once under every command: same history frames, future latents the
+    command's constant plus posterior-like noise."""
+    rng = np.random.default_rng(0)
+    clips, rec = [], []
+    for hi in range(histories):
+        for c in commands:
+            frames = np.full((9, 8, 8, 3), hi, np.uint8)
+            lat = rng.normal(0, 0.3, (3 + f, 2, 2, 2)).astype(np.float32)
+            lat[3:] += LEVEL[c]
+            clips.append(EvalClip(f"h{hi}-{c}", f"ep{hi}-{c}", lat, frames, None, c, 9, 10.0, False))
+            rec.append(lat[3:])
+    return clips, np.stack(rec)
+
+
+def test_a_model_that_follows_the_command_lands_on_its_branch_and_one_that_ignores_it_does_not():
+    clips, rec = _forks()
+    groups = counterfactual_groups(clips)
+    assert len(groups) == 3 and all(len(g) == 3 for g in groups)
+    cmds = [c.command for c in clips]
+    rng = np.random.default_rng(1)
+    noisy = lambda v: np.full(rec.shape, v, np.float32) + rng.normal(0, 0.3, rec.shape).astype(np.float32)
+    follows = {c: noisy(LEVEL[c]) for c in COMMANDS}
+    follows["null"] = noisy(0.0)
+    rep = branch_matching(follows, rec, cmds, groups, null_key="null")
+    assert rep["commanded"]["accuracy"] == 1.0 and rep["commanded"]["n"] == 27     # 3 histories x 3 siblings x 3
+    assert rep["chance"] == pytest.approx(1 / 3)
+    assert rep["null_prompt"]["accuracy"] == pytest.approx(1 / 3)                  # always lands on "forward"
+    assert rep["mean_distance"]["own_branch"] < rep["mean_distance"]["other_branches"]
+    # the same futures whatever the command (a model that ignores it): always the same branch, chance
+    ignores = {c: noisy(1.0) for c in COMMANDS}
+    r = branch_matching(ignores, rec, cmds, groups)
+    assert r["commanded"]["matrix"] == [[0, 0, 9], [0, 0, 9], [0, 0, 9]] and r["commanded"]["accuracy"] == pytest.approx(1 / 3)
+    # turns swapped: every turn lands on the opposite branch
+    swapped = {"Turning left": follows["Turning right"], "Moving forward": follows["Moving forward"],
+               "Turning right": follows["Turning left"]}
+    assert branch_matching(swapped, rec, cmds, groups)["commanded"]["accuracy"] == pytest.approx(1 / 3)
+    assert "counterfactual branches (3 shared histories" in format_branches(rep)
+
+
+def test_only_the_commands_a_fork_recorded_are_asked_and_chance_follows():
+    clips, rec = _forks(2, commands=COMMANDS[:2])                  # forks of two branches: chance 1/2
+    groups = counterfactual_groups(clips)
+    gen = {c: np.full(rec.shape, LEVEL[c], np.float32) for c in COMMANDS}
+    rep = branch_matching(gen, rec, [c.command for c in clips], groups)
+    assert rep["chance"] == 0.5 and rep["commanded"]["n"] == 8 and rep["commanded"]["accuracy"] == 1.0
+    assert rep["commanded"]["per_command"]["Turning right"] is None
+    with pytest.raises(ValueError, match="no counterfactual groups"):
+        branch_matching(gen, rec, [c.command for c in clips], [])
