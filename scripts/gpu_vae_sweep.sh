@@ -15,7 +15,7 @@
 # WALL_S + 120 s. Usage: bash scripts/gpu_vae_sweep.sh OUT_DIR [WALL_S]        (env: RESIM, PYTHON, DATA, BATCH, WORKERS, WORK)
 # Output: OUT_DIR/{A,A2}.safetensors, OUT_DIR/{B1,B2}.part{0,1}.safetensors (the exported EMA VAEs in float16,
 # split where one would pass 15 MB), OUT_DIR/logs.tgz (each run's config.yaml, metrics.jsonl, final/vae/config.json
-# and export.json, and the discriminator's last weights). Reassemble with scripts/gpu_vae_unpack.py.
+# and export.json, and the discriminator's last weights). Reassemble with scripts/gpu_unpack.py.
 set -uo pipefail
 OUT=${1:?usage: bash scripts/gpu_vae_sweep.sh OUT_DIR [WALL_S]}
 WALL=${2:-420}
