@@ -9,10 +9,11 @@
 # last checkpoint). Seeds: VAE data 100, world-model data 7, held-out evaluation 1000; the demo's world is 0.
 # INSTALL=1 copies the exported weights over configs/models/synth-{vae,world}.
 #
-# The shipped models have two more stages, run on a leased GPU (scripts/gpu_synth_round.sh, run V: 440 s on an
-# H200): the VAE fine-tuned with an adversarial term (stage 1b), then the world model adapted to its latents
-# (stage 3). STAGE_1B=1 runs them here too: the VAE's 1,568 steps at batch 16 take hours on a CPU (~8 s per step
-# on 2 cores). Without it: about 2 hours on 2 cores, and the models of the cards' "stage 1" rows.
+# The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
+# adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
+# model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
+# hours on a CPU (~8 s per step on 2 cores). Stage 4, the command taught on counterfactual forks, always runs.
+# Without STAGE_1B: about 2.5 hours on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -79,6 +80,19 @@ if [ "${STAGE_1B:-0}" = 1 ]; then
   fi
   WORLD="$W/world3"
 fi
+# 2b. World model, stage 4: the command from counterfactual forks (a world of seed 70, every episode in a triple)
+if [ ! -f "$W/forks/stats.json" ]; then
+  step "pipeline: counterfactual-fork clips (seed 70)"
+  $R pipeline run "${synth[@]}" --out "$W/forks" --set sources.synthetic.root="$W/world_forks" \
+     --set sources.synthetic.episodes=216 --set sources.synthetic.seed=70 --set sources.synthetic.fork_fraction=1.0 \
+     --set encode.vae="$VAE"
+fi
+if [ ! -f "$W/world4/final/model.safetensors" ]; then
+  step "train world, stage 4 (forks; the command the only condition)"
+  $R train world --preset synth-fork --shards "$W/forks" --out "$W/world4" --set trainer.progress_bar=false \
+     --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4/checkpoints" ] && echo --resume )
+fi
+WORLD="$W/world4"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then
