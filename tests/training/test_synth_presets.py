@@ -1,0 +1,29 @@
+"""The synthetic world's named world-model presets resolve to valid configs, and the shipped model's recipe is
+the one its card names: `resim train world --preset synth-fork` gives the objective, learning rate and step count
+that configs/models/synth-world (stage 4, docs/models/synth-world.md) was trained with."""
+import pytest
+import yaml
+
+from resim.config import from_dict
+from resim.models import SYNTH_WORLD, shipped_dir
+from training.diffusion.config import ObjectiveConfig
+from training.presets import WORLD_PRESETS
+from training.run import resolve_config
+
+
+@pytest.mark.parametrize("preset", [p for p in WORLD_PRESETS if p.startswith("synth")])
+def test_synth_world_presets_resolve_to_valid_objectives(preset):
+    cfg = resolve_config("world", preset)
+    objective = from_dict(ObjectiveConfig, cfg.model["objective"])
+    assert objective.noise_mode == "resim_cond_aug"
+
+
+def test_synth_fork_reproduces_the_shipped_world_models_recipe():
+    shipped = yaml.safe_load((shipped_dir(SYNTH_WORLD) / "config.yaml").read_text())
+    cfg = resolve_config("world", "synth-fork")
+    assert cfg.model["objective"] == shipped["model"]["objective"]
+    assert (cfg.optim.lr, cfg.trainer.steps, cfg.data.batch_size_per_gpu) == (
+        shipped["optim"]["lr"], shipped["trainer"]["steps"], shipped["data"]["batch_size_per_gpu"])
+    # the command is the only condition: on a fork clip the trajectory would say which branch it is
+    fork = from_dict(ObjectiveConfig, cfg.model["objective"])
+    assert fork.trajectory_drop_prob == 1.0 and fork.action_drop_prob == 1.0 and 0 < fork.text_drop_prob < 0.5
