@@ -87,12 +87,14 @@ if [ ! -f "$W/forks/stats.json" ]; then
      --set sources.synthetic.episodes=216 --set sources.synthetic.seed=70 --set sources.synthetic.fork_fraction=1.0 \
      --set encode.vae="$VAE"
 fi
-if [ ! -f "$W/world4/final/model.safetensors" ]; then
-  step "train world, stage 4 (forks; the command the only condition)"
-  $R train world --preset synth-fork --shards "$W/forks" --out "$W/world4" --set trainer.progress_bar=false \
-     --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4/checkpoints" ] && echo --resume )
-fi
-WORLD="$W/world4"
+for part in a b; do   # two runs of 2,000 steps, the second from the first's EMA weights (a fresh cosine)
+  if [ ! -f "$W/world4$part/final/model.safetensors" ]; then
+    step "train world, stage 4$part (forks; the command the only condition)"
+    $R train world --preset synth-fork --shards "$W/forks" --out "$W/world4$part" --set trainer.progress_bar=false \
+       --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4$part/checkpoints" ] && echo --resume )
+  fi
+  WORLD="$W/world4$part"
+done
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then
