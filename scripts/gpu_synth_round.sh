@@ -3,14 +3,14 @@
 # (trainer.max_wall_s) and packed as soon as it ends into flat files of <= 15 MB for a leased machine's return
 # path (at most 8 files; docs/models/synth-vae.md and synth-world.md, "On a GPU").
 #
-#   V    the VAE: the shipped weights + the "A2" recipe of the first GPU sweep, which kept the motion best there
-#        (MSE + L1 + 2 x gradient L1 + 0.1 x adversarial, a discriminator 32 wide, lr 2e-4, EMA 0.998), one run
-#        for the whole lease at batch 16 (the small VAE is launch-bound on a GPU: a larger batch costs little)
+#   V    the VAE: `--preset synth-adv` (the "A2" recipe of the first GPU sweep, which kept the motion best there:
+#        MSE + L1 + 2 x gradient L1 + 0.1 x adversarial, a discriminator 32 wide, lr 2e-4, EMA 0.998, batch 16;
+#        the small VAE is launch-bound on a GPU, so a larger batch costs little) from the shipped weights, one run
+#        for the whole lease
 #   V2   the same at batch 32, lr 3e-4
-#   W    the world model: the shipped weights + `synth-command` (pooled text path, ReSim's full-range history
-#        noise, trajectory dropped half the time) on WORLD_DATA (latents of the shipped VAE), batch 32
-#   WC   the same, the command the only condition: history noise <= 200 (the history readable, as at sampling),
-#        no trajectory, no actions, the command dropped 10 % of the time (enough for CFG)
+#   W    the world model: the shipped weights + `--preset synth-command` (pooled text path, ReSim's full-range
+#        history noise, trajectory dropped half the time) on WORLD_DATA (latents of the shipped VAE), batch 32
+#   WC   the same with `--preset synth-fork` (the command the only condition)
 #
 # Every run keeps a constant learning rate after warm-up: a wall-clock stop would cut a cosine part-way.
 # WALL_S bounds the training loops; each process adds ~30-90 s of start-up, export and packing, so give the
@@ -36,19 +36,15 @@ OUT=$(cd "$OUT" && pwd)
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-4} PYTHONUNBUFFERED=1
 common=(--set trainer.progress_bar=false --set trainer.max_wall_s="$WALL" --set trainer.steps=1000000
         --set optim.schedule=constant --set trainer.checkpoint_every_steps=1000000 --set trainer.log_every_steps=100)
-vae=(train vae --preset synth --shards "$VAE_DATA" "${common[@]}" --set data.num_workers=4 --set model.l1_weight=1.0
-     --set model.gradient_weight=2.0 --set model.adversarial_weight=0.1 --set model.discriminator_width=32
-     --set optim.warmup_steps=50 --set trainer.ema_decay=0.998
+vae=(train vae --preset synth-adv --shards "$VAE_DATA" "${common[@]}" --set data.num_workers=4
      --set model.init_weights=configs/models/synth-vae/diffusion_pytorch_model.safetensors)
-world=(train world --preset synth-command --shards "$WORLD_DATA" "${common[@]}" --set data.batch_size_per_gpu=32
-       --set data.num_workers=3 --set optim.warmup_steps=100
-       --set model.init_weights=configs/models/synth-world/model.safetensors)
+world=(train world --shards "$WORLD_DATA" "${common[@]}" --set data.batch_size_per_gpu=32 --set data.num_workers=3
+       --set optim.warmup_steps=100 --set model.init_weights=configs/models/synth-world/model.safetensors)
 declare -A args=(
-  [V]="--set data.batch_size_per_gpu=16 --set optim.lr=2e-4"
+  [V]=""
   [V2]="--set data.batch_size_per_gpu=32 --set optim.lr=3e-4"
-  [W]=""
-  [WC]="--set model.objective.cond_aug_max_t=200 --set model.objective.trajectory_drop_prob=1.0
-        --set model.objective.action_drop_prob=1.0 --set model.objective.text_drop_prob=0.1"
+  [W]="--preset synth-command"
+  [WC]="--preset synth-fork"
 )
 
 pack() {   # RUN: its weights in parts of <= 15 MB, its logs in RUN.logs.tgz

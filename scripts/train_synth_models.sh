@@ -39,12 +39,8 @@ VAE_WORLD12="$VAE"          # the VAE whose latents world stages 1 and 2 learn o
 if [ "${STAGE_1B:-0}" = 1 ]; then
   if [ ! -f "$W/vae2/final/vae/config.json" ]; then
     step "train vae, stage 1b (+ adversarial term; run V of scripts/gpu_synth_round.sh, here without a wall clock)"
-    $R train vae --preset synth --shards "$W/vae_data" --out "$W/vae2" --set trainer.progress_bar=false \
-       --set model.init_weights="$VAE/diffusion_pytorch_model.safetensors" --set data.batch_size_per_gpu=16 \
-       --set optim.lr=2e-4 --set optim.schedule=constant --set optim.warmup_steps=50 --set trainer.ema_decay=0.998 \
-       --set model.l1_weight=1.0 --set model.gradient_weight=2.0 --set model.adversarial_weight=0.1 \
-       --set model.discriminator_width=32 --set trainer.steps=1568 --set trainer.checkpoint_every_steps=100 \
-       $( [ -d "$W/vae2/checkpoints" ] && echo --resume )
+    $R train vae --preset synth-adv --shards "$W/vae_data" --out "$W/vae2" --set trainer.progress_bar=false \
+       --set model.init_weights="$VAE/diffusion_pytorch_model.safetensors" $( [ -d "$W/vae2/checkpoints" ] && echo --resume )
   fi
   VAE="$W/vae2/final/vae"
 fi

@@ -147,6 +147,19 @@ VAE_PRESETS: dict[str, dict] = {
     },
 }
 
+# stage 1b of the shipped synthetic-world VAE (docs/models/synth-vae.md, "Stage 1b"): "synth"'s weights fine-tuned
+# with detail terms and a spatio-temporal patch adversary (training/vae_gan.py), the first loss that kept the ego
+# motion through the VAE; EMA weights exported. Constant learning rate: on a leased GPU the run is stopped by
+# trainer.max_wall_s (scripts/gpu_synth_round.sh), and the shipped weights are its step 1,568.
+# --set model.init_weights=RUN_SYNTH/final/vae/diffusion_pytorch_model.safetensors
+VAE_PRESETS["synth-adv"] = copy.deepcopy(VAE_PRESETS["synth"])
+VAE_PRESETS["synth-adv"].update(preset="synth-adv")
+VAE_PRESETS["synth-adv"]["model"].update(l1_weight=1.0, gradient_weight=2.0, adversarial_weight=0.1,
+                                         discriminator_width=32)
+VAE_PRESETS["synth-adv"]["data"]["batch_size_per_gpu"] = 16
+VAE_PRESETS["synth-adv"]["optim"].update(lr=2e-4, warmup_steps=50, schedule="constant")
+VAE_PRESETS["synth-adv"]["trainer"].update(steps=1568, ema_decay=0.998, checkpoint_every_steps=100)
+
 # guidance + step distillation of a world model into a few-step student (training/distill.py: CausVid's ODE
 # regression); --set model.teacher=RUN (default: the shipped synthetic world model)
 DISTILL_PRESETS: dict[str, dict] = {

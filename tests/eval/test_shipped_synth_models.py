@@ -77,7 +77,7 @@ def test_world_model_rollouts_look_like_the_heldout_future():
     videos = _runner().generate(clips, [None] * len(clips), [c.command for c in clips])
     gt = np.stack([c.frames for c in clips])
     rows = fidelity_per_horizon(videos, gt, clips[0].num_history_frames, clips[0].fps_hz, (2.0, 4.0))["per_horizon"]
-    # measured when shipped (stage 3 with the stage-1b VAE, 2026-11-28): 19.6 / 19.4 dB at 2 / 4 s on these clips
+    # measured when shipped (stage 4b with the stage-1b VAE, 2026-11-28): 20.5 / 20.2 dB at 2 / 4 s on these clips
     # (copy-last-frame 23.2 / 22.0: these 6 clips are slow drives); a random VAE or a broken sampler gives 10-13 dB
     for r in rows:
         assert r["psnr_model"] > 17.0, rows
