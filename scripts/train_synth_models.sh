@@ -91,6 +91,19 @@ for part in a b; do   # two runs of 2,000 steps, the second from the first's EMA
   fi
   WORLD="$W/world4$part"
 done
+# 2c. Stage 4c: 2,000 more steps of the same preset on a second, larger fork world (seed 71, 432 episodes)
+if [ ! -f "$W/forks71/stats.json" ]; then
+  step "pipeline: counterfactual-fork clips (seed 71)"
+  $R pipeline run "${synth[@]}" --out "$W/forks71" --set sources.synthetic.root="$W/world_forks71" \
+     --set sources.synthetic.episodes=432 --set sources.synthetic.seed=71 --set sources.synthetic.fork_fraction=1.0 \
+     --set encode.vae="$VAE"
+fi
+if [ ! -f "$W/world4c/final/model.safetensors" ]; then
+  step "train world, stage 4c (a second fork world)"
+  $R train world --preset synth-fork --shards "$W/forks71" --out "$W/world4c" --set trainer.progress_bar=false \
+     --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4c/checkpoints" ] && echo --resume )
+fi
+WORLD="$W/world4c"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then

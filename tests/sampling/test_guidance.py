@@ -85,3 +85,27 @@ def test_presets_and_validation():
         GuidanceConfig(drop_text=False, drop_trajectory=False)
     with pytest.raises(ConfigError, match="unknown guidance preset"):
         guidance_preset("nope")
+
+
+@pytest.mark.parametrize("schedule,expect", [(None, [7.5, 4.25, 1.0]), ("constant", [7.5, 7.5, 7.5]),
+                                             ("linear", [7.5, 4.25, 1.0])])
+def test_guidance_schedule_flag_reaches_the_rollout_config(schedule, expect):
+    """`resim sample --guidance-schedule` (and `resim eval` through the same preset override) sets the per-step
+    scales: the default stays ReSim's linear 7.5 -> 1."""
+    from resim.cli import build_parser
+    from training.sampling.cli import _rollout_config
+
+    argv = ["sample", "--checkpoint", "x", "--history", "h.mp4", "--out", "o"]
+    if schedule:
+        argv += ["--guidance-schedule", schedule]
+    args = build_parser().parse_args(argv)
+    cfg = _rollout_config(args, (3, "resim"))
+    assert cfg.guidance.scales(3) == pytest.approx(expect)
+
+
+def test_eval_guidance_schedule_flag_is_parsed():
+    from resim.cli import build_parser
+
+    args = build_parser().parse_args(["eval", "commands", "--checkpoint", "x", "--shards", "s", "--out", "o",
+                                      "--guidance-schedule", "constant", "--guidance-scale", "4"])
+    assert (args.guidance_schedule, args.guidance_scale) == ("constant", 4.0)

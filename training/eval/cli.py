@@ -150,6 +150,9 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--guidance-scale", type=float, default=None,
                    help="start guidance scale (default: the preset's, 7.5 for resim, decreasing linearly to 1)")
+    p.add_argument("--guidance-schedule", default=None, choices=["linear", "constant", "cosine"],
+                   help="how the scale goes from the start to 1 over the DDIM steps (default: the preset's, linear "
+                        "for resim; constant keeps the start scale at every step)")
     p.add_argument("--batch-size", type=_positive_int, default=4, help="clips rolled out together")
     p.add_argument("--seed", type=int, default=0, help="seed of the rollouts' noise (default 0)")
     p.add_argument("--vae", type=_local_dir, default=None,
@@ -358,8 +361,10 @@ def _runner(args):
         print(f"[resim eval] {origin}", file=sys.stderr)
     if steps is not None:   # not `if steps`: 0 must not quietly mean the preset's 50
         rc["num_steps"] = steps
-    overrides = {} if args.guidance_scale is None or guidance == "none" else {"scale_start": args.guidance_scale}
-    rc["guidance"] = guidance_preset(guidance, **overrides)
+    overrides = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
+    if args.guidance_schedule is not None:
+        overrides["schedule"] = args.guidance_schedule
+    rc["guidance"] = guidance_preset(guidance, **({} if guidance == "none" else overrides))
     cfg = from_dict(RolloutConfig, rc)
     ddim_schedule(cfg, schedule)   # --steps vs the run's schedule, before any rollout
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
@@ -369,6 +374,7 @@ def _runner(args):
     meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
             "rollout": {k: v for k, v in rc.items() if k != "guidance"},
             "guidance": guidance, "guidance_scale_start": args.guidance_scale,
+            "guidance_schedule": rc["guidance"].schedule if guidance != "none" else None,
             "seed": args.seed}
     return runner, meta
 

@@ -74,6 +74,9 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="noise level of history frames (default 0 = clean)")
     p.add_argument("--guidance-scale", type=non_negative_float, default=None,
                    help="override the start guidance scale, >= 0 (default: the preset's)")
+    p.add_argument("--guidance-schedule", default=None, choices=["linear", "constant", "cosine"],
+                   help="how the scale goes from the start to its end over the DDIM steps (default: the preset's: "
+                        "linear 7.5->1 for resim, constant for vid2world)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--no-kv-cache", action="store_true", help="recompute the history at every step")
     p.add_argument("--actions-from-trajectory", action="store_true",
@@ -181,6 +184,8 @@ def _rollout_config(args, resolved: tuple):
     g = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
     if args.preset == "vid2world" and args.guidance_scale is not None:
         g["scale_end"] = args.guidance_scale
+    if getattr(args, "guidance_schedule", None) is not None:
+        g["schedule"] = args.guidance_schedule
     try:
         rc["guidance"] = guidance_preset(guidance, **({} if guidance == "none" else g))
         return from_dict(RolloutConfig, rc)
