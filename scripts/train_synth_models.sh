@@ -12,8 +12,8 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stage 4, the command taught on counterfactual forks, always runs.
-# Without STAGE_1B: about 2.5 hours on 2 cores.
+# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, always runs.
+# Without STAGE_1B: about 3.5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
