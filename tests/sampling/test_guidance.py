@@ -103,9 +103,12 @@ def test_guidance_schedule_flag_reaches_the_rollout_config(schedule, expect):
     assert cfg.guidance.scales(3) == pytest.approx(expect)
 
 
-def test_eval_guidance_schedule_flag_is_parsed():
-    from resim.cli import build_parser
 
-    args = build_parser().parse_args(["eval", "commands", "--checkpoint", "x", "--shards", "s", "--out", "o",
-                                      "--guidance-schedule", "constant", "--guidance-scale", "4"])
-    assert (args.guidance_schedule, args.guidance_scale) == ("constant", 4.0)
+def test_guidance_from_cli_is_shared_by_eval_and_sample():
+    """One place turns --guidance-scale/--guidance-schedule into a GuidanceConfig, for `resim eval` too."""
+    from training.sampling.guidance import guidance_from_cli
+
+    assert guidance_from_cli("resim").scales(3) == pytest.approx([7.5, 4.25, 1.0])
+    assert guidance_from_cli("resim", 4.0, "constant").scales(2) == [4.0, 4.0]
+    assert guidance_from_cli("vid2world", 3.0).scales(2) == [3.0, 3.0] and guidance_from_cli("vid2world", 3.0).scale_end == 3.0
+    assert not guidance_from_cli("none", 9.0, "constant").enabled

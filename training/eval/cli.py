@@ -335,7 +335,7 @@ def _runner(args):
     import torch
 
     from media.encoders import VideoVAE
-    from training.sampling.guidance import guidance_preset
+    from training.sampling.guidance import guidance_from_cli
     from training.sampling.load import (PromptSource, encoded_with, load_world_model, resolve_steps_and_guidance,
                                         run_objective)
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig, ddim_schedule
@@ -361,10 +361,7 @@ def _runner(args):
         print(f"[resim eval] {origin}", file=sys.stderr)
     if steps is not None:   # not `if steps`: 0 must not quietly mean the preset's 50
         rc["num_steps"] = steps
-    overrides = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
-    if args.guidance_schedule is not None:
-        overrides["schedule"] = args.guidance_schedule
-    rc["guidance"] = guidance_preset(guidance, **({} if guidance == "none" else overrides))
+    rc["guidance"] = guidance_from_cli(guidance, args.guidance_scale, args.guidance_schedule)
     cfg = from_dict(RolloutConfig, rc)
     ddim_schedule(cfg, schedule)   # --steps vs the run's schedule, before any rollout
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,

@@ -168,7 +168,7 @@ def _rollout_config(args, resolved: tuple):
     bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded).
     ``resolved``: (steps, guidance preset) from ``resolve_steps_and_guidance``: the command line, else a distilled
     student's own sampling section."""
-    from training.sampling.guidance import guidance_preset
+    from training.sampling.guidance import guidance_from_cli
     from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
 
     rc = dict(ROLLOUT_PRESETS[args.preset])
@@ -181,13 +181,8 @@ def _rollout_config(args, resolved: tuple):
         raise UsageError(f"--chunk-frames {rc['chunk_frames']}: at most the {rc['frames_per_round']} latent frames "
                          "of a round")
     rc["kv_cache"] = "off" if args.no_kv_cache else "auto"
-    g = {} if args.guidance_scale is None else {"scale_start": args.guidance_scale}
-    if args.preset == "vid2world" and args.guidance_scale is not None:
-        g["scale_end"] = args.guidance_scale
-    if getattr(args, "guidance_schedule", None) is not None:
-        g["schedule"] = args.guidance_schedule
     try:
-        rc["guidance"] = guidance_preset(guidance, **({} if guidance == "none" else g))
+        rc["guidance"] = guidance_from_cli(guidance, args.guidance_scale, args.guidance_schedule)
         return from_dict(RolloutConfig, rc)
     except ConfigError as e:
         raise UsageError(str(e)) from None

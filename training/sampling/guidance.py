@@ -120,6 +120,22 @@ def guidance_preset(name: str, **overrides) -> GuidanceConfig:
     return from_dict(GuidanceConfig, {**GUIDANCE_PRESETS[name], **overrides})
 
 
+def guidance_from_cli(name: str, scale_start: float | None = None, schedule: ScheduleKind | None = None) -> GuidanceConfig:
+    """The guidance of a sampling command (`resim sample/plan/eval`): preset ``name`` with the command line's
+    ``--guidance-scale`` and ``--guidance-schedule``. A constant preset (vid2world) keeps its scale at every step,
+    so the scale sets its end too; ``none`` ignores both."""
+    if name == "none":
+        return guidance_preset(name)
+    g: dict = {}
+    if scale_start is not None:
+        g["scale_start"] = scale_start
+        if GUIDANCE_PRESETS[name].get("schedule") == "constant":
+            g["scale_end"] = scale_start
+    if schedule is not None:
+        g["schedule"] = schedule
+    return guidance_preset(name, **g)
+
+
 def combine_branches(v_both: torch.Tensor, scale: float, phi: float) -> torch.Tensor:
     """Split a batched ``[cond; uncond]`` prediction ``(2B, …)`` and guide it → ``(B, …)``.
 
