@@ -1,9 +1,12 @@
 """Counterfactual branches: a rollout is scored by the recorded sibling future it lands on (no labeler)."""
 import numpy as np
 import pytest
+import torch
 
 from shards.schema import COMMANDS
-from training.eval.branches import branch_matching, counterfactual_groups, format_branches
+from training.eval.branches import (branch_matching, counterfactual_groups, format_branches, sibling_trajectory_requests,
+                                    trajectory_groups)
+from training.eval.commands import trajectory_branch_eval
 from training.eval.worldeval import EvalClip
 
 LEVEL = {c: float(k - 1) for k, c in enumerate(COMMANDS)}          # left -1, forward 0, right +1
@@ -58,3 +61,56 @@ def test_only_the_commands_a_fork_recorded_are_asked_and_chance_follows():
     assert rep["commanded"]["per_command"]["Turning right"] is None
     with pytest.raises(ValueError, match="no counterfactual groups"):
         branch_matching(gen, rec, [c.command for c in clips], [])
+
+
+class _TrajectoryFollower:
+    """Stands in for WorldRollouts: the generated future is the level its trajectory carries (or, with
+    ``follows=False``, always the straight branch), plus noise; records what it was asked."""
+
+    def __init__(self, follows=True):
+        self.follows, self.asked = follows, []
+
+    def generate_latents(self, clips, trajectories, commands, offset=0, num_future_latents=None):
+        self.asked += list(zip(trajectories, commands))
+        rng = np.random.default_rng(len(self.asked))
+        out = np.stack([c.latents.copy() for c in clips])
+        for k, t in enumerate(trajectories):
+            out[k, 3:] = (float(t[0, 0]) if self.follows else 0.0) + rng.normal(0, 0.3, out[k, 3:].shape)
+        return torch.from_numpy(out)
+
+
+def _forks_with_trajectories(histories=3):
+    clips, rec = _forks(histories)
+    clips = [EvalClip(c.key, c.item_id, c.latents, c.frames, np.full((8, 3), LEVEL[c.command], np.float32),
+                      c.command, 9, 10.0, False) for c in clips]
+    return clips, rec
+
+
+def test_trajectory_branches_land_where_the_siblings_trajectory_points_and_the_command_is_withheld():
+    clips, rec = _forks_with_trajectories()
+    clips.append(EvalClip("z-lone", "ep-lone", clips[0].latents, np.full((9, 8, 8, 3), 99, np.uint8),
+                          None, "Turning left", 9, 10.0, False))               # no fork, no trajectory: not asked
+    groups = counterfactual_groups(clips)
+    null = np.zeros((len(clips),) + rec.shape[1:], np.float32)                  # the null prompt: straight on
+    runner = _TrajectoryFollower()
+    rep = trajectory_branch_eval(runner, clips, groups, null, h=3)
+    assert len(runner.asked) == 27 and all(c is None for _, c in runner.asked)  # 9 clips x 3 siblings, null prompt
+    assert rep["commanded"]["accuracy"] == 1.0 and rep["clips"] == 9 and rep["histories"] == 3
+    assert rep["null_prompt"]["accuracy"] == pytest.approx(1 / 3)
+    ignores = trajectory_branch_eval(_TrajectoryFollower(follows=False), clips, groups, null, h=3)
+    assert ignores["commanded"]["accuracy"] == pytest.approx(1 / 3)
+    assert "trajectory given" in format_branches(rep, given="trajectory given")
+
+
+def test_forks_without_trajectories_are_left_out_of_the_trajectory_branches():
+    clips, rec = _forks(2)                                                      # OpenDV-like: no trajectories
+    groups = counterfactual_groups(clips)
+    assert trajectory_groups(clips, groups) == []
+    rep = trajectory_branch_eval(_TrajectoryFollower(), clips, groups, np.zeros_like(rec), h=3)
+    assert "skipped" in rep and "trajectory" in rep["skipped"]
+    # a fork with one sibling lacking its trajectory is left out whole: its branches could not all be named
+    tclips, _ = _forks_with_trajectories(2)
+    tclips[0] = EvalClip(tclips[0].key, tclips[0].item_id, tclips[0].latents, tclips[0].frames, None,
+                         tclips[0].command, 9, 10.0, False)
+    assert trajectory_groups(tclips, counterfactual_groups(tclips)) == [[3, 4, 5]]
+    assert len(sibling_trajectory_requests(tclips, [[3, 4, 5]])) == 9

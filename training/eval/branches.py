@@ -106,15 +106,37 @@ def _confusion(m: np.ndarray) -> dict:
             "per_command": {c: (float(m[i, i] / m[i].sum()) if m[i].sum() else None) for i, c in enumerate(COMMANDS)}}
 
 
-def format_branches(rep: dict) -> str:
-    """Text lines for ``commands_eval``'s ``branches`` section."""
+def trajectory_groups(clips: Sequence[Any], groups: Sequence[Sequence[int]]) -> list[list[int]]:
+    """The counterfactual groups whose every clip carries its recorded trajectory (the synthetic world's
+    CARLA-layout forks; OpenDV-layout clips have none), as lists of indices into ``clips``."""
+    return [list(g) for g in groups if all(clips[i].trajectory is not None for i in g)]
+
+
+def sibling_trajectory_requests(clips: Sequence[Any], groups: Sequence[Sequence[int]]) -> list[tuple[int, str, Any]]:
+    """``(clip index, command, trajectory)`` for every rollout the trajectory branches need: each clip's history
+    under the recorded trajectory of each sibling, named by that sibling's recorded command (the first sibling
+    recorded under it, when a fork was recorded more than once). Only commands some sibling recorded are asked,
+    as in :func:`branch_matching`, which then scores these rollouts unchanged: the trajectory, not the command,
+    is what was given, and the branch it names is the one it should land on."""
+    out = []
+    for g in groups:
+        first: dict[str, int] = {}
+        for i in g:
+            first.setdefault(clips[i].command, i)
+        for i in g:
+            out += [(i, c, clips[first[c]].trajectory) for c in COMMANDS if c in first]
+    return out
+
+
+def format_branches(rep: dict, title: str = "counterfactual branches", given: str = "commanded") -> str:
+    """Text lines for ``commands_eval``'s ``branches`` (or ``trajectory_branches``) section."""
     if "skipped" in rep:
-        return f"counterfactual branches: {rep['skipped']}"
+        return f"{title}: {rep['skipped']}"
     c, d = rep["commanded"], rep["mean_distance"]
-    lines = [f"counterfactual branches ({rep['histories']} shared histories; the rollout lands on the nearest "
+    lines = [f"{title} ({rep['histories']} shared histories; the rollout lands on the nearest "
              f"recorded sibling future, latent MSE; chance {rep['chance']:.2f}):",
-             f"  {'commanded':<24} {c['accuracy']:.3f}  (n={c['n']})"]
+             f"  {given:<24} {c['accuracy']:.3f}  (n={c['n']})"]
     if "null_prompt" in rep:
         lines.append(f"  {'null_prompt':<24} {rep['null_prompt']['accuracy']:.3f}  (n={rep['null_prompt']['n']})")
-    lines.append(f"  mean distance to the commanded branch {d['own_branch']:.4f}, to the others {d['other_branches']:.4f}")
+    lines.append(f"  mean distance to the {given} branch {d['own_branch']:.4f}, to the others {d['other_branches']:.4f}")
     return "\n".join(lines)

@@ -88,6 +88,8 @@ without the labeler: each rollout lands on the nearest recorded sibling future (
 sibling had the command it was given ("counterfactual branches"; the VAE does not cap it). Only the fork clips:
   resim eval commands --checkpoint synth-world --shards data/forks --all-clips --counterfactual-only \
       --steps 25 --out out/branches
+Add --trajectory-branches to score ReSim's trajectory conditioning the same way: the forks whose clips carry a
+recorded trajectory (CARLA layout) are also rolled out with the null prompt under each sibling's trajectory.
 """
 
 COMMAND_LOSS_EPILOG = """\
@@ -211,6 +213,10 @@ def register(subparsers) -> None:
     cm.add_argument("--counterfactual-only", action="store_true",
                     help="only the clips whose history other clips share under another command (the synthetic "
                          "world's forks), whole groups; --limit then caps the clips, group by group")
+    cm.add_argument("--trajectory-branches", action="store_true",
+                    help="also roll each fork's history out with the null prompt under each sibling's recorded "
+                         "trajectory and score the branch it lands on (forks whose clips carry trajectories: the "
+                         "CARLA layout's; about 3 more rollouts per such clip)")
     cm.set_defaults(func=_cmd_commands)
 
     cl = sub.add_parser("command-loss", help="does the model use the command? its loss under each command (no sampling)",
@@ -553,7 +559,8 @@ def _cmd_commands(args) -> int:
     print(f"[resim eval commands] {len(clips)} clips x 4 prompts = {4 * len(clips)} rollouts of "
           f"{clips[0].latents.shape[0]} latent frames, {runner.cfg.num_steps} DDIM steps ...", file=sys.stderr)
     t0 = time.perf_counter()
-    rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons)
+    rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons,
+                        trajectory_branches=args.trajectory_branches)
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     recorded = [c.command for c in clips]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
@@ -562,7 +569,9 @@ def _cmd_commands(args) -> int:
                        "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else
                                        args.heldout_from or args.idm,
                        "world_model": meta, "idm": idm_info,
-                       "conditions": "each history x {left, forward, right} (no trajectory) + the null prompt",
+                       "conditions": "each history x {left, forward, right} (no trajectory) + the null prompt" +
+                                     ("; forks with trajectories: the null prompt x each sibling's recorded "
+                                      "trajectory" if args.trajectory_branches else ""),
                        "labeler": "labeling.flow.FlowLabeler preset default on the last history frame + the "
                                   "generated future",
                        "seconds": round(time.perf_counter() - t0, 2)}

@@ -19,6 +19,10 @@ anything". The protocol (counterfactual commands from one history):
 * **counterfactual branches**, where the clips hold forks (one history recorded under several commands): each
   rollout is scored by the recorded sibling future it lands on, in latent space (``training.eval.branches``), a
   reading of the model that the VAE and the labeler do not cap.
+* **trajectory branches** (``trajectory_branches=True``), on the forks whose clips carry their recorded
+  trajectory: each history is rolled out with the null prompt under each sibling's recorded trajectory and
+  scored the same way. The trajectory is then the only thing that tells the branches apart, so this reads
+  ReSim's trajectory conditioning without the IDM, whose error on this world is close to constant velocity's.
 
 The rollouts are done by :class:`training.eval.worldeval.WorldRollouts`, so they use the sampler users use.
 """
@@ -32,7 +36,8 @@ import torch
 from labeling.commands import command_from_trajectory
 from labeling.config import preset as labeler_preset
 from shards.schema import COMMANDS
-from training.eval.branches import branch_matching, counterfactual_groups
+from training.eval.branches import (branch_matching, counterfactual_groups, sibling_trajectory_requests,
+                                    trajectory_groups)
 from training.eval.fidelity import psnr, ssim
 from training.eval.worldeval import EvalClip, WorldRollouts, _idm_on
 
@@ -87,8 +92,10 @@ def fidelity_per_horizon(gen: np.ndarray, ref: np.ndarray, num_history_frames: i
 
 
 def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any, *, idm: Any = None,
-                  horizons_s: Sequence[float] = (0.5, 1.0, 2.0, 4.0)) -> dict:
-    """The protocol above on ``clips`` (one geometry); returns the report (``_videos`` holds the rollouts)."""
+                  horizons_s: Sequence[float] = (0.5, 1.0, 2.0, 4.0), trajectory_branches: bool = False) -> dict:
+    """The protocol above on ``clips`` (one geometry); returns the report (``_videos`` holds the rollouts).
+    ``trajectory_branches``: also roll the forks out under their siblings' trajectories (report key
+    ``trajectory_branches``)."""
     if not clips:
         raise ValueError("no clips to evaluate")
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
@@ -139,10 +146,40 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
                                        null_key=NULL) if groups else
                        {"skipped": "no counterfactual clips (no two clips share a history under different commands; "
                                    "resim synth --set fork_fraction=... makes them)"})
+    if trajectory_branches:
+        rep["trajectory_branches"] = (trajectory_branch_eval(runner, clips, groups, futures[NULL], h) if groups else
+                                      {"skipped": "no counterfactual clips"})
     rep["clips"] = [{"key": c.key, "episode": c.item_id, "recorded_command": c.command,
                      "recorded_future_flow": gt_flow[i], "recorded_through_vae_flow": vae_flow[i],
                      **{f"flow_{k}": flow[k][0][i] for k in videos}} for i, c in enumerate(clips)]
     rep["_videos"] = {**videos, "recorded": gt}
+    return rep
+
+
+def trajectory_branch_eval(runner: WorldRollouts, clips: Sequence[EvalClip], groups: Sequence[Sequence[int]],
+                           null_futures: np.ndarray, h: int) -> dict:
+    """Counterfactual branches under the siblings' recorded trajectories, the command withheld (null prompt).
+
+    ``null_futures``: ``(N, F, C, h, w)`` the null-prompt rollouts of all ``clips`` (no trajectory): the control,
+    scored against the same forks. ``h``: history latent frames. Returns :func:`branch_matching`'s report on the
+    forks whose every clip carries a trajectory, or ``{"skipped": reason}``."""
+    tgroups = trajectory_groups(clips, groups)
+    if not tgroups:
+        return {"skipped": "no fork whose every clip carries its recorded trajectory (the CARLA layout records them)"}
+    sub = sorted(i for g in tgroups for i in g)
+    pos = {i: k for k, i in enumerate(sub)}
+    reqs = sibling_trajectory_requests(clips, tgroups)
+    fut = runner.generate_latents([clips[i] for i, _, _ in reqs], [t for _, _, t in reqs],
+                                  [None] * len(reqs))[:, h:].numpy()
+    # only the commands a fork recorded are asked (and read) by branch_matching; the rest stay NaN
+    gen = {c: np.full((len(sub),) + fut.shape[1:], np.nan, np.float32) for c in COMMANDS}
+    for k, (i, c, _) in enumerate(reqs):
+        gen[c][pos[i]] = fut[k]
+    gen[NULL] = null_futures[sub]
+    rep = branch_matching(gen, np.stack([clips[i].latents[h:] for i in sub]), [clips[i].command for i in sub],
+                          [[pos[i] for i in g] for g in tgroups], null_key=NULL)
+    rep["given"] = "the null prompt and the recorded trajectory of the sibling recorded under each command"
+    rep["clips"] = len(sub)
     return rep
 
 

@@ -31,6 +31,9 @@ def format_commands(rep: dict) -> str:
         f"{SHORT.get(k, k)} {v:+.1f}" for k, v in fl["mean_yaw_deg"].items()))
     if "branches" in rep:                             # reports written before forks were scored have none
         lines.append(format_branches(rep["branches"]))
+    if "trajectory_branches" in rep:
+        lines.append(format_branches(rep["trajectory_branches"], title="trajectory branches (null prompt + a "
+                                     "sibling's recorded trajectory)", given="trajectory given"))
     lines.append("fidelity under the recorded command (PSNR dB / SSIM; copy-last-frame baseline):")
     for r in rep["fidelity"]["per_horizon"]:
         lines.append(f"  {r['horizon_s']:>4g} s  model {r['psnr_model']:.2f} / {r['ssim_model']:.3f}   "
