@@ -12,8 +12,10 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, always runs.
-# Without STAGE_1B: about 3.5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it).
+# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, and stage 5,
+# the trajectory taught on them too, always run.
+# Without STAGE_1B: about 4.5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
+# and its 216-episode fork world: about 1 hour on a slow day).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -104,6 +106,20 @@ if [ ! -f "$W/world4c/final/model.safetensors" ]; then
      --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4c/checkpoints" ] && echo --resume )
 fi
 WORLD="$W/world4c"
+
+# 2d. Stage 5: the trajectory as well as the command, on a third fork world (seed 72, 216 episodes)
+if [ ! -f "$W/forks72/stats.json" ]; then
+  step "pipeline: counterfactual-fork clips (seed 72)"
+  $R pipeline run "${synth[@]}" --out "$W/forks72" --set sources.synthetic.root="$W/world_forks72" \
+     --set sources.synthetic.episodes=216 --set sources.synthetic.seed=72 --set sources.synthetic.fork_fraction=1.0 \
+     --set encode.vae="$VAE"
+fi
+if [ ! -f "$W/world5/final/model.safetensors" ]; then
+  step "train world, stage 5 (forks; the trajectory and the command each half the time)"
+  $R train world --preset synth-fork-traj --shards "$W/forks72" --out "$W/world5" --set trainer.progress_bar=false \
+     --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world5/checkpoints" ] && echo --resume )
+fi
+WORLD="$W/world5"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then

@@ -127,12 +127,12 @@ WORLD_PRESETS["synth-fork"]["model"]["objective"].update(cond_aug_max_t=200, tex
 WORLD_PRESETS["synth-fork"]["optim"]["lr"] = 3e-4
 WORLD_PRESETS["synth-fork"]["trainer"]["steps"] = 2000
 
-# an experiment after stage 4 (docs/models/synth-world.md, "Trajectory forks"): "synth-fork" with ReSim's
+# fifth stage of the shipped synthetic world model (docs/models/synth-world.md, "Stage 5"): "synth-fork" with ReSim's
 # trajectory given half the time and the command half the time, independently, so on a CARLA-layout fork clip a
 # quarter of the steps have only the trajectory to tell the branches apart (OpenDV-layout clips carry none).
 # Per-frame actions stay dropped: ReSim conditions through the trajectory encoder alone, and `resim eval` and
 # `resim sample` pass no actions unless asked (--actions-from-trajectory), so the rollouts see what training saw.
-# --set model.init_weights=configs/models/synth-world/model.safetensors
+# --set model.init_weights=STAGE_4C/final/ema.safetensors
 WORLD_PRESETS["synth-fork-traj"] = copy.deepcopy(WORLD_PRESETS["synth-fork"])
 WORLD_PRESETS["synth-fork-traj"].update(preset="synth-fork-traj")
 WORLD_PRESETS["synth-fork-traj"]["model"]["objective"].update(text_drop_prob=0.5, trajectory_drop_prob=0.5)
