@@ -13,7 +13,7 @@ step reads what the ones before it wrote).
 
 Two world models: the demo trains its own small one for a few minutes (the machinery: trainer,
 checkpoint, loss curve), and rolls out and evaluates the *shipped* synthetic-world model
-(``configs/models/synth-world``, trained by the same commands for about 2.5 hours of CPU on worlds of
+(``configs/models/synth-world``, trained by the same commands for about 4.5 hours of CPU on worlds of
 other seeds, the VAE's last stage on a GPU, docs/models/): the demo's world (seed 0) is held out from it. The
 pipeline encodes with the shipped synthetic-world VAE (``configs/models/synth-vae``); the text
 encoder and the reward model's DINOv2 stay tiny random-init placeholders.
