@@ -78,48 +78,35 @@ if [ "${STAGE_1B:-0}" = 1 ]; then
   fi
   WORLD="$W/world3"
 fi
-# 2b. World model, stage 4: the command from counterfactual forks (a world of seed 70, every episode in a triple)
-if [ ! -f "$W/forks/stats.json" ]; then
-  step "pipeline: counterfactual-fork clips (seed 70)"
-  $R pipeline run "${synth[@]}" --out "$W/forks" --set sources.synthetic.root="$W/world_forks" \
-     --set sources.synthetic.episodes=216 --set sources.synthetic.seed=70 --set sources.synthetic.fork_fraction=1.0 \
-     --set encode.vae="$VAE"
-fi
-for part in a b; do   # two runs of 2,000 steps, the second from the first's EMA weights (a fresh cosine)
-  if [ ! -f "$W/world4$part/final/model.safetensors" ]; then
-    step "train world, stage 4$part (forks; the command the only condition)"
-    $R train world --preset synth-fork --shards "$W/forks" --out "$W/world4$part" --set trainer.progress_bar=false \
-       --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4$part/checkpoints" ] && echo --resume )
+# Stages 4-5 share two steps: a fork world (every episode in a triple: one history, then left / straight / right),
+# and a run of the world model on it from the previous stage's EMA weights (a fresh cosine); each is skipped when
+# done, and a run resumes from its checkpoints.
+fork_world() {  # OUT SEED EPISODES
+  if [ ! -f "$W/$1/stats.json" ]; then
+    step "pipeline: counterfactual-fork clips (seed $2)"
+    $R pipeline run "${synth[@]}" --out "$W/$1" --set sources.synthetic.root="$W/world_$1" \
+       --set sources.synthetic.episodes="$3" --set sources.synthetic.seed="$2" --set sources.synthetic.fork_fraction=1.0 \
+       --set encode.vae="$VAE"
   fi
-  WORLD="$W/world4$part"
-done
-# 2c. Stage 4c: 2,000 more steps of the same preset on a second, larger fork world (seed 71, 432 episodes)
-if [ ! -f "$W/forks71/stats.json" ]; then
-  step "pipeline: counterfactual-fork clips (seed 71)"
-  $R pipeline run "${synth[@]}" --out "$W/forks71" --set sources.synthetic.root="$W/world_forks71" \
-     --set sources.synthetic.episodes=432 --set sources.synthetic.seed=71 --set sources.synthetic.fork_fraction=1.0 \
-     --set encode.vae="$VAE"
-fi
-if [ ! -f "$W/world4c/final/model.safetensors" ]; then
-  step "train world, stage 4c (a second fork world)"
-  $R train world --preset synth-fork --shards "$W/forks71" --out "$W/world4c" --set trainer.progress_bar=false \
-     --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world4c/checkpoints" ] && echo --resume )
-fi
-WORLD="$W/world4c"
-
-# 2d. Stage 5: the trajectory as well as the command, on a third fork world (seed 72, 216 episodes)
-if [ ! -f "$W/forks72/stats.json" ]; then
-  step "pipeline: counterfactual-fork clips (seed 72)"
-  $R pipeline run "${synth[@]}" --out "$W/forks72" --set sources.synthetic.root="$W/world_forks72" \
-     --set sources.synthetic.episodes=216 --set sources.synthetic.seed=72 --set sources.synthetic.fork_fraction=1.0 \
-     --set encode.vae="$VAE"
-fi
-if [ ! -f "$W/world5/final/model.safetensors" ]; then
-  step "train world, stage 5 (forks; the trajectory and the command each half the time)"
-  $R train world --preset synth-fork-traj --shards "$W/forks72" --out "$W/world5" --set trainer.progress_bar=false \
-     --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/world5/checkpoints" ] && echo --resume )
-fi
-WORLD="$W/world5"
+}
+fork_stage() {  # OUT PRESET SHARDS DESCRIPTION; trains from $WORLD, then WORLD=OUT
+  if [ ! -f "$W/$1/final/model.safetensors" ]; then
+    step "train world, $4"
+    $R train world --preset "$2" --shards "$W/$3" --out "$W/$1" --set trainer.progress_bar=false \
+       --set model.init_weights="$WORLD/final/ema.safetensors" $( [ -d "$W/$1/checkpoints" ] && echo --resume )
+  fi
+  WORLD="$W/$1"
+}
+# 2b. Stage 4: the command from counterfactual forks, the only condition. 4a and 4b: two runs on a world of seed 70;
+# 4c: one more on a second, larger fork world (seed 71, 432 episodes)
+fork_world forks 70 216
+fork_stage world4a synth-fork forks "stage 4a (forks; the command the only condition)"
+fork_stage world4b synth-fork forks "stage 4b (the same, from 4a)"
+fork_world forks71 71 432
+fork_stage world4c synth-fork forks71 "stage 4c (a second fork world)"
+# 2c. Stage 5: the trajectory as well as the command, on a third fork world (seed 72, 216 episodes)
+fork_world forks72 72 216
+fork_stage world5 synth-fork-traj forks72 "stage 5 (forks; the trajectory and the command each half the time)"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then
