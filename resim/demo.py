@@ -295,10 +295,13 @@ def _eval_section(out: Path) -> list[str]:
         parts.append(f"<h3>Controllability: Trajectory Difference</h3><p>{r['protocol']['clips']} held-out clips "
                      f"of {r['protocol']['episodes']} episodes, each rolled out under its recorded trajectory "
                      "(expert) and another episode's (non-expert); the IDM reads the trajectory off the generated "
-                     "video. <code>idm_on_recorded_video</code> (the IDM on the real frames) is the floor.</p>")
+                     "video. <code>idm_on_recorded_video</code> (the IDM on the real frames) is the floor; "
+                     "<code>idm_on_recorded_through_vae</code> (on the recorded latents decoded through the VAE) is "
+                     "what a world model that predicted the recorded future exactly would score.</p>")
         parts.append(_table(["", "L2 mean (m)", "L2 at 4 s (m)", "clips"],
                             [[k, _f(r[k]["trajectory_difference_m"]), _f(r[k]["trajectory_difference_final_m"]),
-                              r[k]["n"]] for k in ("expert", "non_expert", "idm_on_recorded_video")]))
+                              r[k]["n"]] for k in ("expert", "non_expert", "idm_on_recorded_video",
+                                                   "idm_on_recorded_through_vae") if k in r]))
         ca = r["command_accuracy"]
         acc = (html.escape(ca) if isinstance(ca, str) else ", ".join(
             f"{html.escape(k)}: {_f(v['accuracy'], '.2f')} (n={v['n']})" for k, v in ca.items()))

@@ -58,7 +58,7 @@ def _check_evaluation(out: Path, page: str) -> None:
     ctl = json.loads((ev / "control/control.json").read_text())
     assert ctl["protocol"]["clips"] == 2 and ctl["protocol"]["episodes"] == 2
     assert ctl["protocol"]["heldout_from"].endswith("eval/idm")
-    for k in ("expert", "non_expert", "idm_on_recorded_video"):
+    for k in ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae"):
         assert _finite(ctl[k]["trajectory_difference_m"]) and _finite(ctl[k]["trajectory_difference_final_m"])
         assert ctl[k]["n"] == 2
     assert _finite(ctl["non_expert_vs_recorded_trajectory_m"]) and ctl["non_expert_vs_recorded_trajectory_m"] > 0

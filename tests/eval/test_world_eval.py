@@ -61,6 +61,7 @@ def test_control_and_planning_commands(world, capsys):
     assert rc == 0
     rep = json.loads((out / "control.json").read_text())
     assert rep["expert"]["n"] == 2 and rep["non_expert"]["n"] == 2 and rep["protocol"]["episodes"] == 2
+    assert rep["idm_on_recorded_through_vae"]["n"] == 2
     assert all(p["clip"] != p["non_expert_from"] for p in rep["pairs"])
     assert (out / "control.png").stat().st_size > 1000
     assert rep["protocol"]["world_model"]["vae_placeholder"] is True
@@ -272,3 +273,43 @@ def test_command_loss_command(world, capsys):
                                                  for c in rep["per_clip"])
     assert sum(sum(row) for row in rep["levels"]["900"]["confusion"]) == n
     assert "command read by the model's own loss" in capsys.readouterr().out
+
+
+def test_control_floor_through_the_vae_reads_the_decoded_recorded_latents():
+    """``idm_on_recorded_through_vae`` is the IDM on the clips' own latents decoded as a rollout is (not on the
+    recorded frames, which give ``idm_on_recorded_video``): a VAE that smears the motion shows in it."""
+    import torch
+
+    from training.eval.idm import idm_preset
+    from training.eval.worldeval import WorldRollouts, control_eval
+
+    class MeanIDM(torch.nn.Module):
+        """Reads x of every waypoint as the mean pixel of the window / 10: a function of the video alone."""
+        cfg = idm_preset("tiny", future_frames=12, num_frames=7)
+
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+
+        def window(self, v, nh):
+            return v[:, nh - 1:].float()
+
+        def forward(self, v):
+            out = torch.zeros(len(v), 8, 3)
+            out[:, :, 0] = v.mean(dim=(1, 2, 3, 4))[:, None] / 10
+            return out
+
+    class Fake(WorldRollouts):
+        def generate(self, clips, trajs, commands):
+            return np.full((len(clips), 21, 32, 48, 3), 30, np.uint8)
+
+        def decode_recorded(self, clips):
+            return np.full((len(clips), 21, 32, 48, 3), 50, np.uint8)   # x read: 5 m
+
+    clips = [_eval_clip(0, "a"), _eval_clip(1, "b")]
+    for c in clips:
+        c.frames[:] = 20                                                  # x read: 2 m
+    rep = control_eval(Fake(None, None, None, None), MeanIDM(), clips)
+    assert rep["idm_on_recorded_video"]["trajectory_difference_m"] == pytest.approx(2.0)
+    assert rep["idm_on_recorded_through_vae"]["trajectory_difference_m"] == pytest.approx(5.0)
+    assert rep["expert"]["trajectory_difference_m"] == pytest.approx(3.0)

@@ -471,6 +471,11 @@ def _traj_table(rows: dict) -> str:
     return "\n".join(lines)
 
 
+# control.json's Trajectory Difference rows: the two rollouts, then the IDM's floors on the recorded video and on
+# the recorded latents decoded through the VAE (what a perfect world model would score through this VAE)
+CONTROL_ROWS = ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae")
+
+
 def _cmd_control(args) -> int:
     from training.eval.report import format_protocol, plot_bars
     from training.eval.worldeval import check_idm_window, control_eval, non_expert_pairs
@@ -504,12 +509,12 @@ def _cmd_control(args) -> int:
     acc = ca if isinstance(ca, str) else "  ".join(
         f"{k}: {v['accuracy']:.3f} (n={v['n']})" for k, v in ca.items() if v["accuracy"] is not None)
     text = "\n".join([format_protocol(rep["protocol"]), "Trajectory Difference (lower = more controllable):",
-                      _traj_table({k: rep[k] for k in ("expert", "non_expert", "idm_on_recorded_video")}),
+                      _traj_table({k: rep[k] for k in CONTROL_ROWS}),
                       f"  non-expert trajectory vs recorded: {rep['non_expert_vs_recorded_trajectory_m']:.3f} m",
                       f"command accuracy (flow labeler): {acc}"])
-    groups = {"L2 mean": {k: rep[k]["trajectory_difference_m"] for k in ("expert", "non_expert", "idm_on_recorded_video")},
+    groups = {"L2 mean": {k: rep[k]["trajectory_difference_m"] for k in CONTROL_ROWS},
               "L2 at 4 s": {k: rep[k]["trajectory_difference_final_m"]
-                            for k in ("expert", "non_expert", "idm_on_recorded_video")}}
+                            for k in CONTROL_ROWS}}
     _finish(out, "control", rep, text, lambda p: plot_bars(groups, p, title=f"Trajectory Difference, {len(clips)} clips"))
     return 0
 

@@ -284,10 +284,15 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
     pred_e, pred_n = _idm_on(idm, vid_e, nh), _idm_on(idm, vid_n, nh)
     gt_vid = np.stack([c.frames for c in clips])
     pred_gt = _idm_on(idm, gt_vid, nh)
+    # the recorded latents decoded as a rollout is: what a model that predicted the recorded future exactly would
+    # score. The rollouts reach the IDM through the VAE; this floor tells the VAE's share of their error apart
+    # from the model's (the labeler's "recorded through the VAE" in commands.py is the same idea)
+    pred_vae = _idm_on(idm, runner.decode_recorded(clips), nh)
     rep: dict[str, Any] = {
         "expert": _l2(pred_e, np.stack(expert_t)),
         "non_expert": _l2(pred_n, np.stack(non_t)),
         "idm_on_recorded_video": _l2(pred_gt, np.stack(expert_t)),
+        "idm_on_recorded_through_vae": _l2(pred_vae, np.stack(expert_t)),
         "non_expert_vs_recorded_trajectory_m": _l2(np.stack(non_t), np.stack(expert_t))["trajectory_difference_m"],
         "pairs": [{"clip": c.key, "non_expert_from": clips[j].key} for c, j in zip(clips, others)],
     }
