@@ -230,6 +230,8 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
     # the clips' own latents decoded as a rollout is: the ceiling of any world model through this VAE
     assert fl["recorded_through_vae"]["n"] == fl["recorded_future"]["n"] == n
     assert "recorded through the VAE" in fl["mean_yaw_deg"]
+    # every condition's rollouts (and the recorded frames) are also read mirrored left-right
+    assert set(fl["mirror_check_deg"]) == set(fl["mean_yaw_deg"]) - {"recorded through the VAE"}
     assert all("recorded_through_vae_flow" in c for c in rep["clips"])
     assert "no counterfactual clips" in rep["branches"]["skipped"]      # the road world has no forks
     assert "recorded_through_vae" in capsys.readouterr().out

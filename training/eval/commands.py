@@ -66,6 +66,15 @@ def flow_commands(videos: np.ndarray, num_history_frames: int, fps_hz: float, la
     return cmds, yaws
 
 
+def labeler_lean(videos: np.ndarray, yaws: Sequence[float], num_history_frames: int, fps_hz: float,
+                 labeler: Any) -> float:
+    """The labeler's own left-right asymmetry on ``videos`` (``(N, T, H, W, 3)`` uint8), deg: the mean over the
+    videos of (heading ``yaws`` + heading of the video mirrored left-right) / 2. An unbiased reading flips sign
+    under the mirror, so this is ~0 and a mean heading away from 0 is the videos' own."""
+    mirrored = np.ascontiguousarray(videos[:, :, :, ::-1])
+    return float(np.mean(np.add(yaws, flow_commands(mirrored, num_history_frames, fps_hz, labeler)[1])) / 2)
+
+
 def idm_commands(videos: np.ndarray, num_history_frames: int, idm: Any, labeler_cfg: Any) -> list[str]:
     return [command_from_trajectory(t, labeler_cfg)[0] for t in _idm_on(idm, videos, num_history_frames)]
 
@@ -126,6 +135,11 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     rep["flow_labeler"]["recorded_through_vae"] = confusion(recorded, vae_flow)
     rep["flow_labeler"]["mean_yaw_deg"]["recorded future"] = float(np.mean(gt_yaw))
     rep["flow_labeler"]["mean_yaw_deg"]["recorded through the VAE"] = float(np.mean(vae_yaw))
+    # the labeler on the same videos mirrored left-right: an unbiased reading flips sign, so the mean of the two is
+    # the labeler's own left-right asymmetry on these videos. Near 0, a lean in mean_yaw_deg is the videos'
+    rep["flow_labeler"]["mirror_check_deg"] = {k: labeler_lean(v, flow[k][1], nh, fps, labeler)
+                                               for k, v in videos.items()}
+    rep["flow_labeler"]["mirror_check_deg"]["recorded future"] = labeler_lean(gt, gt_yaw, nh, fps, labeler)
     if idm is not None:
         lcfg = labeler_preset("default")
         by_idm = {k: idm_commands(v, nh, idm, lcfg) for k, v in videos.items()}

@@ -29,6 +29,10 @@ def format_commands(rep: dict) -> str:
             lines.append(f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']})")
     lines.append("mean heading change of the future (deg, left +): " + "  ".join(
         f"{SHORT.get(k, k)} {v:+.1f}" for k, v in fl["mean_yaw_deg"].items()))
+    if "mirror_check_deg" in fl:                      # reports written before the check have none
+        lines.append("  the labeler's own lean on these videos, (heading + heading mirrored) / 2 (deg; ~0: a lean "
+                     "above is the videos'): " + "  ".join(f"{SHORT.get(k, k)} {v:+.1f}"
+                                                            for k, v in fl["mirror_check_deg"].items()))
     if "branches" in rep:                             # reports written before forks were scored have none
         lines.append(format_branches(rep["branches"]))
     if "trajectory_branches" in rep:
