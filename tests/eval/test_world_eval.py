@@ -62,6 +62,7 @@ def test_control_and_planning_commands(world, capsys):
     rep = json.loads((out / "control.json").read_text())
     assert rep["expert"]["n"] == 2 and rep["non_expert"]["n"] == 2 and rep["protocol"]["episodes"] == 2
     assert rep["idm_on_recorded_through_vae"]["n"] == 2
+    assert rep["followed"]["rollouts"]["n"] == 4 and len(rep["pairs"][0]["end_m"]) == 5
     assert all(p["clip"] != p["non_expert_from"] for p in rep["pairs"])
     assert (out / "control.png").stat().st_size > 1000
     assert rep["protocol"]["world_model"]["vae_placeholder"] is True
@@ -315,3 +316,24 @@ def test_control_floor_through_the_vae_reads_the_decoded_recorded_latents():
     assert rep["idm_on_recorded_video"]["trajectory_difference_m"] == pytest.approx(2.0)
     assert rep["idm_on_recorded_through_vae"]["trajectory_difference_m"] == pytest.approx(5.0)
     assert rep["expert"]["trajectory_difference_m"] == pytest.approx(3.0)
+    # _eval_clip's trajectories are all 0: no slope to fit (the slopes themselves: the test below)
+    assert rep["followed"]["rollouts"] == {"n": 4, "forward_slope": None, "lateral_slope": None}
+    assert rep["pairs"][0]["end_m"]["expert_read"] == [3.0, 0.0]
+
+
+def test_end_point_slopes_tell_followed_from_ignored():
+    from training.eval.worldeval import end_point_slopes
+
+    given = np.zeros((6, 8, 3))
+    given[:, -1, 0] = [10, 14, 18, 22, 26, 30]       # speeds
+    given[:, -1, 1] = [-5, -3, 0, 0, 3, 5]           # turns
+    followed = given.copy()
+    followed[:, -1, 0] = 0.5 * given[:, -1, 0] + 4     # half the speed differences, an offset
+    followed[:, -1, 1] = given[:, -1, 1]
+    s = end_point_slopes(followed, given)
+    assert s["forward_slope"] == pytest.approx(0.5) and s["lateral_slope"] == pytest.approx(1.0) and s["n"] == 6
+    ignored = np.zeros_like(given)
+    ignored[:, -1, 0] = 20.0
+    s = end_point_slopes(ignored, given)
+    assert s["forward_slope"] == pytest.approx(0.0) and s["lateral_slope"] == pytest.approx(0.0)
+    assert end_point_slopes(ignored, ignored)["forward_slope"] is None     # nothing to regress on

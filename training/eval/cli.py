@@ -471,6 +471,10 @@ def _traj_table(rows: dict) -> str:
     return "\n".join(lines)
 
 
+def _slope(v: float | None) -> str:
+    return "n/a (the given end points do not vary)" if v is None else f"{v:+.2f}"
+
+
 # control.json's Trajectory Difference rows: the two rollouts, then the IDM's floors on the recorded video and on
 # the recorded latents decoded through the VAE (what a perfect world model would score through this VAE)
 CONTROL_ROWS = ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae")
@@ -511,6 +515,9 @@ def _cmd_control(args) -> int:
     text = "\n".join([format_protocol(rep["protocol"]), "Trajectory Difference (lower = more controllable):",
                       _traj_table({k: rep[k] for k in CONTROL_ROWS}),
                       f"  non-expert trajectory vs recorded: {rep['non_expert_vs_recorded_trajectory_m']:.3f} m",
+                      "how far the read end point moves with the given one (slope; 1: followed, 0: ignored):",
+                      *(f"  {k:32s} forward {_slope(v['forward_slope'])}  lateral {_slope(v['lateral_slope'])}  "
+                        f"(n={v['n']})" for k, v in rep["followed"].items()),
                       f"command accuracy (flow labeler): {acc}"])
     groups = {"L2 mean": {k: rep[k]["trajectory_difference_m"] for k in CONTROL_ROWS},
               "L2 at 4 s": {k: rep[k]["trajectory_difference_final_m"]

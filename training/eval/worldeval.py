@@ -209,6 +209,24 @@ def _l2(pred: np.ndarray, target: np.ndarray) -> dict:
             "yaw_difference_deg": e["yaw_err_deg"], "n": e["n"]}
 
 
+def _end(traj: np.ndarray) -> list[float]:
+    """The last waypoint's (x forward, y left) in metres, rounded for the report."""
+    return [round(float(traj[-1, 0]), 2), round(float(traj[-1, 1]), 2)]
+
+
+def end_point_slopes(read: np.ndarray, given: np.ndarray) -> dict:
+    """How far the trajectory read off the videos moves with the one they were given, per axis of the last
+    waypoint: the least-squares slope of read on given over the videos (1: followed one for one; 0: the read
+    does not change with the given one). ``read``/``given`` ``(N, K, 3)``. Trajectory Difference mixes speed and
+    steering; these two numbers tell them apart ("forward" is mostly speed, "lateral" mostly the turn)."""
+    out: dict[str, Any] = {"n": int(len(read))}
+    for name, ax in (("forward", 0), ("lateral", 1)):
+        g, r = given[:, -1, ax].astype(np.float64), read[:, -1, ax].astype(np.float64)
+        var = float(np.var(g))
+        out[f"{name}_slope"] = float(np.mean((g - g.mean()) * (r - r.mean())) / var) if var > 1e-9 else None
+    return out
+
+
 def flow_labeler_status() -> tuple[Any, str]:
     """(FlowLabeler instance or None, reason). The labeler is part of this tree, so always the default one and
     no reason; callers keep the pair form to say why a metric is missing."""
@@ -294,7 +312,15 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
         "idm_on_recorded_video": _l2(pred_gt, np.stack(expert_t)),
         "idm_on_recorded_through_vae": _l2(pred_vae, np.stack(expert_t)),
         "non_expert_vs_recorded_trajectory_m": _l2(np.stack(non_t), np.stack(expert_t))["trajectory_difference_m"],
-        "pairs": [{"clip": c.key, "non_expert_from": clips[j].key} for c, j in zip(clips, others)],
+        "followed": {"rollouts": end_point_slopes(np.concatenate([pred_e, pred_n]),
+                                                  np.concatenate([np.stack(expert_t), np.stack(non_t)])),
+                     "idm_on_recorded_video": end_point_slopes(pred_gt, np.stack(expert_t)),
+                     "idm_on_recorded_through_vae": end_point_slopes(pred_vae, np.stack(expert_t))},
+        "pairs": [{"clip": c.key, "non_expert_from": clips[j].key,
+                   "end_m": {"expert": _end(expert_t[i]), "expert_read": _end(pred_e[i]),
+                             "non_expert": _end(non_t[i]), "non_expert_read": _end(pred_n[i]),
+                             "recorded_read": _end(pred_gt[i])}}
+                  for i, (c, j) in enumerate(zip(clips, others))],
     }
     labeler, reason = flow_labeler_status()
     if labeler is None:
