@@ -14,7 +14,7 @@
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
 # hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, and stage 5,
 # the trajectory taught on them too, always run.
-# Without STAGE_1B: about 4.5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
+# Without STAGE_1B: about 5 hours on 2 cores (the IDM and Trajectory Difference at the end: ~20 min) (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
 # and its 216-episode fork world: about 1 hour on a slow day).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -119,9 +119,18 @@ $R eval vae --vae "$VAE" --shards "$W/heldout" --out "$W/eval/vae"
 step "eval commands"
 $R eval commands --checkpoint "$WORLD" --shards "$W/heldout" --all-clips --limit 24 --steps 25 \
    --out "$W/eval/commands"
+# Trajectory Difference needs an IDM: trained on the stage-5 fork world's CARLA-layout clips (1,203 with
+# trajectories; the seed-7 shards' 346 were too few: it overfit and lost to constant velocity), never on seed 1000
+if [ ! -f "$W/idm/idm_report.json" ]; then
+  step "eval idm (for Trajectory Difference)"
+  $R eval idm --preset tiny --shards "$W/forks72" --out "$W/idm"
+fi
+step "eval control"
+$R eval control --checkpoint "$WORLD" --shards "$W/heldout" --idm "$W/idm" --all-clips --limit 12 --steps 25 \
+   --out "$W/eval/control"
 
 if [ "${INSTALL:-0}" = 1 ]; then
   step "installing into configs/models"
   .venv/bin/python -m training.export_synth --vae "$VAE" --world "$WORLD" --out configs/models
 fi
-step "done: $W/eval/vae/vae.json, $W/eval/commands/commands.json"
+step "done: $W/eval/vae/vae.json, $W/eval/commands/commands.json, $W/eval/control/control.json"
