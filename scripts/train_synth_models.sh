@@ -14,8 +14,8 @@
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
 # hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, and stage 5,
 # the trajectory taught on them too, always run.
-# Without STAGE_1B: about 5 hours on 2 cores (the IDM and Trajectory Difference at the end: ~20 min) (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
-# and its 216-episode fork world: about 1 hour on a slow day).
+# Without STAGE_1B: about 5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
+# and its 216-episode fork world: about 1 hour on a slow day; the IDM and Trajectory Difference at the end: ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}

@@ -10,7 +10,8 @@ clip's recorded frames / trajectory:
   report gives its L2 to the conditioning trajectory (mean over waypoints, and at 4 s), plus, when the
   optical-flow labeler (``labeling``) is importable, the share of generated videos whose flow
   command equals the conditioning command. The IDM's error on the *recorded* video of the same clips is the
-  floor the generated numbers should be read against.
+  floor the generated numbers should be read against; on the recorded latents decoded through the VAE, the
+  floor of any model that generates through that VAE. ``followed`` splits the distance into speed and turn.
 * :func:`planning_eval` (ReSim's video-prediction policy): rollout with no trajectory and the null prompt
   (no action condition), IDM on the predicted future → trajectory; baselines: the VO-style planner (the
   IDM's architecture on history frames only) and constant velocity; ADE/FDE against the recorded future.
