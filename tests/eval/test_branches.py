@@ -114,3 +114,31 @@ def test_forks_without_trajectories_are_left_out_of_the_trajectory_branches():
                          tclips[0].command, 9, 10.0, False)
     assert trajectory_groups(tclips, counterfactual_groups(tclips)) == [[3, 4, 5]]
     assert len(sibling_trajectory_requests(tclips, [[3, 4, 5]])) == 9
+
+
+def test_the_swap_test_reads_the_condition_through_a_pull_that_defeats_nearest_branch_scoring():
+    clips, rec = _forks()
+    groups = counterfactual_groups(clips)
+    cmds = [c.command for c in clips]
+    rng = np.random.default_rng(2)
+    noise = lambda: rng.normal(0, 0.05, rec.shape).astype(np.float32)
+    # every rollout pulled 80 % of the way to the left branch, but still moved 20 % towards its own
+    pulled = {c: (0.8 * LEVEL["Turning left"] + 0.2 * LEVEL[c]) + noise() for c in COMMANDS}
+    rep = branch_matching(pulled, rec, cmds, groups)
+    assert rep["commanded"]["accuracy"] == pytest.approx(1 / 3)        # nearest sibling: always "left"
+    sw = rep["swap_test"]
+    assert sw["accuracy"] == 1.0 and sw["n"] == 27 and sw["left_right"]["n"] == 9    # 9 clips x 3 pairs
+    assert sw["histories_above_chance"] == 3 and sw["mean_cosine"] > 0.5
+    # blind to the condition, same noise for every command (as commands_eval draws it): all ties, exactly chance
+    same = noise()
+    blind = {c: 0.7 + same for c in COMMANDS}
+    sb = branch_matching(blind, rec, cmds, groups)["swap_test"]
+    assert sb["accuracy"] == 0.5 and sb["mean_cosine"] == 0.0 and sb["histories_above_chance"] == 0
+    # blind, independent noise per command: near chance, not above it
+    indep = {c: 0.7 + rng.normal(0, 0.3, rec.shape).astype(np.float32) for c in COMMANDS}
+    assert abs(branch_matching(indep, rec, cmds, groups)["swap_test"]["mean_cosine"]) < 0.2
+    # turns swapped: every left/right pair wrong
+    swapped = {"Turning left": pulled["Turning right"], "Moving forward": pulled["Moving forward"],
+               "Turning right": pulled["Turning left"]}
+    assert branch_matching(swapped, rec, cmds, groups)["swap_test"]["left_right"]["accuracy"] == 0.0
+    assert "swap test" in format_branches(rep)

@@ -22,6 +22,17 @@ Chance is ``1 / (number of siblings)`` per history, averaged; the **null prompt*
 is scored against each sibling's command as a control (a model that ignores the command sits at chance there too,
 by construction). A history is counted once per sibling clip: siblings are different posterior samples of the same
 frames, so each gives its own rollouts.
+
+Nearest-sibling scoring has a weakness: where one sibling's recorded future is closest to any bland future (on
+seed 1003's trajectory forks a motionless future, the last history latent repeated, is nearest the left-turn
+sibling in 9 of 13 histories and never the right), a model whose rollouts are weakly conditioned lands there
+whatever it was given (docs/models/synth-world.md, "Stage 6"). The null prompt shows where the pull lies but does
+not remove it. The **swap test** reads the same
+rollouts without that pull: for each history and each pair of asked conditions ``(a, b)``, the pair is right when
+the matching assignment is nearer than the swapped one, ``d(g_a, r_a) + d(g_b, r_b) < d(g_a, r_b) + d(g_b, r_a)``,
+which is ``<g_a - g_b, r_a - r_b> > 0``: the two rollouts differ the way the two recorded futures differ. A shared
+pull moves ``g_a`` and ``g_b`` alike and cancels. A model blind to the condition makes ``g_a`` and ``g_b``
+exchangeable (or equal, under the same noise: a tie, counted 1/2), so chance is exactly 0.5.
 """
 from __future__ import annotations
 
@@ -89,7 +100,46 @@ def branch_matching(generated: dict[str, np.ndarray], recorded: np.ndarray, comm
            "mean_distance": {"own_branch": float(np.mean(own_d)), "other_branches": float(np.mean(other_d))}}
     if null_key is not None:
         out["null_prompt"] = _confusion(m_null)
+    out["swap_test"] = swap_test(generated, recorded, commands, groups)
     return out
+
+
+def swap_test(generated: dict[str, np.ndarray], recorded: np.ndarray, commands: Sequence[str],
+              groups: Sequence[Sequence[int]]) -> dict:
+    """The swap test of the module docstring, on :func:`branch_matching`'s arguments.
+
+    Returns ``{"accuracy", "n", "left_right": {"accuracy", "n"}, "mean_cosine", "histories_above_chance",
+    "histories"}``: ``n`` pairs (each sibling clip's rollouts x each pair of asked commands); ``left_right`` the
+    pairs of the two turns alone; ``mean_cosine`` of ``g_a - g_b`` with ``r_a - r_b`` (0 for a blind model, 1 for
+    one that moves exactly as the recorded futures differ, whatever the scale); ``histories_above_chance``: the
+    histories whose pairs score above 0.5. Ties (identical rollouts) count 1/2."""
+    scores, lr, cos, per_history = [], [], [], []
+    for g in groups:
+        by_cmd: dict[str, list[int]] = defaultdict(list)
+        for i in g:
+            by_cmd[commands[i]].append(i)
+        asked = [c for c in COMMANDS if c in by_cmd]
+        rec = {c: np.mean([recorded[j] for j in by_cmd[c]], axis=0, dtype=np.float64).ravel() for c in asked}
+        mine = []
+        for i in g:
+            for x, a in enumerate(asked):
+                for b in asked[x + 1:]:
+                    dg = np.asarray(generated[a][i], np.float64).ravel() - np.asarray(generated[b][i], np.float64).ravel()
+                    dr = rec[a] - rec[b]
+                    ip = float(dg @ dr)
+                    s = 0.5 if ip == 0 else float(ip > 0)
+                    scores.append(s)
+                    mine.append(s)
+                    if {a, b} == {COMMANDS[0], COMMANDS[2]}:
+                        lr.append(s)
+                    norm = float(np.linalg.norm(dg) * np.linalg.norm(dr))
+                    cos.append(ip / norm if norm > 0 else 0.0)
+        if mine:
+            per_history.append(float(np.mean(mine)))
+    return {"accuracy": float(np.mean(scores)) if scores else None, "n": len(scores),
+            "left_right": {"accuracy": float(np.mean(lr)) if lr else None, "n": len(lr)},
+            "mean_cosine": float(np.mean(cos)) if cos else None,
+            "histories_above_chance": int(sum(p > 0.5 for p in per_history)), "histories": len(per_history)}
 
 
 def _distances(gen: np.ndarray, recorded: np.ndarray, by_cmd: dict[str, list[int]], asked: list[str]) -> list[float]:
@@ -139,4 +189,11 @@ def format_branches(rep: dict, title: str = "counterfactual branches", given: st
     if "null_prompt" in rep:
         lines.append(f"  {'null_prompt':<24} {rep['null_prompt']['accuracy']:.3f}  (n={rep['null_prompt']['n']})")
     lines.append(f"  mean distance to the {given} branch {d['own_branch']:.4f}, to the others {d['other_branches']:.4f}")
+    sw = rep.get("swap_test")
+    if sw and sw["n"]:
+        lr = sw["left_right"]
+        lines.append(f"  swap test (rollouts differ as the recorded futures do; chance 0.50, no pull): {sw['accuracy']:.3f} "
+                     f"(n={sw['n']} pairs), left vs right {lr['accuracy'] if lr['n'] else float('nan'):.3f} (n={lr['n']}); "
+                     f"{sw['histories_above_chance']} of {sw['histories']} histories above chance; "
+                     f"mean cosine {sw['mean_cosine']:+.3f}")
     return "\n".join(lines)
