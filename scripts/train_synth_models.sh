@@ -12,10 +12,11 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, and stage 5,
-# the trajectory taught on them too, always run.
-# Without STAGE_1B: about 5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
-# and its 216-episode fork world: about 1 hour on a slow day; the IDM and Trajectory Difference at the end: ~20 min).
+# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, and stages
+# 5-6, the trajectory taught on them too, always run.
+# Without STAGE_1B: about 6 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
+# and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; the IDM and Trajectory Difference
+# at the end: ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -78,7 +79,7 @@ if [ "${STAGE_1B:-0}" = 1 ]; then
   fi
   WORLD="$W/world3"
 fi
-# Stages 4-5 share two steps: a fork world (every episode in a triple: one history, then left / straight / right),
+# Stages 4-6 share two steps: a fork world (every episode in a triple: one history, then left / straight / right),
 # and a run of the world model on it from the previous stage's EMA weights (a fresh cosine); each is skipped when
 # done, and a run resumes from its checkpoints.
 fork_world() {  # OUT SEED EPISODES
@@ -107,6 +108,8 @@ fork_stage world4c synth-fork forks71 "stage 4c (a second fork world)"
 # 2c. Stage 5: the trajectory as well as the command, on a third fork world (seed 72, 216 episodes)
 fork_world forks72 72 216
 fork_stage world5 synth-fork-traj forks72 "stage 5 (forks; the trajectory and the command each half the time)"
+# 2d. Stage 6: the same objective, 2,000 more steps on the larger seed-71 fork world (4c's)
+fork_stage world6 synth-fork-traj forks71 "stage 6 (stage 5's objective on the seed-71 forks)"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then
