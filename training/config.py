@@ -106,6 +106,10 @@ class DataConfig:
     load_frames: bool = False              # decode frames.mp4 into Batch.frames (reward model)
     load_dino: bool = False                # Batch.dino from dino.npy (reward model)
     skip_duplicates: bool = True           # skip the clips OUT/dedup/duplicates.parquet lists (pipelines/dedup.py)
+    # the shuffled-command control: each clip's command prompt replaced by the same prefix under a command drawn
+    # from a hash of (seed, key), uniform over the commands the prompt table holds, fixed for the run and any
+    # resume. A model trained so can learn no command; if the evaluation still reads one, it reads something else
+    shuffle_commands: bool = False
     seed: int = 0
     prefetch_factor: int = 2
 

@@ -16,6 +16,7 @@ logical worker ``(b0 + p) % W``, which keeps the global order exactly as in the 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -252,6 +253,9 @@ class StreamLoader:
         self.skipped_before = 0  # skipped samples + bad shard draws of finished epochs
         self._emb: dict[str, torch.Tensor] = {}
         self._tables: dict[tuple, torch.Tensor] = {}
+        self._swap = command_groups(self.prompts) if cfg.shuffle_commands else None
+        if self._swap is not None and not self._swap:
+            raise DataError(f"data.shuffle_commands: the prompt table of {root} holds no command prompts to shuffle")
         if verbose and rank == 0:
             mix = ", ".join(f"{s} {v:.0%}" for s, v in sorted(share.items()))
             print(f"[resim data] {len(urls)} shards, {total} samples ({mix}); {self.plan.batches_per_rank} batches "
@@ -275,6 +279,8 @@ class StreamLoader:
         return self._emb[pid]
 
     def _batch(self, d: dict) -> Batch:
+        if self._swap is not None:
+            d = self._shuffled(d)
         ids = tuple(sorted(set(d["prompt_id"] + d["null_prompt_id"])))
         if ids not in self._tables:  # a handful of combinations per dataset: stack each once, reuse
             embs = [self._embedding(p) for p in ids]
@@ -290,6 +296,20 @@ class StreamLoader:
                      trajectory=d["trajectory"], has_trajectory=d["has_trajectory"], command=d["command"],
                      source=list(d["source"]), keys=list(d["keys"]), meta=list(d["meta"]),
                      frames=d.get("frames"), dino=d.get("dino"))
+
+    def _shuffled(self, d: dict) -> dict:
+        """``data.shuffle_commands``: each clip's command prompt swapped for the same prefix's prompt under
+        :func:`drawn_command` (``Batch.command`` follows; ``meta`` keeps what was recorded). Null prompts stay."""
+        pids, cmds = [], d["command"].clone()
+        for k, (key, pid) in enumerate(zip(d["keys"], d["prompt_id"])):
+            group = self._swap.get(pid)
+            if group is None:
+                pids.append(pid)
+                continue
+            c = drawn_command(key, self.cfg.seed, [c for c in COMMANDS if c in group])
+            pids.append(group[c])
+            cmds[k] = COMMANDS.index(c)
+        return {**d, "prompt_id": pids, "command": cmds}
 
     def __iter__(self) -> Iterator[Batch]:
         W = self.plan.num_workers
@@ -329,3 +349,21 @@ class StreamLoader:
         self.batches_in_epoch = int(d["batches_in_epoch"])
         self.skipped_before = int(d.get("skipped_before", 0))
         self.cursors = {int(k): v for k, v in d["cursors"].items()}
+
+
+def command_groups(prompts: PromptTable) -> dict[str, dict[str, str]]:
+    """Command prompt id -> {command: prompt id} of the prompts that share its prefix and text encoder (the
+    prompts a shuffled command can swap it for)."""
+    by_prefix: dict[tuple, dict[str, str]] = {}
+    for pid, e in prompts.entries().items():
+        c = e.get("command")
+        if e.get("role") == "command" and c in COMMANDS:
+            by_prefix.setdefault((e.get("encoder_id"), e["text"].rsplit(c, 1)[0]), {})[c] = pid
+    return {pid: group for group in by_prefix.values() for pid in group.values()}
+
+
+def drawn_command(key: str, seed: int, commands: list[str]) -> str:
+    """A command for clip ``key``, uniform over ``commands`` and fixed by ``(seed, key)``: the same in every epoch,
+    on every rank and after a resume (a hash, not an RNG stream, so the data order does not matter)."""
+    h = int.from_bytes(hashlib.sha256(f"{seed}:{key}".encode()).digest()[:8], "big")
+    return commands[h % len(commands)]

@@ -304,3 +304,31 @@ def test_pipe_urls_are_refused_unless_allowed(tmp_path, capsys):
     assert url in capsys.readouterr().out
     assert from_dict(DataConfig, {"urls": [url], "allow_pipe_urls": True}).urls == (url,)
     assert not ran.exists()
+
+
+def test_shuffle_commands_draws_each_clips_command_from_its_key_alone(world_dataset):
+    from shards.prompts import PromptTable
+    from shards.schema import COMMANDS
+    table = PromptTable(world_dataset).entries()
+    plain = {k: (m, c) for b in StreamLoader(_cfg(world_dataset), verbose=False)
+             for k, m, c in zip(b.keys, b.meta, b.command.tolist())}
+    seen = {}
+    for b in StreamLoader(_cfg(world_dataset, shuffle_commands=True), verbose=False):
+        for i, k in enumerate(b.keys):
+            pid = b.meta[i]["prompt_id"]
+            assert b.meta[i] == plain[k][0]                                      # the record is kept
+            # the text the model sees is a command prompt of the same prefix, and Batch.command names it
+            shown = [p for p, e in table.items() if torch.equal(b.text[i], torch.tensor(PromptTable(world_dataset).get(p, as_float32=True)))]
+            assert len(shown) == 1 and table[shown[0]]["role"] == "command"
+            assert table[shown[0]]["command"] == COMMANDS[int(b.command[i])]
+            assert table[shown[0]]["text"].rsplit(table[shown[0]]["command"], 1)[0] == table[pid]["text"].rsplit(table[pid]["command"], 1)[0]
+            seen[k] = int(b.command[i])
+    recorded = [plain[k][1] for k in seen]
+    drawn = [seen[k] for k in seen]
+    assert len(set(drawn)) == 3 and drawn != recorded                            # every command, not the recorded ones
+    again = {k: int(c) for b in StreamLoader(_cfg(world_dataset, shuffle_commands=True), verbose=False)
+             for k, c in zip(b.keys, b.command)}
+    assert again == seen                                                         # fixed by the key: any order, any resume
+    other = {k: int(c) for b in StreamLoader(_cfg(world_dataset, shuffle_commands=True, seed=1), verbose=False)
+             for k, c in zip(b.keys, b.command)}
+    assert other != seen
