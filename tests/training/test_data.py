@@ -309,7 +309,10 @@ def test_pipe_urls_are_refused_unless_allowed(tmp_path, capsys):
 def test_shuffle_commands_draws_each_clips_command_from_its_key_alone(world_dataset):
     from shards.prompts import PromptTable
     from shards.schema import COMMANDS
-    table = PromptTable(world_dataset).entries()
+    prompts = PromptTable(world_dataset)
+    table = prompts.entries()
+    emb = {p: torch.tensor(prompts.get(p, as_float32=True)) for p in table}
+    prefix = lambda p: table[p]["text"].rsplit(table[p]["command"], 1)[0]
     plain = {k: (m, c) for b in StreamLoader(_cfg(world_dataset), verbose=False)
              for k, m, c in zip(b.keys, b.meta, b.command.tolist())}
     seen = {}
@@ -318,10 +321,10 @@ def test_shuffle_commands_draws_each_clips_command_from_its_key_alone(world_data
             pid = b.meta[i]["prompt_id"]
             assert b.meta[i] == plain[k][0]                                      # the record is kept
             # the text the model sees is a command prompt of the same prefix, and Batch.command names it
-            shown = [p for p, e in table.items() if torch.equal(b.text[i], torch.tensor(PromptTable(world_dataset).get(p, as_float32=True)))]
+            shown = [p for p in table if torch.equal(b.text[i], emb[p])]
             assert len(shown) == 1 and table[shown[0]]["role"] == "command"
             assert table[shown[0]]["command"] == COMMANDS[int(b.command[i])]
-            assert table[shown[0]]["text"].rsplit(table[shown[0]]["command"], 1)[0] == table[pid]["text"].rsplit(table[pid]["command"], 1)[0]
+            assert prefix(shown[0]) == prefix(pid)
             seen[k] = int(b.command[i])
     recorded = [plain[k][1] for k in seen]
     drawn = [seen[k] for k in seen]

@@ -27,12 +27,12 @@ Nearest-sibling scoring has a weakness: where one sibling's recorded future is c
 seed 1003's trajectory forks a motionless future, the last history latent repeated, is nearest the left-turn
 sibling in 9 of 13 histories and never the right), a model whose rollouts are weakly conditioned lands there
 whatever it was given (docs/models/synth-world.md, "Stage 6"). The null prompt shows where the pull lies but does
-not remove it. The **swap test** reads the same
-rollouts without that pull: for each history and each pair of asked conditions ``(a, b)``, the pair is right when
-the matching assignment is nearer than the swapped one, ``d(g_a, r_a) + d(g_b, r_b) < d(g_a, r_b) + d(g_b, r_a)``,
-which is ``<g_a - g_b, r_a - r_b> > 0``: the two rollouts differ the way the two recorded futures differ. A shared
-pull moves ``g_a`` and ``g_b`` alike and cancels. A model blind to the condition makes ``g_a`` and ``g_b``
-exchangeable (or equal, under the same noise: a tie, counted 1/2), so chance is exactly 0.5.
+not remove it. The **swap test** reads the same rollouts without that pull: for each history and each pair of asked
+conditions ``(a, b)``, the pair is right when the matching assignment is nearer than the swapped one,
+``d(g_a, r_a) + d(g_b, r_b) < d(g_a, r_b) + d(g_b, r_a)``, which is ``<g_a - g_b, r_a - r_b> > 0``: the two
+rollouts differ the way the two recorded futures differ. A shared pull moves ``g_a`` and ``g_b`` alike and
+cancels. A model blind to the condition makes ``g_a`` and ``g_b`` exchangeable (or equal, under the same noise: a
+tie, counted 1/2), so chance is exactly 0.5.
 """
 from __future__ import annotations
 
@@ -81,10 +81,7 @@ def branch_matching(generated: dict[str, np.ndarray], recorded: np.ndarray, comm
     m_null = np.zeros((3, 3), dtype=int)
     chance, own_d, other_d = [], [], []
     for g in groups:
-        by_cmd: dict[str, list[int]] = defaultdict(list)
-        for i in g:
-            by_cmd[commands[i]].append(i)
-        asked = [c for c in COMMANDS if c in by_cmd]
+        by_cmd, asked = _siblings(g, commands)
         for i in g:                                          # each sibling's own rollouts of the shared history
             for c in asked:
                 d = _distances(generated[c][i], recorded, by_cmd, asked)
@@ -115,10 +112,7 @@ def swap_test(generated: dict[str, np.ndarray], recorded: np.ndarray, commands: 
     histories whose pairs score above 0.5. Ties (identical rollouts) count 1/2."""
     scores, lr, cos, per_history = [], [], [], []
     for g in groups:
-        by_cmd: dict[str, list[int]] = defaultdict(list)
-        for i in g:
-            by_cmd[commands[i]].append(i)
-        asked = [c for c in COMMANDS if c in by_cmd]
+        by_cmd, asked = _siblings(g, commands)
         rec = {c: np.mean([recorded[j] for j in by_cmd[c]], axis=0, dtype=np.float64).ravel() for c in asked}
         mine = []
         for i in g:
@@ -140,6 +134,14 @@ def swap_test(generated: dict[str, np.ndarray], recorded: np.ndarray, commands: 
             "left_right": {"accuracy": float(np.mean(lr)) if lr else None, "n": len(lr)},
             "mean_cosine": float(np.mean(cos)) if cos else None,
             "histories_above_chance": int(sum(p > 0.5 for p in per_history)), "histories": len(per_history)}
+
+
+def _siblings(group: Sequence[int], commands: Sequence[str]) -> tuple[dict[str, list[int]], list[str]]:
+    """A fork's clips by recorded command, and the commands asked of it (those some sibling recorded)."""
+    by_cmd: dict[str, list[int]] = defaultdict(list)
+    for i in group:
+        by_cmd[commands[i]].append(i)
+    return by_cmd, [c for c in COMMANDS if c in by_cmd]
 
 
 def _distances(gen: np.ndarray, recorded: np.ndarray, by_cmd: dict[str, list[int]], asked: list[str]) -> list[float]:
