@@ -10,7 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-OURS = ("shards", "labeling", "pipelines", "training", "media", "resim", "bench", "scripts")
+OURS = ("shards", "labeling", "pipelines", "training", "media", "synthworld", "resim", "bench", "scripts")
 
 # Every `resim` call imports the CLI modules to register their subcommands (resim/cli.py COMMANDS), so their
 # handlers import what they need (numpy, torch, the models) when they run: `resim --help` stays fast.

@@ -120,8 +120,8 @@ def test_cli_writes_dataset_and_contact_sheet(tmp_path, capsys):
 def test_random_explorer_drives_past_its_64_random_segments():
     # the random explorer draws 64 segments of 0.5-1.5 s; a longer episode (--set episode_s=64) indexed past
     # them and crashed the generator. Segments now repeat; shorter episodes keep their bytes.
-    from pipelines.sources.synth.drivers import _segment, simulate
-    from pipelines.sources.synth.world import build_road
+    from synthworld.drivers import _segment, simulate
+    from synthworld.world import build_road
 
     changes = np.array([1.0, 2.0, 3.0])
     assert [_segment(changes, t) for t in (0.5, 1.5, 2.5, 3.5, 4.5)] == [0, 1, 2, 0, 1]

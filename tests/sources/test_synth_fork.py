@@ -7,9 +7,9 @@ import pytest
 from labeling.commands import command_from_trajectory
 from labeling.config import LabelerConfig
 from labeling.trajectory import trajectory_from_poses
-from pipelines.sources.synth.fork import FORK_BRANCHES, build_fork_world
+from synthworld.fork import FORK_BRANCHES, build_fork_world
 from pipelines.sources.synth.generate import _simulate_episode, generate, plan_episodes, preset
-from pipelines.sources.synth.render import Camera, Renderer
+from synthworld.render import Camera, Renderer
 from resim.config import ConfigError
 
 HISTORY_FRAMES = 9    # ReSim's clip at 10 Hz: 9 history + 40 future frames

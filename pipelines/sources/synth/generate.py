@@ -28,12 +28,12 @@ from tqdm import tqdm
 
 from resim.config import ConfigError, from_dict, to_dict
 
-from .drivers import EXPLORER_PATTERNS, Trace, simulate
-from .fork import FORK_BRANCHES, build_fork_world
+from synthworld.drivers import EXPLORER_PATTERNS, Trace, simulate
+from synthworld.fork import FORK_BRANCHES, build_fork_world
 from .ground_truth import command_share
-from .render import Camera, Renderer
-from .score import Score, score_trace
-from .world import LANE_OFFSET_M, World, build_road
+from synthworld.render import Camera, Renderer
+from synthworld.score import Score, score_trace
+from synthworld.world import LANE_OFFSET_M, World, build_road
 from . import writers
 
 PARTS = ("opendv", "navsim", "carla")

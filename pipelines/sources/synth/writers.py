@@ -31,8 +31,8 @@ import numpy as np
 
 from ..carla import ours_to_carla
 from ..navsim import yaw_quaternion
-from .drivers import Trace
-from .score import Score
+from synthworld.drivers import Trace
+from synthworld.score import Score
 
 NAVSIM_T0_US = 1_700_000_000_000_000     # synthetic logs start at this Unix time (us)
 ROAD_OPTION = {"left": 1, "right": 2, "straight": 3, "lanefollow": 4}

@@ -17,6 +17,9 @@ between consecutive poses points along their mean yaw).
   ``stop``    brakes to a standstill and waits 4-8 s (low speed), then goes on;
   ``speeding``twice the expert's speed, ignores curves (runs wide in turns, rear-ends the lead car).
 After a collision the ego stops for good (the episode is cut 2 s later).
+
+``Ego`` is the vehicle all of them drive (and an external policy, through closed_loop.py): it moves,
+tracks its lane, collides and records the trace, whoever chooses the curvature and acceleration.
 """
 from __future__ import annotations
 
@@ -101,15 +104,92 @@ def _segment(changes: np.ndarray, t: float) -> int:
     return int(np.searchsorted(changes, t % changes[-1]))
 
 
+class Ego:
+    """The ego vehicle in a world, stepped at ``sim_hz``: the kinematic unicycle, its place in the lane, its
+    collisions, and the record of what happened (``trace()``). Whoever drives it (the built-in drivers of
+    ``simulate``, or an external policy through ``closed_loop``) chooses a curvature and an acceleration at
+    every step; the vehicle's physics and the rules that score it are the same for all of them."""
+
+    def __init__(self, world: World, sim_hz: float):
+        self.world, self.sim_hz, self.dt = world, sim_hz, 1.0 / sim_hz
+        self.tracker = _LaneTracker(world)
+        (x, y), yaw = world.route.at(world.start_s_m, LANE_OFFSET_M)
+        self.x, self.y, self.yaw = float(x), float(y), float(yaw)
+        self.v = 0.8 * _curve_speed(world, self.tracker.i, world.nominal_speed_mps)
+        self.step_index = 0
+        self.rows: list[tuple] = []
+        self.collisions: list[tuple[int, str, str]] = []
+        self.hit: set = set()
+        self.crashed_at: int | None = None
+        self.end: int | None = None     # after a collision, the step the episode is cut at (2 s later)
+
+    @property
+    def t_s(self) -> float:
+        return self.step_index * self.dt
+
+    @property
+    def crashed(self) -> bool:
+        return self.crashed_at is not None
+
+    def locate(self) -> tuple[int, float]:
+        """(index of the nearest ego-lane sample, signed deviation from the lane centre in m, left +)."""
+        return self.tracker.locate(self.x, self.y)
+
+    def step(self, j: int, dev: float, k_cmd: float, acc: float) -> bool:
+        """Record the current state with the command (curvature 1/m, left +; acceleration m/s^2), check for
+        a collision there, then move one step. After a collision the ego stands still whatever it is told.
+        Returns False once the episode is over (2 s after a collision)."""
+        if self.crashed:
+            k_cmd, acc, self.v = 0.0, 0.0, 0.0
+        k_cmd = min(K_MAX, max(-K_MAX, float(k_cmd)))
+        step, x, y, yaw, v = self.step_index, self.x, self.y, self.yaw, self.v
+        self.rows.append((self.t_s, x, y, yaw, v, k_cmd, acc, self.world.route.s[j], dev))
+        if not self.crashed:
+            c = _collide(self.world, x, y, yaw, self.t_s, self.hit)
+            if c is not None:
+                self.collisions.append((step, *c))
+                self.crashed_at = step
+                self.end = step + int(round(2.0 * self.sim_hz)) + 1
+        self.step_index += 1
+        if self.end is not None and self.step_index >= self.end:
+            return False
+        self.x, self.y, self.yaw = _arc_step(x, y, yaw, v, k_cmd, self.dt)
+        self.v = max(0.0, v + acc * self.dt)
+        return True
+
+    def trace(self, driver: str = "expert", pattern: str | None = None) -> Trace:
+        arr = np.array(self.rows)
+        poses = arr[:, 1:4]
+        acc = arr[:, 6]
+        return Trace(t_s=arr[:, 0], poses=poses, speed_mps=arr[:, 4], curvature=arr[:, 5], accel_mps2=acc,
+                     throttle=np.clip(acc / A_MAX, 0, 1), brake=np.clip(-acc / -A_MIN, 0, 1),
+                     route_s_m=arr[:, 7], lane_dev_m=arr[:, 8],
+                     road_dist_m=self.world.distance_to_roads(poses[:, :2]), collisions=list(self.collisions),
+                     driver=driver, pattern=pattern)
+
+
+def expert_command(ego: Ego, j: int) -> tuple[float, float]:
+    """The expert's (curvature 1/m, target speed m/s) for the ego at lane sample ``j``: pure pursuit on the
+    ego-lane centre; speed limited by the curvature ahead and by a lead car."""
+    world = ego.world
+    k = _pure_pursuit(world, ego.tracker.lane, j, ego.x, ego.y, ego.yaw, ego.v)
+    v_des = _curve_speed(world, j, world.nominal_speed_mps)
+    lead_gap = _lead_gap(world, ego.x, ego.y, ego.yaw, ego.t_s)
+    if lead_gap is not None:
+        v_des = min(v_des, max(0.0, (lead_gap - 8.0) * 0.5))
+    return k, v_des
+
+
+def speed_command(v_des: float, v: float) -> float:
+    """Acceleration (m/s^2) towards the target speed, within the vehicle's limits."""
+    return min(A_MAX, max(A_MIN, 1.2 * (v_des - v)))
+
+
 def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Generator,
              driver: str = "expert", pattern: str | None = None) -> Trace:
     n = int(round(duration_s * sim_hz))
-    dt = 1.0 / sim_hz
-    tr = _LaneTracker(world)
-    (x, y), yaw = world.route.at(world.start_s_m, LANE_OFFSET_M)
-    x, y, yaw = float(x), float(y), float(yaw)
+    ego = Ego(world, sim_hz)
     v_max = world.nominal_speed_mps
-    v = 0.8 * _curve_speed(world, tr.i, v_max)
     # explorer parameters
     p = {}
     if driver == "explorer":
@@ -123,63 +203,29 @@ def simulate(world: World, duration_s: float, sim_hz: float, rng: np.random.Gene
         p["changes"] = np.cumsum(rng.uniform(0.5, 1.5, 64))
         p["rand_k"] = rng.uniform(-0.12, 0.12, 64)
         p["rand_a"] = rng.uniform(-3.0, 2.5, 64)
-    rows = []
-    collisions: list[tuple[int, str, str]] = []
-    hit: set = set()
-    crashed_at = None
-    end = n
-    for step in range(n):
-        t = step * dt
-        j, dev = tr.locate(x, y)
-        k_pp = _pure_pursuit(world, tr.lane, j, x, y, yaw, v)
-        v_des = _curve_speed(world, j, v_max)
-        lead_gap = _lead_gap(world, x, y, yaw, t)
-        if lead_gap is not None:
-            v_des = min(v_des, max(0.0, (lead_gap - 8.0) * 0.5))
-        k_cmd = k_pp
+    for _ in range(n):
+        t, x, y, yaw, v = ego.t_s, ego.x, ego.y, ego.yaw, ego.v
+        j, dev = ego.locate()
+        k_cmd, v_des = expert_command(ego, j)
         if driver == "explorer":
             if pattern == "drift" and t >= p["t0"]:
                 k_cmd = p["bias"]
             elif pattern == "swerve":
-                k_cmd = k_pp + p["amp"] * math.sin(2 * math.pi * t / p["period"])
+                k_cmd = k_cmd + p["amp"] * math.sin(2 * math.pi * t / p["period"])
             elif pattern == "random":
-                idx = _segment(p["changes"], t)
-                k_cmd = float(p["rand_k"][idx])
+                k_cmd = float(p["rand_k"][_segment(p["changes"], t)])
             elif pattern == "stop" and p["t0"] <= t < p["t0"] + p["stop_for"]:
                 v_des = 0.0
             elif pattern == "speeding":
                 v_des = 2.0 * v_max
-        if crashed_at is not None:
-            v_des, k_cmd = 0.0, 0.0
-        if driver == "explorer" and pattern == "random" and crashed_at is None:
+        if driver == "explorer" and pattern == "random" and not ego.crashed:
             idx = _segment(p["changes"], t)
             acc = float(p["rand_a"][idx]) if v > 0.5 or p["rand_a"][idx] > 0 else 0.0
         else:
-            acc = min(A_MAX, max(A_MIN, 1.2 * (v_des - v)))
-        if crashed_at is not None:
-            acc = 0.0
-            v = 0.0
-        k_cmd = min(K_MAX, max(-K_MAX, float(k_cmd)))
-        rows.append((t, x, y, yaw, v, k_cmd, acc, world.route.s[j], dev))
-        # collisions at the current pose
-        if crashed_at is None:
-            c = _collide(world, x, y, yaw, t, hit)
-            if c is not None:
-                collisions.append((step, *c))
-                crashed_at = step
-                end = min(n, step + int(round(2.0 * sim_hz)) + 1)
-        if step + 1 >= end:
+            acc = speed_command(v_des, v)
+        if not ego.step(j, dev, k_cmd, acc):
             break
-        x, y, yaw = _arc_step(x, y, yaw, v, k_cmd, dt)
-        v = max(0.0, v + acc * dt)
-    arr = np.array(rows)
-    poses = arr[:, 1:4]
-    acc = arr[:, 6]
-    return Trace(t_s=arr[:, 0], poses=poses, speed_mps=arr[:, 4], curvature=arr[:, 5], accel_mps2=acc,
-                 throttle=np.clip(acc / A_MAX, 0, 1), brake=np.clip(-acc / -A_MIN, 0, 1),
-                 route_s_m=arr[:, 7], lane_dev_m=arr[:, 8],
-                 road_dist_m=world.distance_to_roads(poses[:, :2]), collisions=collisions,
-                 driver=driver, pattern=pattern)
+    return ego.trace(driver, pattern)
 
 
 def _lead_gap(world: World, x, y, yaw, t):
