@@ -46,6 +46,9 @@ class Observation:
                (fewer at the very start of an episode).
     speed_mps: the ego's speedometer.
     t_s:       time since the episode began.
+    command:   the navigation command ("Turning left", "Moving forward", "Turning right": ReSim's text
+               conditions) from the caller's itinerary (``drive(command_at=...)``), or None. At a junction
+               the frames do not say which way the route goes; a route planner does.
     pose:      privileged: the true (x m, y m, yaw rad) in the world frame. Only the true simulator has it,
                for reference planners (``policies.RoutePlanner``); a policy that is to run inside a world
                model must not read it (the world model has no such thing).
@@ -54,6 +57,7 @@ class Observation:
     frames: np.ndarray
     speed_mps: float
     t_s: float
+    command: str | None = None
     pose: np.ndarray | None = None
 
 
@@ -164,9 +168,11 @@ class LoopResult:
 
 
 def drive(world: World, policy: Callable[[Observation], np.ndarray], renderer: Renderer,
-          cfg: LoopConfig | None = None, name: str | None = None) -> LoopResult:
+          cfg: LoopConfig | None = None, name: str | None = None,
+          command_at: Callable[[float], str] | None = None) -> LoopResult:
     """Drive ``policy`` in ``world`` for ``cfg.seconds`` and score it. Deterministic for a deterministic
-    policy (the world moves on its own clock and the renderer draws nothing at random per frame)."""
+    policy (the world moves on its own clock and the renderer draws nothing at random per frame).
+    ``command_at(t_s)``: the navigation command the policy is given at each decision (None: none)."""
     cfg = cfg or LoopConfig()
     who = name or type(policy).__name__
     ego = Ego(world, cfg.sim_hz)
@@ -187,7 +193,7 @@ def drive(world: World, policy: Callable[[Observation], np.ndarray], renderer: R
         else:
             if (step - handover) % plan_every == 0:
                 obs = Observation(frames=np.stack(frames[-cfg.history_frames:]), speed_mps=ego.v, t_s=ego.t_s,
-                                  pose=pose)
+                                  command=command_at(ego.t_s) if command_at is not None else None, pose=pose)
                 plan = check_plan(policy(obs), who)
                 plans.append((ego.t_s, plan))
                 follower.set_plan(plan, pose, ego.t_s)

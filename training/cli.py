@@ -13,6 +13,7 @@ import yaml
 from resim.config import ConfigError, to_dict
 from training.launch import add_launch_arguments, main_launch
 from training.presets import PRESETS
+from training.policy.cli import add_train_parser as add_policy_parser
 from training.reward.cli import add_train_parser as add_reward_parser
 
 TRAIN_EPILOG = """\
@@ -131,6 +132,7 @@ def register(subparsers) -> None:
         s.set_defaults(func=_cmd_train, model_name=name)
 
     add_reward_parser(sub)  # Video2Reward has its own data path (clips with infraction scores), see docs/reward.md
+    add_policy_parser(sub)  # the pixel driving policy: expert clips held in memory, see docs/closed_loop.md
     lp = sub.add_parser(
         "launch", help="run `resim train ...` on N nodes x G processes with torchrun, print a SLURM script, or dry-run",
         description="Wrap torchrun around `resim train NAME ...` (the arguments after `--`).",

@@ -21,6 +21,7 @@ BUILDERS: dict[str, str] = {
     "vae": "training.vae:build_vae",
     "reward": "training.reward.train:build_reward",
     "idm": "training.eval.idm:build_idm",
+    "policy": "training.policy.model:build_policy",
     "distill": "training.distill:build_distill",
 }
 

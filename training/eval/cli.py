@@ -18,6 +18,7 @@ from resim.argtypes import height_width as _hw, local_dir as _local_dir, positiv
 from resim.argtypes import torch_device as _torch_device
 from resim.config import ConfigError, apply_overrides, from_dict
 from resim.models import shipped_model
+from shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
 from training.sampling.cli import UsageError, resolve_device
 
 REPO = Path(__file__).resolve().parents[2]
@@ -102,6 +103,17 @@ share of clips whose recorded command gives the lowest v-loss of the three (chan
 higher the loss is under the opposite turn / the null prompt. It reads the model itself, where `resim eval
 commands` reads decoded rollouts (capped by the VAE, see its recorded_through_vae). Writes
 OUT/command_loss.json (per level, per command, per clip) and OUT/command_loss.png.
+"""
+
+CLOSED_LOOP_EPILOG = """\
+example (the shipped synthetic-world model; policy and IDM trained on fork worlds of other seeds):
+  resim train policy --shards data/forks --out runs/policy
+  resim eval idm --shards data/forks --out runs/idm --preset tiny
+  resim eval closed-loop --checkpoint synth-world --shards data/forks --policy runs/policy --idm runs/idm \\
+      --out out/closed-loop --steps 10
+--shards gives the prompt table and the VAE the world model was trained with; the starting states are built
+from --state-seed, not read from it. Writes OUT/closed_loop.json and OUT/closed_loop.png (true score against
+each world-model reading, one point per policy).
 """
 
 DRIFT_EPILOG = """\
@@ -302,6 +314,27 @@ def register(subparsers) -> None:
     i.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
     i.set_defaults(func=_cmd_idm)
+
+    cl = sub.add_parser("closed-loop", help="policies driven in the true synthetic world and inside the world model: "
+                                            "do both rank them alike?",
+                        description="Drive a pixel policy and its degraded versions (steering noise, steering bias, "
+                                    "constant velocity) from fork-world starting states of a fresh seed, in the true "
+                                    "simulator and inside the world model; score each by the true rules and by the "
+                                    "IDM proxy on the video; report Spearman's rho across policies with a bootstrap "
+                                    "over states (docs/closed_loop.md).",
+                        epilog=CLOSED_LOOP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _world_args(cl)
+    cl.add_argument("--policy", required=True, help="policy run folder (resim train policy)")
+    cl.add_argument("--also", nargs="*", default=[], metavar="POLICY_RUN",
+                    help="more policy runs to rank beside it (e.g. an under-trained one)")
+    cl.add_argument("--idm", required=True, help="IDM run folder (resim eval idm): reads the driven path off video")
+    cl.add_argument("--states", type=_positive_int, default=6, help="starting states (fork worlds; default 6)")
+    cl.add_argument("--state-seed", type=int, default=5000,
+                    help="seed of the starting-state worlds (default 5000: use one no training data came from)")
+    cl.add_argument("--seconds", type=float, default=8.0, help="seconds the policy drives after the 0.8-s history "
+                    "(>= 4; default 8)")
+    cl.add_argument("--true-only", action="store_true", help="the true world only (no world model: seconds)")
+    cl.set_defaults(func=_cmd_closed_loop)
 
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
@@ -621,7 +654,6 @@ def _cmd_command_loss(args) -> int:
 
 
 def _cmd_drift(args) -> int:
-    from shards.schema import COMMANDS
     from training.eval.drift import drift_eval, drift_strip, format_drift, plot_drift
     from training.eval.report import format_protocol
 
@@ -648,6 +680,20 @@ def _cmd_drift(args) -> int:
                 times_s=[s for s in (0, 2, 5, 10, 20, 30) if s <= args.seconds])
     _finish(out, "drift", rep, "\n".join([format_protocol(rep["protocol"]), format_drift(rep)]),
             lambda p: plot_drift(rep, p, title=f"{len(clips)} held-out histories, {args.seconds:g} s"))
+    return 0
+
+
+def _cmd_closed_loop(args) -> int:
+    from training.eval.closed_loop import ClosedLoopInputError, plot_closed_loop, run_closed_loop
+
+    if not _device(args, "closed-loop"):
+        return 2
+    try:
+        rep, text = run_closed_loop(args, None if args.true_only else _runner)
+    except ClosedLoopInputError as e:
+        print(f"resim eval closed-loop: {e}", file=sys.stderr)
+        return 2
+    _finish(Path(args.out), "closed_loop", rep, text, lambda p: plot_closed_loop(rep, p))
     return 0
 
 

@@ -1,0 +1,71 @@
+"""`resim eval closed-loop`'s parts (training/eval/closed_loop.py): the IDM proxy chains 4-s windows into one
+path, a path scored on the map gives the expert 100 and a path off the lane less, and the rank agreement reads
+Spearman's rho with a bootstrap over states."""
+import numpy as np
+import pytest
+import torch
+
+from synthworld.drivers import simulate
+from training.eval.closed_loop import ClosedLoopConfig, idm_path, path_score, rank_agreement, starting_states
+from training.eval.idm import IDMConfig
+
+
+class StraightIDM(torch.nn.Module):
+    """Reads 2 m forward per 0.5 s whatever it sees, and counts its windows."""
+
+    def __init__(self):
+        super().__init__()
+        self.cfg = IDMConfig(input_hw=(16, 24), channels=(8, 16))
+        self.w = torch.nn.Parameter(torch.zeros(1))
+        self.calls = 0
+
+    def forward(self, video):
+        self.calls += 1
+        assert video.shape[1:3] == (21, 3)
+        t = torch.arange(1, 9, dtype=torch.float32)
+        return torch.stack([2.0 * t, 0 * t, 0 * t], -1)[None].expand(video.shape[0], -1, -1)
+
+
+def test_the_idm_proxy_chains_windows_into_one_path():
+    idm = StraightIDM()
+    frames = np.zeros((9 + 80 + 1, 32, 48, 3), np.uint8)           # history, 8 s, and the last window's end
+    path = idm_path(idm, frames, 8, 10.0, (32, 48))
+    assert idm.calls == 2 and path.shape == (17, 3)
+    assert np.allclose(path[:, 0], np.arange(17) * 2.0) and np.allclose(path[:, 1:], 0)
+    # a partial last window is read from the window ending at the last frame; only its new part is kept
+    idm.calls = 0
+    path = idm_path(idm, frames[:9 + 60 + 1], 8, 10.0, (32, 48))
+    assert idm.calls == 2 and path.shape == (13, 3) and np.allclose(np.diff(path[:, 0]), 2.0)
+
+
+def test_a_path_on_the_map_scores_the_expert_100_and_a_drift_less():
+    cfg = ClosedLoopConfig(states=3)
+    st = starting_states(cfg)[1]
+    ex = simulate(st.world, 8.8, 20.0, np.random.default_rng(0), "expert")
+    start = ex.poses[16]
+    c, s = np.cos(start[2]), np.sin(start[2])
+    rel = ex.poses[16::10] - start
+    ego = np.c_[c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+    progress = float(ex.route_s_m[-1] - ex.route_s_m[16])
+    good = path_score(st.world, start, ego, progress)
+    assert good["inside"] == 1.0 and good["score"] > 95 and good["max_dev_m"] < 1.0
+    drift = ego + np.c_[0 * ego[:, 0], np.linspace(0, 8, len(ego)), 0 * ego[:, 0]]   # 8 m to the left by the end
+    bad = path_score(st.world, start, drift, progress)
+    assert bad["inside"] < 0.8 and bad["score"] < good["score"]
+
+
+def test_rank_agreement():
+    true = np.array([[90, 80, 100.0], [50, 40, 60], [10, 20, 5]])
+    rep = rank_agreement(true, true * 0.5 + 3, ["a", "b", "c"], bootstrap=200)
+    assert rep["spearman"] == pytest.approx(1.0) and rep["largest_disagreements"] == []
+    flipped = rank_agreement(true, true[::-1], ["a", "b", "c"], bootstrap=200)
+    assert flipped["spearman"] == pytest.approx(-1.0) and set(flipped["largest_disagreements"]) == {"a", "c"}
+    assert flipped["per_policy"]["a"]["model_rank"] == 3 and flipped["ci95"][1] <= -0.4
+
+
+def test_starting_states_are_seeded_fork_worlds():
+    a, b = starting_states(ClosedLoopConfig(states=3)), starting_states(ClosedLoopConfig(states=3))
+    assert [s.name for s in a] == ["s5000-0-left", "s5000-1-straight", "s5000-2-right"]
+    assert np.array_equal(a[2].world.route.xy, b[2].world.route.xy) and a[2].world.fork["branch"] == "right"
+    with pytest.raises(ValueError, match="seconds"):
+        ClosedLoopConfig(seconds=2.0)

@@ -1,0 +1,1 @@
+"""Driving policies from pixels (behaviour cloning on the shards) and the closed loop inside a world model."""

@@ -1,0 +1,102 @@
+"""Closed loop inside the world model: a policy drives, the world model answers with the next frames.
+
+The counterpart of ``synthworld.closed_loop.drive`` (the true world), with the world model in place of the
+simulator (Vid2World's "Real2Sim" policy evaluation; DIAMOND lets one play inside its world model):
+
+1. **History.** ``history_latents`` (the VAE's encoding of recorded frames: ReSim's 9 frames = 3 latent
+   frames) and the same frames in pixels, which the policy sees first.
+2. **Decision.** Every ``latents_per_decision`` latent frames (1 = 0.4 s at 10 Hz) the policy gets an
+   ``Observation``: the last decoded frames, the speedometer (the speed its own last plan asked for; the
+   first decision reads the recorded speed), and the itinerary's command. It answers 8 waypoints.
+3. **World model.** The sampler (``training.sampling.rollout``, KV cache and guidance as configured) rolls
+   ``latents_per_decision`` latent frames out from the last ``history_frames`` latent frames, conditioned on
+   the plan as the trajectory and on the command's prompt, and the VAE decodes them. The window slides over
+   the model's own output, as in a long rollout.
+
+There is no pose: a policy that reads ``Observation.pose`` (the true simulator's privileged reference
+planners) cannot drive here, by construction.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from synthworld.closed_loop import Observation, check_plan
+from training.sampling.outputs import decode_latents
+from training.sampling.rollout import Condition, RolloutConfig, rollout
+
+
+@dataclass
+class WorldLoopResult:
+    frames: np.ndarray                 # (T, H, W, 3) uint8: the history frames, then every generated frame
+    latents: torch.Tensor              # (1, H0 + F, C, h, w) float32: history then generated latent frames
+    num_history_frames: int            # pixel frames of the history at the start of ``frames``
+    plans: list[tuple[float, np.ndarray]] = field(default_factory=list)   # (t_s, (8, 3)) per decision
+    commands: list[str | None] = field(default_factory=list)
+    seconds: float = 0.0               # wall time
+
+
+class WorldModelLoop:
+    """``model`` (a world model, eval mode, on ``device``), ``vae`` (``media.encoders.VideoVAE``),
+    ``text_for(command | None) -> (1, L, D)`` prompt embeddings (None: the null prompt), the sampler's
+    ``rollout_cfg`` (its ``history_frames``, DDIM steps and guidance are used; the round is one decision)."""
+
+    def __init__(self, model: Any, vae: Any, text_for: Callable[[str | None], torch.Tensor],
+                 rollout_cfg: RolloutConfig, *, latents_per_decision: int = 1, fps_hz: float = 10.0,
+                 schedule: Any = None, device: str = "cpu"):
+        if latents_per_decision < 1:
+            raise ValueError(f"latents_per_decision must be >= 1, got {latents_per_decision}")
+        self.model, self.vae, self.text_for, self.device = model, vae, text_for, device
+        self.k = latents_per_decision
+        self.cfg = replace(rollout_cfg, frames_per_round=self.k, chunk_frames=self.k)
+        self.schedule, self.fps_hz = schedule, fps_hz
+        self.tc = int(getattr(getattr(vae, "info", None), "temporal_compression", 4))
+        self.decision_s = self.k * self.tc / fps_hz
+
+    def run(self, history_latents: torch.Tensor, history_frames: np.ndarray, speed_mps: float,
+            policy: Callable[[Observation], np.ndarray], seconds: float, *,
+            command_at: Callable[[float], str] | None = None, t0_s: float = 0.0, seed: int = 0,
+            observe_frames: int = 9, name: str | None = None,
+            on_decision: Callable[[int, int], None] | None = None) -> WorldLoopResult:
+        """Drive ``policy`` for ``seconds`` after the history. ``history_latents`` ``(1, H0, C, h, w)`` (× the
+        VAE's scaling factor); ``history_frames`` ``(1 + tc (H0 - 1), H, W, 3)`` uint8, the same history in
+        pixels; ``t0_s``: the episode time of the last history frame (the itinerary's clock);
+        ``on_decision(i, n)``: progress. Decision ``i`` samples with seed ``seed + i``."""
+        if history_latents.dim() != 5 or history_latents.shape[0] != 1:
+            raise ValueError(f"history_latents must be (1, H0, C, h, w), got {tuple(history_latents.shape)}")
+        who = name or type(policy).__name__
+        t_start = time.perf_counter()
+        latents = history_latents.float().to(self.device)
+        frames = [f for f in np.asarray(history_frames)]
+        n_hist_px = len(frames)
+        n_dec = max(1, int(np.ceil(seconds / self.decision_s - 1e-9)))
+        plans, commands = [], []
+        speed = float(speed_mps)
+        null = self.text_for(None).to(self.device)
+        for i in range(n_dec):
+            t_s = t0_s + i * self.decision_s
+            command = command_at(t_s) if command_at is not None else None
+            obs = Observation(frames=np.stack(frames[-observe_frames:]), speed_mps=speed, t_s=t_s, command=command)
+            plan = check_plan(policy(obs), who)
+            plans.append((t_s, plan))
+            commands.append(command)
+            cond = Condition(text=self.text_for(command).to(self.device), null_text=null,
+                             trajectory=torch.from_numpy(plan[None]).float().to(self.device), label=command or "")
+            window = latents[:, -self.cfg.history_frames:]
+            res = rollout(self.model, window, cond, self.k, self.cfg, seed=seed + i, schedule=self.schedule)
+            latents = torch.cat([latents, res.future.to(self.device)], dim=1)
+            # decode the window with the new frames (the causal VAE's first frame of a decode is a key frame;
+            # the new frames are its last tc * k), not the whole rollout: constant cost per decision
+            ctx = latents[:, -(self.cfg.history_frames + self.k):]
+            px = decode_latents(self.vae, ctx)[0]
+            frames.extend(px[-self.tc * self.k:])
+            # the speedometer: the speed this plan asked for over its first waypoint
+            speed = float(np.hypot(*plan[0, :2]) / 0.5)
+            if on_decision is not None:
+                on_decision(i + 1, n_dec)
+        return WorldLoopResult(frames=np.stack(frames), latents=latents.cpu(), num_history_frames=n_hist_px,
+                               plans=plans, commands=commands, seconds=time.perf_counter() - t_start)
