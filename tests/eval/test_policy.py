@@ -110,6 +110,7 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert r.returncode == 0, r.stderr[-2000:]
     rep = json.loads((tmp_path / "cl" / "closed_loop.json").read_text())
     assert len(rep["rows"]) == 2 * 5 and "Spearman" in r.stdout and (tmp_path / "cl" / "closed_loop.png").is_file()
+    assert (tmp_path / "cl" / "closed_loop_strip.png").is_file()
     bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
               str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"), "--true-only")
     assert bad.returncode == 2 and "policy checkpoint" in bad.stderr

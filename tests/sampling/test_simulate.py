@@ -58,3 +58,18 @@ def test_each_plan_conditions_the_world_model_and_the_policy_sees_its_frames(tin
     assert seen_obs[2].command == "Moving forward" and seen_obs[2].pose is None
     with pytest.raises(PolicyError, match="policy bad: plan has shape"):
         loop.run(hist, frames, 6.0, lambda obs: np.zeros(3), 0.4, name="bad")
+
+
+def test_a_batch_of_policies_drives_as_each_would_alone(tiny_model):
+    vae = VideoVAE(VAE_DIR, device="cpu")
+    model = tiny_model(channels=16, text_dim=8)
+    loop = WorldModelLoop(model, vae, lambda c: torch.zeros(1, 3, 8), RolloutConfig(num_steps=2))
+    frames = np.random.default_rng(1).integers(0, 255, (9, 16, 24, 3), dtype=np.uint8)
+    hist = torch.from_numpy(np.asarray(vae.encode(frames[None], seeds=[0]), np.float32))
+    pols = [lambda obs, y=y: np.c_[np.arange(1, 9) * 2.0, np.full(8, y), np.zeros(8)] for y in (-1.0, 1.0)]
+    both = loop.run_batch(hist, frames, 5.0, pols, 0.8, seeds=[7, 9])
+    alone = [loop.run(hist, frames, 5.0, p, 0.8, seed=s) for p, s in zip(pols, (7, 9))]
+    for b, a in zip(both, alone):
+        assert torch.allclose(b.latents, a.latents, atol=1e-4)
+        assert np.abs(b.frames.astype(int) - a.frames).max() <= 1
+    assert not torch.allclose(both[0].latents, both[1].latents)

@@ -28,6 +28,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
+from PIL import Image
 
 from media.frames import cover_crop
 from synthworld.policies import ConstantVelocity, SteeringBias, SteeringNoise
@@ -37,6 +38,7 @@ from synthworld.fork import FORK_BRANCHES, build_fork_world
 from synthworld.render import Camera, Renderer
 from synthworld.score import LANE_TOLERANCE_M
 from synthworld.world import World
+from training.eval.commands_report import _label
 from training.eval.idm_train import load_idm, resize_frames
 from training.policy.drive import PixelPolicy, itinerary
 from training.policy.train import load_policy
@@ -208,7 +210,8 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
                      say: Callable[[str], None] = lambda m: None) -> dict:
     """Every policy from every starting state in the true world (and, with ``loop`` and ``vae``, inside the world
     model). Returns per-state rows, per-policy means, and the rank agreement of each world-model reading with the
-    true score; ``_videos``: the world-model loops' frames ``{(policy, state): (T, h, w, 3)}``."""
+    true score; ``_videos``: the first state's frames, ``{("true" | "world model", policy): (T, h, w, 3) uint8}``
+    (the true world's cover-cropped to the clip size)."""
     states = starting_states(cfg)
     names = list(policies)
     shape = (len(names), len(states))
@@ -223,26 +226,33 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
         command_at = itinerary(st.world, total, cfg.sim_hz)
         lcfg = LoopConfig(seconds=total, handover_s=cfg.history_s, sim_hz=cfg.sim_hz, fps_hz=cfg.fps_hz,
                           replan_hz=1.0 / cfg.decision_s, history_frames=9)
-        hist = history_of(st, cfg, vae, clip_hw) if loop is not None else None
+        start_pose = expert.poses[h_step]                      # the expert drove the history in every loop
+        world_runs = None
+        if loop is not None:
+            # every policy from this state in one batch (one sampler call and one decode per decision)
+            latents, frames, speed = history_of(st, cfg, vae, clip_hw)
+            world_runs = loop.run_batch(latents, frames, speed, [policies[n] for n in names], cfg.seconds,
+                                        command_at=command_at, t0_s=cfg.history_s, names=names,
+                                        seeds=[seed + 1000 * si] * len(names))
         for pi, name in enumerate(names):
             r = drive(st.world, policies[name], st.renderer(cfg), lcfg, name, command_at=command_at)
-            start_pose = r.trace.poses[h_step]
             true_score[pi, si] = r.score.score_composed
             tp = path_score(st.world, start_pose, idm_path(idm, r.frames, first, cfg.fps_hz, clip_hw), expert_m)
             true_proxy[pi, si] = tp["score"]
+            if si == 0:
+                videos[("true", name)] = np.stack([cover_crop(f, clip_hw) for f in r.frames])
             row = {"state": st.name, "policy": name, "true": {"score": r.score.score_composed,
                                                               "route": r.score.score_route,
                                                               "penalty": r.score.score_penalty,
                                                               "infractions": r.score.names()},
                    "true_frames_idm_proxy": tp}
-            if loop is not None:
-                latents, frames, speed = hist
-                w = loop.run(latents, frames, speed, policies[name], cfg.seconds, command_at=command_at,
-                             t0_s=cfg.history_s, seed=seed + 1000 * si, name=name)
+            if world_runs is not None:
+                w = world_runs[pi]
                 wp = path_score(st.world, start_pose, idm_path(idm, w.frames, first, cfg.fps_hz, clip_hw), expert_m)
                 wm_proxy[pi, si] = wp["score"]
                 row["world_model_idm_proxy"] = {**wp, "seconds": w.seconds}
-                videos[(name, st.name)] = w.frames
+                if si == 0:
+                    videos[("world model", name)] = w.frames
             rows.append(row)
             say(f"{st.name} {name}: true {true_score[pi, si]:.1f}  proxy on true frames {tp['score']:.1f}"
                 + (f"  world model {wm_proxy[pi, si]:.1f} ({row['world_model_idm_proxy']['seconds']:.0f} s)"
@@ -351,4 +361,31 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
     rep["protocol"] = {"policy": pinfo, "also": list(args.also), "idm": str(args.idm), "clip_hw": list(clip_hw),
                        "config": dict(vars(cfg)), "world_model": meta or None, "device": args.device,
                        "seconds": round(time.perf_counter() - t0, 1)}
-    return rep, format_closed_loop(rep)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    strip = closed_loop_strip(rep, out / "closed_loop_strip.png", int(round(cfg.history_s * cfg.fps_hz)), cfg.fps_hz,
+                              [t for t in (0, 2, 4, 6, 8) if t <= cfg.seconds])
+    text = format_closed_loop(rep) + (f"\nwrote {strip} (first starting state: true world and world model)"
+                                      if strip else "")
+    return rep, text
+
+
+def closed_loop_strip(rep: dict, path, first_frame: int, fps_hz: float = 10.0, times_s=(0, 2, 4, 6, 8)):
+    """The first starting state, one row per (policy, loop): frames at ``times_s`` after the last history frame,
+    the true world's row above the world model's. A PNG; None when there are no videos."""
+    videos = rep.get("_videos") or {}
+    rows = []
+    for name in rep["policies"]:
+        for loop in ("true", "world model"):
+            v = videos.get((loop, name))
+            if v is None:
+                continue
+            tiles = [_label(v[first_frame + int(round(t * fps_hz))], f"{loop}: {name[:22]}" if i == 0 else f"+{t:g}s")
+                     for i, t in enumerate(times_s) if first_frame + int(round(t * fps_hz)) < len(v)]
+            rows.append(np.concatenate(tiles, axis=1))
+    if not rows:
+        return None
+    w = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows]
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+    return path

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -37,7 +37,7 @@ class WorldLoopResult:
     num_history_frames: int            # pixel frames of the history at the start of ``frames``
     plans: list[tuple[float, np.ndarray]] = field(default_factory=list)   # (t_s, (8, 3)) per decision
     commands: list[str | None] = field(default_factory=list)
-    seconds: float = 0.0               # wall time
+    seconds: float = 0.0               # wall time (a batch's, shared out over its policies)
 
 
 class WorldModelLoop:
@@ -62,41 +62,68 @@ class WorldModelLoop:
             command_at: Callable[[float], str] | None = None, t0_s: float = 0.0, seed: int = 0,
             observe_frames: int = 9, name: str | None = None,
             on_decision: Callable[[int, int], None] | None = None) -> WorldLoopResult:
-        """Drive ``policy`` for ``seconds`` after the history. ``history_latents`` ``(1, H0, C, h, w)`` (× the
-        VAE's scaling factor); ``history_frames`` ``(1 + tc (H0 - 1), H, W, 3)`` uint8, the same history in
-        pixels; ``t0_s``: the episode time of the last history frame (the itinerary's clock);
-        ``on_decision(i, n)``: progress. Decision ``i`` samples with seed ``seed + i``."""
+        """One policy: :meth:`run_batch` with a batch of one."""
+        return self.run_batch(history_latents, history_frames, speed_mps, [policy], seconds, command_at=command_at,
+                              t0_s=t0_s, seeds=[seed], observe_frames=observe_frames,
+                              names=[name] if name else None, on_decision=on_decision)[0]
+
+    def run_batch(self, history_latents: torch.Tensor, history_frames: np.ndarray, speed_mps: float,
+                  policies: Sequence[Callable[[Observation], np.ndarray]], seconds: float, *,
+                  command_at: Callable[[float], str] | None = None, t0_s: float = 0.0,
+                  seeds: Sequence[int] | None = None, observe_frames: int = 9, names: Sequence[str] | None = None,
+                  on_decision: Callable[[int, int], None] | None = None) -> list[WorldLoopResult]:
+        """Drive each of ``policies`` for ``seconds`` after the same history, the world-model rollouts of all of
+        them batched (one sampler call and one VAE decode per decision: several times cheaper than one by one
+        on a CPU). ``history_latents`` ``(1, H0, C, h, w)`` (× the VAE's scaling factor); ``history_frames``
+        ``(1 + tc (H0 - 1), H, W, 3)`` uint8, the same history in pixels; ``t0_s``: the episode time of the last
+        history frame (the itinerary's clock); ``seeds``: one per policy (default 0, 1, ...), decision ``i``
+        drawing its noise from ``seed + i``, so a policy's rollout does not depend on its batch;
+        ``on_decision(i, n)``: progress."""
         if history_latents.dim() != 5 or history_latents.shape[0] != 1:
             raise ValueError(f"history_latents must be (1, H0, C, h, w), got {tuple(history_latents.shape)}")
-        who = name or type(policy).__name__
+        b = len(policies)
+        seeds = list(seeds) if seeds is not None else list(range(b))
+        names = list(names) if names is not None else [type(p).__name__ for p in policies]
+        if len(seeds) != b or len(names) != b:
+            raise ValueError(f"one seed and one name per policy ({b}), got {len(seeds)} and {len(names)}")
         t_start = time.perf_counter()
-        latents = history_latents.float().to(self.device)
-        frames = [f for f in np.asarray(history_frames)]
-        n_hist_px = len(frames)
+        latents = history_latents.float().to(self.device).expand(b, -1, -1, -1, -1).contiguous()
+        frames = [[f for f in np.asarray(history_frames)] for _ in range(b)]
+        n_hist_px = len(frames[0])
         n_dec = max(1, int(np.ceil(seconds / self.decision_s - 1e-9)))
-        plans, commands = [], []
-        speed = float(speed_mps)
+        plans: list[list] = [[] for _ in range(b)]
+        commands: list[str | None] = []
+        speed = [float(speed_mps)] * b
         null = self.text_for(None).to(self.device)
         for i in range(n_dec):
             t_s = t0_s + i * self.decision_s
             command = command_at(t_s) if command_at is not None else None
-            obs = Observation(frames=np.stack(frames[-observe_frames:]), speed_mps=speed, t_s=t_s, command=command)
-            plan = check_plan(policy(obs), who)
-            plans.append((t_s, plan))
             commands.append(command)
-            cond = Condition(text=self.text_for(command).to(self.device), null_text=null,
-                             trajectory=torch.from_numpy(plan[None]).float().to(self.device), label=command or "")
+            step_plans = []
+            for j, policy in enumerate(policies):
+                obs = Observation(frames=np.stack(frames[j][-observe_frames:]), speed_mps=speed[j], t_s=t_s,
+                                  command=command)
+                plan = check_plan(policy(obs), names[j])
+                plans[j].append((t_s, plan))
+                step_plans.append(plan)
+            text = self.text_for(command).to(self.device)
+            cond = Condition(text=text.expand(b, -1, -1), null_text=null.expand(b, -1, -1),
+                             trajectory=torch.from_numpy(np.stack(step_plans)).float().to(self.device),
+                             label=command or "")
             window = latents[:, -self.cfg.history_frames:]
-            res = rollout(self.model, window, cond, self.k, self.cfg, seed=seed + i, schedule=self.schedule)
+            res = rollout(self.model, window, cond, self.k, self.cfg, schedule=self.schedule,
+                          seeds=[s + i for s in seeds])
             latents = torch.cat([latents, res.future.to(self.device)], dim=1)
             # decode the window with the new frames (the causal VAE's first frame of a decode is a key frame;
             # the new frames are its last tc * k), not the whole rollout: constant cost per decision
             ctx = latents[:, -(self.cfg.history_frames + self.k):]
-            px = decode_latents(self.vae, ctx)[0]
-            frames.extend(px[-self.tc * self.k:])
-            # the speedometer: the speed this plan asked for over its first waypoint
-            speed = float(np.hypot(*plan[0, :2]) / 0.5)
+            px = decode_latents(self.vae, ctx, batch_size=b)
+            for j in range(b):
+                frames[j].extend(px[j, -self.tc * self.k:])
+                # the speedometer: the speed this plan asked for over its first waypoint
+                speed[j] = float(np.hypot(*step_plans[j][0, :2]) / 0.5)
             if on_decision is not None:
                 on_decision(i + 1, n_dec)
-        return WorldLoopResult(frames=np.stack(frames), latents=latents.cpu(), num_history_frames=n_hist_px,
-                               plans=plans, commands=commands, seconds=time.perf_counter() - t_start)
+        wall = time.perf_counter() - t_start
+        return [WorldLoopResult(frames=np.stack(frames[j]), latents=latents[j:j + 1].cpu(), num_history_frames=n_hist_px,
+                                plans=plans[j], commands=list(commands), seconds=wall / b) for j in range(b)]
