@@ -23,6 +23,7 @@ COMMANDS: list[str] = [
     "training.cli",
     "training.reward.cli",
     "training.sampling.cli",
+    "training.policy.cli",
     "training.eval.cli",
     "resim.demo",
 ]

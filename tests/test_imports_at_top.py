@@ -31,7 +31,7 @@ ALLOWED = {
     "training/eval/cli.py": (35, CLI),
     "training/sampling/cli.py": (20, CLI),
     "training/reward/cli.py": (20, CLI),
-    "training/policy/cli.py": (2, CLI),
+    "training/policy/cli.py": (4, CLI),
     "resim/demo.py": (1, CLI),
     "training/run.py": (3, TORCH_LATE),
     "media/encoders.py": (2, ENCODERS_TORCH_LATE),

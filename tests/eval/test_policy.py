@@ -111,6 +111,14 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     rep = json.loads((tmp_path / "cl" / "closed_loop.json").read_text())
     assert len(rep["rows"]) == 2 * 5 and "Spearman" in r.stdout and (tmp_path / "cl" / "closed_loop.png").is_file()
     assert (tmp_path / "cl" / "closed_loop_strip.png").is_file()
+    # the world model as a simulator: two decisions of the shipped synthetic-world model, the true drive beside
+    r = run("simulate", "--checkpoint", "synth-world", "--shards", str(root), "--policy", str(tmp_path / "pol"),
+            "--state", "1", "--seconds", "0.8", "--steps", "2", "--out", str(tmp_path / "sim"), "--device", "cpu")
+    assert r.returncode == 0, r.stderr[-2000:]
+    sim = json.loads((tmp_path / "sim" / "simulate.json").read_text())
+    assert sim["decisions"] == 2 and sim["state"] == "s5000-1-straight"
+    meta = json.loads((tmp_path / "sim" / "world_model_meta.json").read_text())
+    assert meta["num_frames"] == 9 + 2 * 4 and len(meta["plans"]) == 2 and len(meta["plans"][0]["waypoints"]) == 8
     bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
               str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"), "--true-only")
     assert bad.returncode == 2 and "policy checkpoint" in bad.stderr

@@ -19,6 +19,7 @@ Vid2World's "Real2Sim" check, on the synthetic world, where the true world can b
 """
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
@@ -43,6 +44,7 @@ from training.eval.idm_train import load_idm, resize_frames
 from training.policy.drive import PixelPolicy, itinerary
 from training.policy.train import load_policy
 from training.sampling.load import trained_size_hw
+from training.sampling.outputs import write_rollout
 from training.sampling.simulate import WorldModelLoop
 from training.smallfit import frames_to_tensor
 
@@ -389,3 +391,57 @@ def closed_loop_strip(rep: dict, path, first_frame: int, fps_hz: float = 10.0, t
     rows = [np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows]
     Image.fromarray(np.concatenate(rows, axis=0)).save(path)
     return path
+
+
+def run_simulate(args: Any, make_runner: Callable) -> str:
+    """``resim simulate``: one policy from one synthetic starting state, inside the world model for
+    ``args.seconds``, and in the true world beside it. Writes OUT/world_model.* and OUT/true_world.* (mp4,
+    gif, contact sheet, meta: the per-decision plans and commands), OUT/simulate.json; returns the summary."""
+    try:
+        cfg = ClosedLoopConfig(seed=args.state_seed, states=max(2, args.state + 1), seconds=max(4.0, args.seconds))
+        policy_model, pinfo = load_policy(args.policy, args.device)
+    except (ValueError, FileNotFoundError) as e:
+        raise ClosedLoopInputError(str(e)) from None
+    pixel = PixelPolicy(policy_model, args.device)
+    graded = graded_policies(pixel)
+    label = list(graded)[args.variant_index]
+    policy = graded[label]
+    st = starting_states(cfg)[args.state]
+    clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(policy_model.cfg.frame_hw)
+    runner, meta = make_runner(args)
+    loop = WorldModelLoop(runner.model, runner.vae, runner.text_for, runner.cfg, schedule=runner.schedule,
+                          device=args.device)
+    total = cfg.history_s + args.seconds
+    command_at = itinerary(st.world, total, cfg.sim_hz)
+    latents, frames, speed = history_of(st, cfg, runner.vae, clip_hw)
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    n_dec = int(np.ceil(args.seconds / cfg.decision_s - 1e-9))
+    say = lambda i, n: print(f"[resim simulate] decision {i}/{n} ({time.perf_counter() - t0:.0f} s)",  # noqa: E731
+                             file=sys.stderr) if i % 5 == 0 or i == n else None
+    print(f"[resim simulate] {st.name}, policy {label!r}, {args.seconds:g} s = {n_dec} decisions of "
+          f"{cfg.decision_s:g} s, {runner.cfg.num_steps} DDIM steps each ...", file=sys.stderr)
+    w = loop.run(latents, frames, speed, policy, args.seconds, command_at=command_at, t0_s=cfg.history_s,
+                 seed=args.seed, name=label, on_decision=say)
+    plans = [{"t_s": round(t, 3), "command": c, "waypoints": p.round(3).tolist()}
+             for (t, p), c in zip(w.plans, w.commands)]
+    nh = w.num_history_frames
+    write_rollout(out, "world_model", w.frames, w.latents[0].numpy(), num_history_px=nh, fps_hz=cfg.fps_hz,
+                  title=f"world model: {label} ({st.name})", meta={"plans": plans})
+    lcfg = LoopConfig(seconds=total, handover_s=cfg.history_s, sim_hz=cfg.sim_hz, fps_hz=cfg.fps_hz,
+                      replan_hz=1.0 / cfg.decision_s, history_frames=9)
+    r = drive(st.world, policy, st.renderer(cfg), lcfg, label, command_at=command_at)
+    true_frames = np.stack([cover_crop(f, clip_hw) for f in r.frames])
+    write_rollout(out, "true_world", true_frames, np.zeros((0,), np.float32), num_history_px=nh, fps_hz=cfg.fps_hz,
+                  title=f"true world: {label} ({st.name})",
+                  meta={"plans": [{"t_s": round(t, 3), "waypoints": p.round(3).tolist()} for t, p in r.plans],
+                        "score": r.score.score_composed, "infractions": r.score.names()})
+    summary = {"state": st.name, "policy": pinfo, "variant": label, "seconds": args.seconds,
+               "decisions": len(w.plans), "wall_s": round(w.seconds, 1),
+               "wall_s_per_generated_s": round(w.seconds / args.seconds, 2), "true_world_score": r.score.score_composed,
+               "true_world_infractions": r.score.names(), "world_model": meta, "device": args.device}
+    (out / "simulate.json").write_text(json.dumps(summary, indent=1, default=str))
+    return (f"{st.name}: {len(w.plans)} decisions, {w.seconds:.0f} s ({summary['wall_s_per_generated_s']:g} s per "
+            f"generated second on {args.device}); true world score {r.score.score_composed:.1f} "
+            f"{r.score.names() or ''}\nwrote {out}/world_model.mp4, true_world.mp4 (+ gif, sheets, plans in "
+            f"*_meta.json) and simulate.json")

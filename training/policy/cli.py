@@ -4,6 +4,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from training.eval.cli import _world_args   # the world-model arguments, as `resim eval` takes them
+
+# `resim simulate --variant`: the policy and its versions degraded by design (training.eval.closed_loop.graded_policies)
+VARIANTS = ("policy", "noise", "bias", "bias2", "cv")
+
 DESCRIPTION = """\
 Train the driving policy that reads camera frames and a navigation command and answers the next 8 waypoints
 (the world model's trajectory input): behaviour cloning on the expert clips of shard datasets (hazardous
@@ -64,3 +69,48 @@ def _cmd_train(args) -> int:
               f"constant velocity ADE {row['constant_velocity']['ade_m']:.2f} m  (n={row['policy']['n']})")
     print(f"wrote {out}/policy_report.json and {out}/final/")
     return 0 if h["policy"]["n"] else 1
+
+
+SIMULATE_EPILOG = """\
+variants: policy (as trained), noise (steering noise 0.08/m), bias (steering bias 0.05/m), bias2 (0.1/m),
+cv (constant velocity: reads only the speedometer).
+example (the shipped synthetic-world model, 30 s from the third fork world of seed 5000):
+  resim simulate --checkpoint synth-world --shards data/forks --policy runs/policy --state 2 --seconds 30 \\
+      --steps 10 --out out/sim
+The expert drives the first 0.8 s (the history); the policy then decides every 0.4 s from the frames it sees
+(the world model's, decoded) and the itinerary's navigation command. The same policy drives the true world
+from the same start, for comparison (true_world.mp4, its score in simulate.json)."""
+
+
+def register(subparsers) -> None:
+    s = subparsers.add_parser("simulate", help="drive a pixel policy inside the world model (closed loop), the true "
+                                               "synthetic world beside it",
+                              description="Closed-loop driving inside the world model: the policy reads the "
+                                          "generated frames and answers waypoints, the world model rolls the next "
+                                          "0.4 s out under them (docs/closed_loop.md).",
+                              epilog=SIMULATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _world_args(s)
+    s.add_argument("--policy", required=True, help="policy run folder (resim train policy)")
+    s.add_argument("--variant", default="policy", choices=VARIANTS, help="which version of it drives (below)")
+    s.add_argument("--state-seed", type=int, default=5000, help="seed of the starting-state fork worlds")
+    s.add_argument("--state", type=int, default=0, help="which starting state of that seed (0, 1, ...)")
+    s.add_argument("--seconds", type=float, default=30.0, help="seconds driven after the history (default 30)")
+    s.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    from training.eval.cli import _device, _runner
+    from training.eval.closed_loop import ClosedLoopInputError, run_simulate
+
+    if not _device(args, "simulate"):
+        return 2
+    if args.state < 0 or not args.seconds > 0:
+        print("resim simulate: --state must be >= 0 and --seconds > 0", file=sys.stderr)
+        return 2
+    args.variant_index = VARIANTS.index(args.variant)
+    try:
+        print(run_simulate(args, _runner))
+    except ClosedLoopInputError as e:
+        print(f"resim simulate: {e}", file=sys.stderr)
+        return 2
+    return 0
