@@ -303,14 +303,14 @@ def plot_closed_loop(rep: dict, path):
     fig, axes = plt.subplots(1, len(keys), figsize=(5.5 * len(keys), 4.6), squeeze=False)
     for ax, key in zip(axes[0], keys):
         a = rep[key]
-        for n, v in a["per_policy"].items():
-            ax.scatter(v["true"], v["model"], s=40)
-            ax.annotate(n, (v["true"], v["model"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        for n, v in a["per_policy"].items():   # one colour per policy, the same in every panel
+            ax.scatter(v["true"], v["model"], s=40, label=n)
         ax.plot([0, 100], [0, 100], color="0.7", lw=0.8)
         ax.set_xlabel("true score (simulator)")
         ax.set_ylabel("IDM proxy score")
         ax.set_title(f"{'world model' if key == 'world_model_vs_true' else 'proxy on true frames'}: "
                      f"Spearman {a['spearman']:.2f}", fontsize=9)
+    axes[0][0].legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
