@@ -1,4 +1,4 @@
-"""Clips of the synthetic road world (``resim synth``'s world, ``pipelines/sources/synth``) in memory and as
+"""Clips of the synthetic road world (``resim synth``'s world, ``synthworld``) in memory and as
 shards, for the evaluation tests: exact ego poses, no pipeline run. Tests may import the pipeline; the product's
 evaluation code reads only the shards."""
 from __future__ import annotations
