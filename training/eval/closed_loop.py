@@ -33,7 +33,7 @@ from PIL import Image
 
 from media.frames import cover_crop
 from synthworld.policies import ConstantVelocity, SteeringBias, SteeringNoise
-from synthworld.closed_loop import LoopConfig, LoopResult, drive
+from synthworld.closed_loop import LoopConfig, drive
 from synthworld.drivers import simulate
 from synthworld.fork import FORK_BRANCHES, build_fork_world
 from synthworld.render import Camera, Renderer
@@ -69,9 +69,10 @@ class ClosedLoopConfig:
         if self.seconds < 4.0:
             raise ValueError(f"seconds must be >= 4 (the IDM proxy reads 4-s windows), got {self.seconds}")
 
-    def loop_cfg(self) -> LoopConfig:
-        return LoopConfig(seconds=self.history_s + self.seconds, handover_s=self.history_s, sim_hz=self.sim_hz,
-                          fps_hz=self.fps_hz, replan_hz=1.0 / self.decision_s, history_frames=9)
+    def loop_cfg(self, total_s: float) -> LoopConfig:
+        """The true loop of an episode of ``total_s``: the expert for ``history_s``, a decision every ``decision_s``."""
+        return LoopConfig(seconds=total_s, handover_s=self.history_s, sim_hz=self.sim_hz, fps_hz=self.fps_hz,
+                          replan_hz=1.0 / self.decision_s, history_frames=9)
 
 
 @dataclass
@@ -155,19 +156,13 @@ def path_score(world: World, start_pose: np.ndarray, path_ego: np.ndarray, exper
 
 # ---- the two loops ----------------------------------------------------------------------------------------
 
-def true_episode(state: StartState, policy: Callable, cfg: ClosedLoopConfig, name: str) -> LoopResult:
-    return drive(state.world, policy, state.renderer(cfg), cfg.loop_cfg(), name,
-                 command_at=itinerary(state.world, cfg.history_s + cfg.seconds, cfg.sim_hz))
-
-
 def history_of(state: StartState, cfg: ClosedLoopConfig, vae: Any,
                clip_hw: tuple[int, int]) -> tuple[torch.Tensor, np.ndarray, float]:
     """The expert's first ``history_s`` in the true world, as every policy's true loop starts: (latents
     ``(1, H0, C, h, w)`` from ``vae``, the frames at the world model's clip size ``(1 + 4 (H0 - 1), h, w, 3)``
     uint8, the speed at the last one)."""
     run = drive(state.world, lambda obs: np.zeros((8, 3)), state.renderer(cfg),
-                LoopConfig(seconds=cfg.history_s + 1.0 / cfg.sim_hz, handover_s=cfg.history_s, sim_hz=cfg.sim_hz,
-                           fps_hz=cfg.fps_hz, replan_hz=1.0 / cfg.decision_s))
+                cfg.loop_cfg(cfg.history_s + 1.0 / cfg.sim_hz))
     n = int(round(cfg.history_s * cfg.fps_hz)) + 1
     frames = np.stack([cover_crop(f, clip_hw) for f in run.frames[:n]])
     latents = torch.from_numpy(np.asarray(vae.encode(frames[None], seeds=[0]), np.float32))
@@ -226,8 +221,7 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
         expert = simulate(st.world, total, cfg.sim_hz, np.random.default_rng(0), "expert")
         expert_m = float(expert.route_s_m[-1] - expert.route_s_m[h_step])
         command_at = itinerary(st.world, total, cfg.sim_hz)
-        lcfg = LoopConfig(seconds=total, handover_s=cfg.history_s, sim_hz=cfg.sim_hz, fps_hz=cfg.fps_hz,
-                          replan_hz=1.0 / cfg.decision_s, history_frames=9)
+        lcfg = cfg.loop_cfg(total)
         start_pose = expert.poses[h_step]                      # the expert drove the history in every loop
         world_runs = None
         if loop is not None:
@@ -428,8 +422,7 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
     nh = w.num_history_frames
     write_rollout(out, "world_model", w.frames, w.latents[0].numpy(), num_history_px=nh, fps_hz=cfg.fps_hz,
                   title=f"world model: {label} ({st.name})", meta={"plans": plans})
-    lcfg = LoopConfig(seconds=total, handover_s=cfg.history_s, sim_hz=cfg.sim_hz, fps_hz=cfg.fps_hz,
-                      replan_hz=1.0 / cfg.decision_s, history_frames=9)
+    lcfg = cfg.loop_cfg(total)
     r = drive(st.world, policy, st.renderer(cfg), lcfg, label, command_at=command_at)
     true_frames = np.stack([cover_crop(f, clip_hw) for f in r.frames])
     write_rollout(out, "true_world", true_frames, np.zeros((0,), np.float32), num_history_px=nh, fps_hz=cfg.fps_hz,
