@@ -169,10 +169,12 @@ class LoopResult:
 
 def drive(world: World, policy: Callable[[Observation], np.ndarray], renderer: Renderer,
           cfg: LoopConfig | None = None, name: str | None = None,
-          command_at: Callable[[float], str] | None = None) -> LoopResult:
+          command_at: Callable[[float], str] | None = None, expert: Trace | None = None) -> LoopResult:
     """Drive ``policy`` in ``world`` for ``cfg.seconds`` and score it. Deterministic for a deterministic
     policy (the world moves on its own clock and the renderer draws nothing at random per frame).
-    ``command_at(t_s)``: the navigation command the policy is given at each decision (None: none)."""
+    ``command_at(t_s)``: the navigation command the policy is given at each decision (None: none).
+    ``expert``: the expert's drive of ``world`` for ``cfg.seconds`` (``simulate``), the route completion's
+    reference; simulated here when not given (a caller driving many policies in one world passes it once)."""
     cfg = cfg or LoopConfig()
     who = name or type(policy).__name__
     ego = Ego(world, cfg.sim_hz)
@@ -201,7 +203,8 @@ def drive(world: World, policy: Callable[[Observation], np.ndarray], renderer: R
         if not ego.step(j, dev, k, acc):
             break
     trace = ego.trace(driver="policy", pattern=who)
-    expert = simulate(world, cfg.seconds, cfg.sim_hz, np.random.default_rng(0), "expert")
+    if expert is None:
+        expert = simulate(world, cfg.seconds, cfg.sim_hz, np.random.default_rng(0), "expert")
     expert_progress = float(expert.route_s_m[-1] - expert.route_s_m[0])
     return LoopResult(trace=trace, score=score_trace(trace, cfg.sim_hz, expert_progress), frames=np.stack(frames),
                       plans=plans, expert_progress_m=expert_progress)

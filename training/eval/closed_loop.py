@@ -34,7 +34,7 @@ from PIL import Image
 from media.frames import cover_crop
 from synthworld.policies import ConstantVelocity, SteeringBias, SteeringNoise
 from synthworld.closed_loop import LoopConfig, drive
-from synthworld.drivers import simulate
+from synthworld.drivers import Trace, simulate
 from synthworld.fork import FORK_BRANCHES, build_fork_world
 from synthworld.render import Camera, Renderer
 from synthworld.score import LANE_TOLERANCE_M
@@ -156,17 +156,17 @@ def path_score(world: World, start_pose: np.ndarray, path_ego: np.ndarray, exper
 
 # ---- the two loops ----------------------------------------------------------------------------------------
 
-def history_of(state: StartState, cfg: ClosedLoopConfig, vae: Any,
-               clip_hw: tuple[int, int]) -> tuple[torch.Tensor, np.ndarray, float]:
-    """The expert's first ``history_s`` in the true world, as every policy's true loop starts: (latents
-    ``(1, H0, C, h, w)`` from ``vae``, the frames at the world model's clip size ``(1 + 4 (H0 - 1), h, w, 3)``
-    uint8, the speed at the last one)."""
-    run = drive(state.world, lambda obs: np.zeros((8, 3)), state.renderer(cfg),
-                cfg.loop_cfg(cfg.history_s + 1.0 / cfg.sim_hz))
-    n = int(round(cfg.history_s * cfg.fps_hz)) + 1
-    frames = np.stack([cover_crop(f, clip_hw) for f in run.frames[:n]])
+def history_of(state: StartState, cfg: ClosedLoopConfig, vae: Any, clip_hw: tuple[int, int],
+               expert: Trace) -> tuple[torch.Tensor, np.ndarray, float]:
+    """The expert's first ``history_s`` in the true world, where every policy's true loop starts (the loop's
+    handover drives the same poses): (latents ``(1, H0, C, h, w)`` from ``vae``, the frames at the world model's
+    clip size ``(1 + 4 (H0 - 1), h, w, 3)`` uint8, the speed at the last one). ``expert``: ``simulate``'s trace."""
+    renderer = state.renderer(cfg)
+    h_step = int(round(cfg.history_s * cfg.sim_hz))
+    steps = range(0, h_step + 1, int(round(cfg.sim_hz / cfg.fps_hz)))
+    frames = np.stack([cover_crop(renderer.render(expert.poses[i], expert.t_s[i]), clip_hw) for i in steps])
     latents = torch.from_numpy(np.asarray(vae.encode(frames[None], seeds=[0]), np.float32))
-    return latents, frames, float(run.trace.speed_mps[int(round(cfg.history_s * cfg.sim_hz))])
+    return latents, frames, float(expert.speed_mps[h_step])
 
 
 def spearman(a: Sequence[float], b: Sequence[float]) -> float:
@@ -226,12 +226,12 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
         world_runs = None
         if loop is not None:
             # every policy from this state in one batch (one sampler call and one decode per decision)
-            latents, frames, speed = history_of(st, cfg, vae, clip_hw)
+            latents, frames, speed = history_of(st, cfg, vae, clip_hw, expert)
             world_runs = loop.run_batch(latents, frames, speed, [policies[n] for n in names], cfg.seconds,
                                         command_at=command_at, t0_s=cfg.history_s, names=names,
                                         seeds=[seed + 1000 * si] * len(names))
         for pi, name in enumerate(names):
-            r = drive(st.world, policies[name], st.renderer(cfg), lcfg, name, command_at=command_at)
+            r = drive(st.world, policies[name], st.renderer(cfg), lcfg, name, command_at=command_at, expert=expert)
             true_score[pi, si] = r.score.score_composed
             tp = path_score(st.world, start_pose, idm_path(idm, r.frames, first, cfg.fps_hz, clip_hw), expert_m)
             true_proxy[pi, si] = tp["score"]
@@ -407,7 +407,8 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
                           device=args.device)
     total = cfg.history_s + args.seconds
     command_at = itinerary(st.world, total, cfg.sim_hz)
-    latents, frames, speed = history_of(st, cfg, runner.vae, clip_hw)
+    expert = simulate(st.world, total, cfg.sim_hz, np.random.default_rng(0), "expert")
+    latents, frames, speed = history_of(st, cfg, runner.vae, clip_hw, expert)
     out = Path(args.out)
     t0 = time.perf_counter()
     n_dec = int(np.ceil(args.seconds / cfg.decision_s - 1e-9))
@@ -423,7 +424,7 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
     write_rollout(out, "world_model", w.frames, w.latents[0].numpy(), num_history_px=nh, fps_hz=cfg.fps_hz,
                   title=f"world model: {label} ({st.name})", meta={"plans": plans})
     lcfg = cfg.loop_cfg(total)
-    r = drive(st.world, policy, st.renderer(cfg), lcfg, label, command_at=command_at)
+    r = drive(st.world, policy, st.renderer(cfg), lcfg, label, command_at=command_at, expert=expert)
     true_frames = np.stack([cover_crop(f, clip_hw) for f in r.frames])
     write_rollout(out, "true_world", true_frames, np.zeros((0,), np.float32), num_history_px=nh, fps_hz=cfg.fps_hz,
                   title=f"true world: {label} ({st.name})",
