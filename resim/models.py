@@ -1,7 +1,8 @@
 """The model folders shipped in ``configs/models/``: where they are, and names that stand for them.
 
 Shipped folders load with the libraries' own ``from_pretrained`` like any downloaded model folder:
-``synth-vae`` and ``synth-world`` are trained on the synthetic world (model cards in docs/models/);
+``synth-vae``, ``synth-world``, ``synth-policy`` and ``synth-idm`` are trained on the synthetic world (model
+cards in docs/models/);
 ``placeholder-*`` hold only configs (random, deterministic weights, flagged as placeholders).
 """
 from __future__ import annotations
@@ -13,6 +14,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 SYNTH_VAE = "synth-vae"
 SYNTH_WORLD = "synth-world"
+SYNTH_POLICY = "synth-policy"    # the pixel driving policy of the closed loop (docs/closed_loop.md)
+SYNTH_IDM = "synth-idm"          # the inverse dynamics model that reads a driven path off video
 PLACEHOLDER_VAE = "placeholder-cogvideox-vae-tiny"
 PLACEHOLDER_T5 = "placeholder-t5-tiny"
 

@@ -33,7 +33,7 @@ def test_smoke_demo_writes_report_and_reuses_steps(tmp_path):
     # a second run reuses every finished step
     second = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("reusing") >= 12
+    assert second.stdout.count("reusing") >= 13
 
 
 def _finite(v) -> bool:
@@ -86,3 +86,15 @@ def _check_evaluation(out: Path, page: str) -> None:
     for png in ("commands.png", "commands_strip.png", "commands.gif"):
         assert f'src="eval/commands/{png}"' in page, png
     assert "Does the world model follow the command?" in page
+
+    # closed loop: the shipped policy (and constant velocity) in the true world and inside the shipped world model
+    cl = json.loads((ev / "closed_loop/closed_loop.json").read_text())
+    assert cl["policies"] == ["policy", "constant velocity"] and len(cl["rows"]) == 2 * 2
+    assert {"world_model_vs_true", "world_model_reward_vs_true", "reward_vs_true_on_true_frames"} <= set(cl)
+    assert cl["protocol"]["policy"]["checkpoint"].startswith(str(REPO / "configs" / "models" / "synth-policy"))
+    for row in cl["rows"]:
+        assert 0 <= row["true"]["score"] <= 100 and 0 <= row["world_model_idm_proxy"]["score"] <= 100
+        assert 0 < row["world_model_reward"] < 100
+    for png in ("closed_loop_strip.png", "closed_loop.png"):
+        assert f'src="eval/closed_loop/{png}"' in page, png
+    assert "A policy driving inside the world model" in page

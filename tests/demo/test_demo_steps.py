@@ -53,3 +53,5 @@ def test_demo_bad_override_is_a_clear_error(capsys):
     assert "unknown config key bogus" in capsys.readouterr().err
     assert main(["demo", "--set", "workers=0"]) == 2
     assert "workers must be >= 1" in capsys.readouterr().err
+    assert main(["demo", "--set", "closed_loop_variants=[policy,bogus]"]) == 2
+    assert "closed_loop_variants" in capsys.readouterr().err

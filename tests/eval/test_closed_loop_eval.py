@@ -5,9 +5,18 @@ import numpy as np
 import pytest
 import torch
 
+from resim.config import from_dict
 from synthworld.drivers import simulate
-from training.eval.closed_loop import ClosedLoopConfig, idm_path, path_score, rank_agreement, starting_states
+from synthworld.policies import ConstantVelocity, SteeringBias
+from training.eval.closed_loop import (ClosedLoopConfig, closed_loop_eval, format_closed_loop, idm_path, path_score,
+                                       rank_agreement, reward_score, starting_states)
 from training.eval.idm import IDMConfig
+from training.eval.simulate import reward_over_time
+from training.reward.config import RewardModelConfig
+from training.reward.model import Video2Reward
+from training.reward.score import score_videos
+
+TINY_REWARD = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
 
 
 class StraightIDM(torch.nn.Module):
@@ -69,3 +78,31 @@ def test_starting_states_are_seeded_fork_worlds():
     assert np.array_equal(a[2].world.route.xy, b[2].world.route.xy) and a[2].world.fork["branch"] == "right"
     with pytest.raises(ValueError, match="seconds"):
         ClosedLoopConfig(seconds=2.0)
+
+
+def test_video2reward_scores_a_drive_over_time_one_window_per_second(one_torch_thread):
+    reward = Video2Reward(from_dict(RewardModelConfig, TINY_REWARD)).eval()
+    frames = np.random.default_rng(0).integers(0, 255, (9 + 40, 32, 48, 3), dtype=np.uint8)
+    pts = reward_over_time(reward, frames, first=8, fps_hz=10.0)
+    assert [p["t_s"] for p in pts] == [1.0, 2.0, 3.0, 4.0]
+    # each point is the window of 7 frames ending one second after the previous one
+    direct = score_videos(reward, [frames[19 - 7 + k * 10:19 + k * 10] for k in range(4)])
+    assert np.allclose([p["score"] for p in pts], direct, atol=1e-4) and all(0 < p["score"] < 1 for p in pts)
+    assert reward_over_time(reward, frames[:14], first=8, fps_hz=10.0) == []   # no second after the history yet
+    # a drive cut short (a collision ends a true episode) holds its last frame up to one window
+    held = np.concatenate([frames[8:12], np.repeat(frames[11:12], 3, axis=0)])
+    assert reward_score(reward, frames[:12], 8, "short") == pytest.approx(100 * score_videos(reward, [held])[0], abs=1e-3)
+
+
+def test_the_closed_loop_reads_each_drive_with_video2reward_too(one_torch_thread):
+    """True world only: both readings (IDM proxy, Video2Reward) of every drive, and a rank agreement for each."""
+    reward = Video2Reward(from_dict(RewardModelConfig, TINY_REWARD)).eval()
+    cfg = ClosedLoopConfig(states=2, seconds=4.0, bootstrap=20)
+    policies = {"cv": ConstantVelocity(), "cv + bias": SteeringBias(ConstantVelocity(), 0.1)}
+    rep = closed_loop_eval(policies, cfg, StraightIDM(), (64, 96), reward=reward)
+    assert {"proxy_vs_true_on_true_frames", "reward_vs_true_on_true_frames"} <= set(rep)
+    assert "world_model_vs_true" not in rep and "world_model_reward_vs_true" not in rep
+    assert len(rep["rows"]) == 4 and all(0 < row["true_frames_reward"] < 100 for row in rep["rows"])
+    # the biased drive leaves the lane in the true world: the true score ranks it last
+    assert rep["reward_vs_true_on_true_frames"]["per_policy"]["cv + bias"]["true_rank"] == 2
+    assert "V2R, true frames" in format_closed_loop(rep)

@@ -6,12 +6,17 @@ import numpy as np
 import pytest
 import torch
 
+from resim.config import from_dict
+from shards.manifest import read_manifest
 from shards.schema import COMMANDS
 from synthworld.closed_loop import Observation
 from training.policy.drive import PixelPolicy, itinerary
 from training.policy.model import DrivingPolicy, policy_preset
 from training.policy.train import (MIRROR, PolicyClip, PolicyTrainConfig, clips_from_shards, collate, load_policy,
                                    run_policy_training)
+from training.reward.checkpoint import save_checkpoint
+from training.reward.config import RewardTrainConfig
+from training.reward.model import Video2Reward
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SMALL = dict(input_hw=(32, 48), channels=(8, 16, 24), hidden=64, frame_hw=(64, 96))
@@ -118,9 +123,27 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
             "--state", "1", "--seconds", "0.8", "--steps", "2", "--out", str(tmp_path / "sim"), "--device", "cpu")
     assert r.returncode == 0, r.stderr[-2000:]
     sim = json.loads((tmp_path / "sim" / "simulate.json").read_text())
-    assert sim["decisions"] == 2 and sim["state"] == "s5000-1-straight"
+    assert sim["decisions"] == 2 and sim["start"] == "s5000-1-straight"
     meta = json.loads((tmp_path / "sim" / "world_model_meta.json").read_text())
     assert meta["num_frames"] == 9 + 2 * 4 and len(meta["plans"]) == 2 and len(meta["plans"][0]["waypoints"]) == 8
+    # from a recorded history (a shard key), Video2Reward over time (an untrained reward: the plumbing only)
+    tc = from_dict(RewardTrainConfig, {"epochs": 1, "model": {"num_frames": 4, "frame_step": 2, "head_dim": 32,
+                                                               "num_heads": 2, "mlp_hidden_dim": 32}})
+    save_checkpoint(Video2Reward(tc.model), tmp_path / "rw", tc)
+    key = read_manifest(root).to_pylist()[0]["key"]
+    r = run("simulate", "--checkpoint", "synth-world", "--shards", str(root), "--policy", str(tmp_path / "pol"),
+            "--history", key, "--command", "Turning left", "--seconds", "1.2", "--steps", "1", "--reward",
+            str(tmp_path / "rw"), "--out", str(tmp_path / "sim2"), "--device", "cpu")
+    assert r.returncode == 0, r.stderr[-2000:]
+    sim = json.loads((tmp_path / "sim2" / "simulate.json").read_text())
+    assert sim["start"] == f"shard:{key}" and sim["decisions"] == 3 and "true_world_score" not in sim
+    assert [p["t_s"] for p in sim["video2reward_over_time"]["world model"]] == [1.0]
+    meta = json.loads((tmp_path / "sim2" / "world_model_meta.json").read_text())
+    assert {p["command"] for p in meta["plans"]} == {"Turning left"} and not (tmp_path / "sim2" / "true_world.mp4").exists()
+    assert (tmp_path / "sim2" / "reward_over_time.png").is_file()
+    bad = run("simulate", "--checkpoint", "synth-world", "--shards", str(root), "--policy", str(tmp_path / "pol"),
+              "--history", "no-such-key", "--out", str(tmp_path / "sim3"), "--device", "cpu")
+    assert bad.returncode == 2 and "no-such-key" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
               str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"), "--true-only")
     assert bad.returncode == 2 and "policy checkpoint" in bad.stderr

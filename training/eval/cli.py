@@ -19,6 +19,7 @@ from resim.argtypes import torch_device as _torch_device
 from resim.config import ConfigError, apply_overrides, from_dict
 from resim.models import shipped_model
 from shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
+from training.policy.variants import VARIANTS as CL_VARIANTS
 from training.sampling.cli import UsageError, resolve_device
 
 REPO = Path(__file__).resolve().parents[2]
@@ -106,11 +107,15 @@ OUT/command_loss.json (per level, per command, per clip) and OUT/command_loss.pn
 """
 
 CLOSED_LOOP_EPILOG = """\
-example (the shipped synthetic-world model; policy and IDM trained on fork worlds of other seeds):
-  resim train policy --shards data/forks --out runs/policy
-  resim eval idm --shards data/forks --out runs/idm --preset tiny
-  resim eval closed-loop --checkpoint synth-world --shards data/forks --policy runs/policy --idm runs/idm \\
+example (the shipped synthetic-world models: world model, policy and IDM, trained on fork worlds of other seeds):
+  resim eval closed-loop --checkpoint synth-world --shards data/forks --policy synth-policy --idm synth-idm \\
       --out out/closed-loop --steps 10
+with your own policy (and an under-trained one beside it) and IDM:
+  resim train policy --shards data/forks --out runs/policy
+  resim train policy --shards data/forks --out runs/policy-1-epoch --epochs 1
+  resim eval idm --shards data/forks --out runs/idm --preset tiny
+  resim eval closed-loop --checkpoint synth-world --shards data/forks --policy runs/policy \\
+      --also runs/policy-1-epoch --idm runs/idm --reward runs/reward --out out/closed-loop --steps 10
 --shards gives the prompt table and the VAE the world model was trained with; the starting states are built
 from --state-seed, not read from it. Writes OUT/closed_loop.json and OUT/closed_loop.png (true score against
 each world-model reading, one point per policy).
@@ -324,10 +329,17 @@ def register(subparsers) -> None:
                                     "over states (docs/closed_loop.md).",
                         epilog=CLOSED_LOOP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _world_args(cl)
-    cl.add_argument("--policy", required=True, help="policy run folder (resim train policy)")
+    cl.add_argument("--policy", required=True,
+                    help="policy run folder (resim train policy) or synth-policy (shipped)")
     cl.add_argument("--also", nargs="*", default=[], metavar="POLICY_RUN",
                     help="more policy runs to rank beside it (e.g. an under-trained one)")
-    cl.add_argument("--idm", required=True, help="IDM run folder (resim eval idm): reads the driven path off video")
+    cl.add_argument("--idm", required=True,
+                    help="IDM run folder (resim eval idm) or synth-idm (shipped): reads the driven path off video")
+    cl.add_argument("--variants", nargs="+", default=list(CL_VARIANTS), choices=list(CL_VARIANTS), metavar="NAME",
+                    help="which of the graded policies drive (default all): policy, noise (steering noise 0.08/m), "
+                         "bias (steering bias 0.05/m), bias2 (0.1/m), cv (constant velocity)")
+    cl.add_argument("--reward", default=None, metavar="REWARD_RUN",
+                    help="Video2Reward run (resim train reward): a second world-model reading, beside the IDM proxy")
     cl.add_argument("--states", type=_positive_int, default=6, help="starting states (fork worlds; default 6)")
     cl.add_argument("--state-seed", type=int, default=5000,
                     help="seed of the starting-state worlds (default 5000: use one no training data came from)")

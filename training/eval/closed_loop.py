@@ -43,6 +43,10 @@ from training.eval.commands_report import _label
 from training.eval.idm_train import load_idm, resize_frames
 from training.policy.drive import PixelPolicy, itinerary
 from training.policy.train import load_policy
+from training.policy.variants import VARIANTS
+from training.reward.checkpoint import load_checkpoint as load_reward
+from training.reward.metrics import spearman
+from training.reward.score import score_videos
 from training.sampling.load import trained_size_hw
 from training.sampling.outputs import write_rollout
 from training.sampling.simulate import WorldModelLoop
@@ -169,15 +173,6 @@ def history_of(state: StartState, cfg: ClosedLoopConfig, vae: Any, clip_hw: tupl
     return latents, frames, float(expert.speed_mps[h_step])
 
 
-def spearman(a: Sequence[float], b: Sequence[float]) -> float:
-    """Spearman's rank correlation (average ranks for ties); nan when either side is constant."""
-    from scipy.stats import spearmanr   # scipy only for the statistic
-
-    if len(set(a)) < 2 or len(set(b)) < 2:
-        return float("nan")
-    return float(spearmanr(a, b).statistic)
-
-
 def rank_agreement(true: np.ndarray, model: np.ndarray, names: Sequence[str], bootstrap: int = 1000,
                    seed: int = 0) -> dict:
     """``true``, ``model``: scores ``(policies, states)``. Spearman of the per-policy means, its bootstrap over
@@ -202,17 +197,39 @@ def rank_agreement(true: np.ndarray, model: np.ndarray, names: Sequence[str], bo
             "largest_disagreements": [names[i] for i in order[:2] if rt[i] != rm[i]]}
 
 
+READINGS = {   # report key: (label, the score array it ranks by)
+    "proxy_vs_true_on_true_frames": ("IDM proxy on the true frames", "true_proxy"),
+    "world_model_vs_true": ("world model (IDM proxy on its video)", "wm_proxy"),
+    "reward_vs_true_on_true_frames": ("Video2Reward on the true frames", "true_reward"),
+    "world_model_reward_vs_true": ("world model (Video2Reward on its video)", "wm_reward"),
+}
+
+
+def reward_score(reward: Any, frames: np.ndarray, first: int, name: str) -> float:
+    """Video2Reward's predicted infraction score × 100 (100 = clean, as the composed score) of the drive from
+    frame ``first`` on (``frames`` (T, H, W, 3) uint8): the mean over its sliding windows (``score_videos``). A
+    drive that ended early (the true world cuts an episode 2 s after a collision) holds its last frame up to one
+    window, as the reward's training clips of such routes do (configs/pipeline/carla-reward.yaml)."""
+    clip = frames[first:]
+    short = reward.cfg.window_frames - len(clip)
+    if short > 0:
+        clip = np.concatenate([clip, np.repeat(clip[-1:], short, axis=0)])
+    return 100.0 * float(score_videos(reward, [clip], names=[name])[0])
+
+
 def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: Any, clip_hw: tuple[int, int], *,
-                     loop: WorldModelLoop | None = None, vae: Any = None, seed: int = 0,
+                     loop: WorldModelLoop | None = None, vae: Any = None, reward: Any = None, seed: int = 0,
                      say: Callable[[str], None] = lambda m: None) -> dict:
     """Every policy from every starting state in the true world (and, with ``loop`` and ``vae``, inside the world
-    model). Returns per-state rows, per-policy means, and the rank agreement of each world-model reading with the
-    true score; ``_videos``: the first state's frames, ``{("true" | "world model", policy): (T, h, w, 3) uint8}``
-    (the true world's cover-cropped to the clip size)."""
+    model). Each drive is read by the IDM proxy and, with ``reward`` (a ``Video2Reward``), by Video2Reward.
+    Returns per-state rows, per-policy means, and the rank agreement of each reading with the true score
+    (``READINGS``); ``_videos``: the first state's frames, ``{("true" | "world model", policy): (T, h, w, 3)
+    uint8}`` (the true world's cover-cropped to the clip size)."""
     states = starting_states(cfg)
     names = list(policies)
     shape = (len(names), len(states))
-    true_score, true_proxy, wm_proxy = np.zeros(shape), np.zeros(shape), np.full(shape, np.nan)
+    true_score = np.zeros(shape)
+    score = {k: np.full(shape, np.nan) for _, k in READINGS.values()}
     rows, videos = [], {}
     h_step = int(round(cfg.history_s * cfg.sim_hz))
     first = int(round(cfg.history_s * cfg.fps_hz))            # index of the last history frame
@@ -234,40 +251,47 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
             r = drive(st.world, policies[name], st.renderer(cfg), lcfg, name, command_at=command_at, expert=expert)
             true_score[pi, si] = r.score.score_composed
             tp = path_score(st.world, start_pose, idm_path(idm, r.frames, first, cfg.fps_hz, clip_hw), expert_m)
-            true_proxy[pi, si] = tp["score"]
+            score["true_proxy"][pi, si] = tp["score"]
+            true_clip = np.stack([cover_crop(f, clip_hw) for f in r.frames])
             if si == 0:
-                videos[("true", name)] = np.stack([cover_crop(f, clip_hw) for f in r.frames])
+                videos[("true", name)] = true_clip
             row = {"state": st.name, "policy": name, "true": {"score": r.score.score_composed,
                                                               "route": r.score.score_route,
                                                               "penalty": r.score.score_penalty,
                                                               "infractions": r.score.names()},
                    "true_frames_idm_proxy": tp}
+            if reward is not None:
+                score["true_reward"][pi, si] = row["true_frames_reward"] = reward_score(reward, true_clip, first, name)
             if world_runs is not None:
                 w = world_runs[pi]
                 wp = path_score(st.world, start_pose, idm_path(idm, w.frames, first, cfg.fps_hz, clip_hw), expert_m)
-                wm_proxy[pi, si] = wp["score"]
+                score["wm_proxy"][pi, si] = wp["score"]
                 row["world_model_idm_proxy"] = {**wp, "seconds": w.seconds}
+                if reward is not None:
+                    score["wm_reward"][pi, si] = row["world_model_reward"] = reward_score(reward, w.frames, first,
+                                                                                        f"world model: {name}")
                 if si == 0:
                     videos[("world model", name)] = w.frames
             rows.append(row)
             say(f"{st.name} {name}: true {true_score[pi, si]:.1f}  proxy on true frames {tp['score']:.1f}"
-                + (f"  world model {wm_proxy[pi, si]:.1f} ({row['world_model_idm_proxy']['seconds']:.0f} s)"
-                   if loop is not None else ""))
-    rep = {"states": [s.name for s in states], "policies": names, "rows": rows,
-           "proxy_vs_true_on_true_frames": rank_agreement(true_score, true_proxy, names, cfg.bootstrap)}
-    if loop is not None:
-        rep["world_model_vs_true"] = rank_agreement(true_score, wm_proxy, names, cfg.bootstrap)
+                + (f"  world model {score['wm_proxy'][pi, si]:.1f} ({row['world_model_idm_proxy']['seconds']:.0f} s)"
+                   if loop is not None else "")
+                + (f"  Video2Reward true {score['true_reward'][pi, si]:.1f}" if reward is not None else "")
+                + (f" / world model {score['wm_reward'][pi, si]:.1f}" if reward is not None and loop else ""))
+    rep = {"states": [s.name for s in states], "policies": names, "rows": rows}
+    for key, (_, arr) in READINGS.items():
+        if not np.isnan(score[arr]).all():
+            rep[key] = rank_agreement(true_score, score[arr], names, cfg.bootstrap)
     rep["_videos"] = videos
     return rep
 
 
 def format_closed_loop(rep: dict) -> str:
-    readings = [("proxy_vs_true_on_true_frames", "IDM proxy on the true frames")]
-    if "world_model_vs_true" in rep:
-        readings.append(("world_model_vs_true", "world model (IDM proxy on its video)"))
+    readings = [(key, label) for key, (label, _) in READINGS.items() if key in rep]
     names = rep["policies"]
-    short = {"proxy_vs_true_on_true_frames": "proxy on true frames", "world_model_vs_true": "world model"}
-    head = f"{'policy':34s} {'true score':>10s}" + "".join(f" {short[key]:>26s}" for key, _ in readings)
+    short = {"proxy_vs_true_on_true_frames": "proxy, true frames", "world_model_vs_true": "proxy, world model",
+             "reward_vs_true_on_true_frames": "V2R, true frames", "world_model_reward_vs_true": "V2R, world model"}
+    head = f"{'policy':34s} {'true score':>10s}" + "".join(f" {short[key]:>22s}" for key, _ in readings)
     lines = [f"closed loop: {len(names)} policies x {len(rep['states'])} starting states "
              "(mean composed score, 100 = the expert; rank in brackets)", head]
     for n in names:
@@ -275,7 +299,7 @@ def format_closed_loop(rep: dict) -> str:
         row = f"{n:34s} {t['true']:6.1f} [{t['true_rank']}]"
         for key, _ in readings:
             m = rep[key]["per_policy"][n]
-            row += f" {m['model']:22.1f} [{m['model_rank']}]"
+            row += f" {m['model']:18.1f} [{m['model_rank']}]"
         lines.append(row)
     for key, label in readings:
         a = rep[key]
@@ -293,17 +317,16 @@ def plot_closed_loop(rep: dict, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = [k for k in ("proxy_vs_true_on_true_frames", "world_model_vs_true") if k in rep]
-    fig, axes = plt.subplots(1, len(keys), figsize=(5.5 * len(keys), 4.6), squeeze=False)
+    keys = [k for k in READINGS if k in rep]
+    fig, axes = plt.subplots(1, len(keys), figsize=(5.0 * len(keys), 4.4), squeeze=False)
     for ax, key in zip(axes[0], keys):
         a = rep[key]
         for n, v in a["per_policy"].items():   # one colour per policy, the same in every panel
             ax.scatter(v["true"], v["model"], s=40, label=n)
         ax.plot([0, 100], [0, 100], color="0.7", lw=0.8)
         ax.set_xlabel("true score (simulator)")
-        ax.set_ylabel("IDM proxy score")
-        ax.set_title(f"{'world model' if key == 'world_model_vs_true' else 'proxy on true frames'}: "
-                     f"Spearman {a['spearman']:.2f}", fontsize=9)
+        ax.set_ylabel("Video2Reward x 100" if "reward" in key else "IDM proxy score")
+        ax.set_title(f"{READINGS[key][0]}:\nSpearman {a['spearman']:.2f}", fontsize=9)
     axes[0][0].legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -315,13 +338,14 @@ class ClosedLoopInputError(ValueError):
     """A run folder or setting the evaluation cannot use (one line for the CLI)."""
 
 
-def graded_policies(pixel: PixelPolicy) -> dict[str, Callable]:
-    """The policy and its versions degraded by design (Vid2World ranks policies of graded quality): the order of
-    the degradations is known before any run; where they land against constant velocity is what the true world
-    says."""
-    return {"policy": pixel, "policy + steering noise 0.08/m": SteeringNoise(pixel, 0.08, seed=1),
-            "policy + steering bias 0.05/m": SteeringBias(pixel, 0.05),
-            "policy + steering bias 0.1/m": SteeringBias(pixel, 0.1), "constant velocity": ConstantVelocity()}
+def graded_policies(pixel: PixelPolicy, variants: Sequence[str] = tuple(VARIANTS)) -> dict[str, Callable]:
+    """The policy and its versions degraded by design (Vid2World ranks policies of graded quality), keyed by their
+    labels (``VARIANTS``; ``variants``: which, by short name): the order of the degradations is known before any
+    run; where they land against constant velocity is what the true world says."""
+    make = {"policy": lambda: pixel, "noise": lambda: SteeringNoise(pixel, 0.08, seed=1),
+            "bias": lambda: SteeringBias(pixel, 0.05), "bias2": lambda: SteeringBias(pixel, 0.1),
+            "cv": lambda: ConstantVelocity()}
+    return {VARIANTS[v]: make[v]() for v in variants}
 
 
 def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]:
@@ -332,9 +356,10 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
         pixel, pinfo = load_policy(args.policy, args.device)
         extra = {Path(r).name: load_policy(r, args.device)[0] for r in args.also}
         idm, _ = load_idm(args.idm, args.device)
+        reward = load_reward(args.reward, args.device) if args.reward else None
     except (ValueError, FileNotFoundError) as e:
         raise ClosedLoopInputError(str(e)) from None
-    policies = {**graded_policies(PixelPolicy(pixel, args.device)),
+    policies = {**graded_policies(PixelPolicy(pixel, args.device), args.variants),
                 **{name: PixelPolicy(m, args.device) for name, m in extra.items()}}
     clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(pixel.cfg.frame_hw)
     loop, vae, meta = None, None, {}
@@ -353,8 +378,9 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
         done[0] += 1
         print(f"[{done[0]}/{n}, {time.perf_counter() - t0:.0f} s] {msg}", file=sys.stderr)
 
-    rep = closed_loop_eval(policies, cfg, idm, clip_hw, loop=loop, vae=vae, seed=args.seed, say=say)
-    rep["protocol"] = {"policy": pinfo, "also": list(args.also), "idm": str(args.idm), "clip_hw": list(clip_hw),
+    rep = closed_loop_eval(policies, cfg, idm, clip_hw, loop=loop, vae=vae, reward=reward, seed=args.seed, say=say)
+    rep["protocol"] = {"policy": pinfo, "also": list(args.also), "idm": str(args.idm), "reward": args.reward,
+                       "clip_hw": list(clip_hw),
                        "config": dict(vars(cfg)), "world_model": meta or None, "device": args.device,
                        "seconds": round(time.perf_counter() - t0, 1)}
     out = Path(args.out)
@@ -385,57 +411,3 @@ def closed_loop_strip(rep: dict, path, first_frame: int, fps_hz: float = 10.0, t
     rows = [np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows]
     Image.fromarray(np.concatenate(rows, axis=0)).save(path)
     return path
-
-
-def run_simulate(args: Any, make_runner: Callable) -> str:
-    """``resim simulate``: one policy from one synthetic starting state, inside the world model for
-    ``args.seconds``, and in the true world beside it. Writes OUT/world_model.* and OUT/true_world.* (mp4,
-    gif, contact sheet, meta: the per-decision plans and commands), OUT/simulate.json; returns the summary."""
-    try:
-        cfg = ClosedLoopConfig(seed=args.state_seed, states=max(2, args.state + 1), seconds=max(4.0, args.seconds))
-        policy_model, pinfo = load_policy(args.policy, args.device)
-    except (ValueError, FileNotFoundError) as e:
-        raise ClosedLoopInputError(str(e)) from None
-    pixel = PixelPolicy(policy_model, args.device)
-    graded = graded_policies(pixel)
-    label = list(graded)[args.variant_index]
-    policy = graded[label]
-    st = starting_states(cfg)[args.state]
-    clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(policy_model.cfg.frame_hw)
-    runner, meta = make_runner(args)
-    loop = WorldModelLoop(runner.model, runner.vae, runner.text_for, runner.cfg, schedule=runner.schedule,
-                          device=args.device)
-    total = cfg.history_s + args.seconds
-    command_at = itinerary(st.world, total, cfg.sim_hz)
-    expert = simulate(st.world, total, cfg.sim_hz, np.random.default_rng(0), "expert")
-    latents, frames, speed = history_of(st, cfg, runner.vae, clip_hw, expert)
-    out = Path(args.out)
-    t0 = time.perf_counter()
-    n_dec = int(np.ceil(args.seconds / cfg.decision_s - 1e-9))
-    say = lambda i, n: print(f"[resim simulate] decision {i}/{n} ({time.perf_counter() - t0:.0f} s)",  # noqa: E731
-                             file=sys.stderr) if i % 5 == 0 or i == n else None
-    print(f"[resim simulate] {st.name}, policy {label!r}, {args.seconds:g} s = {n_dec} decisions of "
-          f"{cfg.decision_s:g} s, {runner.cfg.num_steps} DDIM steps each ...", file=sys.stderr)
-    w = loop.run(latents, frames, speed, policy, args.seconds, command_at=command_at, t0_s=cfg.history_s,
-                 seed=args.seed, name=label, on_decision=say)
-    plans = [{"t_s": round(t, 3), "command": c, "waypoints": p.round(3).tolist()}
-             for (t, p), c in zip(w.plans, w.commands)]
-    nh = w.num_history_frames
-    write_rollout(out, "world_model", w.frames, w.latents[0].numpy(), num_history_px=nh, fps_hz=cfg.fps_hz,
-                  title=f"world model: {label} ({st.name})", meta={"plans": plans})
-    lcfg = cfg.loop_cfg(total)
-    r = drive(st.world, policy, st.renderer(cfg), lcfg, label, command_at=command_at, expert=expert)
-    true_frames = np.stack([cover_crop(f, clip_hw) for f in r.frames])
-    write_rollout(out, "true_world", true_frames, np.zeros((0,), np.float32), num_history_px=nh, fps_hz=cfg.fps_hz,
-                  title=f"true world: {label} ({st.name})",
-                  meta={"plans": [{"t_s": round(t, 3), "waypoints": p.round(3).tolist()} for t, p in r.plans],
-                        "score": r.score.score_composed, "infractions": r.score.names()})
-    summary = {"state": st.name, "policy": pinfo, "variant": label, "seconds": args.seconds,
-               "decisions": len(w.plans), "wall_s": round(w.seconds, 1),
-               "wall_s_per_generated_s": round(w.seconds / args.seconds, 2), "true_world_score": r.score.score_composed,
-               "true_world_infractions": r.score.names(), "world_model": meta, "device": args.device}
-    (out / "simulate.json").write_text(json.dumps(summary, indent=1, default=str))
-    return (f"{st.name}: {len(w.plans)} decisions, {w.seconds:.0f} s ({summary['wall_s_per_generated_s']:g} s per "
-            f"generated second on {args.device}); true world score {r.score.score_composed:.1f} "
-            f"{r.score.names() or ''}\nwrote {out}/world_model.mp4, true_world.mp4 (+ gif, sheets, plans in "
-            f"*_meta.json) and simulate.json")

@@ -229,11 +229,12 @@ def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainCo
 
 
 def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsModel, dict]:
-    """Load a trained IDM/planner from a run folder (or its ``final/``), built through the registry
-    (``training.exported``). ``FileNotFoundError`` when neither holds the files; a ``ValueError`` naming the file
+    """Load a trained IDM/planner from a run folder (or its ``final/``), or a shipped one by name (``synth-idm``),
+    built through the registry (``training.exported``). ``FileNotFoundError`` when neither holds the files; a ``ValueError`` naming the file
     for anything wrong in them (the CLI prints it in one line)."""
     try:
-        ex = load_exported(run_dir, expect="idm", label="an IDM run", adapt_config=_head_of_old_runs)
+        ex = load_exported(run_dir, expect="idm", label="an IDM run", adapt_config=_head_of_old_runs,
+                           shipped=True)
     except ExportNotFoundError as e:
         raise FileNotFoundError(f"IDM checkpoint {e} (written by `resim eval idm`)") from None
     sha = hashlib.sha256(ex.weights.read_bytes()).hexdigest()

@@ -195,9 +195,10 @@ def run_policy_training(roots: Sequence[str | Path], tcfg: PolicyTrainConfig, ou
 
 
 def load_policy(run_dir: str | Path, device: str = "cpu") -> tuple[DrivingPolicy, dict]:
-    """A trained policy from a run folder (or its ``final/``); ``FileNotFoundError`` when neither holds one."""
+    """A trained policy from a run folder (or its ``final/``), or a shipped one by name (``synth-policy``);
+    ``FileNotFoundError`` when neither holds one."""
     try:
-        ex = load_exported(run_dir, expect="policy", label="a policy run")
+        ex = load_exported(run_dir, expect="policy", label="a policy run", shipped=True)
     except ExportNotFoundError as e:
         raise FileNotFoundError(f"policy checkpoint {e} (written by `resim train policy`)") from None
     sha = hashlib.sha256(ex.weights.read_bytes()).hexdigest()
