@@ -89,6 +89,9 @@ def _recorded_history(args: Any, vae: Any, clip_hw: tuple[int, int], fps_hz: flo
             traj = find_sample(args.shards, args.history, decode_video=False, attach_prompts=False).get("traj.npy")
     except SamplingInputError as e:
         raise ClosedLoopInputError(str(e)) from None
+    if abs(h.fps_hz - fps_hz) > 1e-6:   # the loop decides every latent frame = 0.4 s at the training clips' rate
+        raise ClosedLoopInputError(f"history {args.history}: its clip is at {h.fps_hz:g} Hz; the closed loop drives "
+                                   f"{fps_hz:g}-Hz clips (a NAVSIM key at 2 Hz cannot start it)")
     frames = h.frames
     if frames is None:    # a shard written without frames.mp4: what the VAE makes of the latents
         frames = decode_latents(vae, h.latents, batch_size=1)[0]
