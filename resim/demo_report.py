@@ -126,8 +126,16 @@ def _closed_loop_section(out: Path) -> list[str]:
     rows = [[html.escape(n), f"{first[n]['true']:.1f} [{first[n]['true_rank']}]",
              *[f"{r[k]['per_policy'][n]['model']:.1f} [{r[k]['per_policy'][n]['model_rank']}]" for k, _ in keys]]
             for n in r["policies"]]
+    def spread(k: str) -> float:
+        vals = [v["model"] for v in r[k]["per_policy"].values()]
+        return max(vals) - min(vals)
+
+    # a reading whose policy means lie within a point of each other ranks by noise: say so, not a rho
     rho = [[html.escape(label), _f(r[k]["spearman"], ".2f"),
-            "n/a" if not r[k]["ci95"] else f"[{r[k]['ci95'][0]:.2f}, {r[k]['ci95'][1]:.2f}]"] for k, label in keys]
+            "n/a" if not r[k]["ci95"] else f"[{r[k]['ci95'][0]:.2f}, {r[k]['ci95'][1]:.2f}]"]
+           if spread(k) >= 1.0 else [html.escape(label), "—", "the reading does not separate the policies "
+                                                                f"(spread {spread(k):.2f} points)"]
+           for k, label in keys]
     cfg = pro["config"]
     return [
         "<h2>8. A policy driving inside the world model (closed loop)</h2>",
