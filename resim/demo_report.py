@@ -117,11 +117,7 @@ def _closed_loop_section(out: Path) -> list[str]:
         return []
     r = json.loads(p.read_text())
     pro = r["protocol"]
-    keys = [("proxy_vs_true_on_true_frames", "IDM proxy, true frames"),
-            ("world_model_vs_true", "IDM proxy, world model"),
-            ("reward_vs_true_on_true_frames", "Video2Reward ×100, true frames"),
-            ("world_model_reward_vs_true", "Video2Reward ×100, world model")]
-    keys = [(k, label) for k, label in keys if k in r]
+    keys = list(r["readings"].items())   # (report key, label) of the readings the run made
     first = r[keys[0][0]]["per_policy"]
     rows = [[html.escape(n), f"{first[n]['true']:.1f} [{first[n]['true_rank']}]",
              *[f"{r[k]['per_policy'][n]['model']:.1f} [{r[k]['per_policy'][n]['model_rank']}]" for k, _ in keys]]

@@ -19,7 +19,7 @@ from resim.argtypes import torch_device as _torch_device
 from resim.config import ConfigError, apply_overrides, from_dict
 from resim.models import shipped_model
 from shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
-from training.policy.variants import VARIANTS as CL_VARIANTS
+from training.policy.variants import HELP as CL_VARIANTS_HELP, VARIANTS as CL_VARIANTS
 from training.sampling.cli import UsageError, resolve_device
 
 REPO = Path(__file__).resolve().parents[2]
@@ -336,8 +336,7 @@ def register(subparsers) -> None:
     cl.add_argument("--idm", required=True,
                     help="IDM run folder (resim eval idm) or synth-idm (shipped): reads the driven path off video")
     cl.add_argument("--variants", nargs="+", default=list(CL_VARIANTS), choices=list(CL_VARIANTS), metavar="NAME",
-                    help="which of the graded policies drive (default all): policy, noise (steering noise 0.08/m), "
-                         "bias (steering bias 0.05/m), bias2 (0.1/m), cv (constant velocity)")
+                    help=f"which of the graded policies drive (default all): {CL_VARIANTS_HELP}")
     cl.add_argument("--reward", default=None, metavar="REWARD_RUN",
                     help="Video2Reward run (resim train reward): a second world-model reading, beside the IDM proxy")
     cl.add_argument("--states", type=_positive_int, default=6, help="starting states (fork worlds; default 6)")

@@ -197,11 +197,11 @@ def rank_agreement(true: np.ndarray, model: np.ndarray, names: Sequence[str], bo
             "largest_disagreements": [names[i] for i in order[:2] if rt[i] != rm[i]]}
 
 
-READINGS = {   # report key: (label, the score array it ranks by)
-    "proxy_vs_true_on_true_frames": ("IDM proxy on the true frames", "true_proxy"),
-    "world_model_vs_true": ("world model (IDM proxy on its video)", "wm_proxy"),
-    "reward_vs_true_on_true_frames": ("Video2Reward on the true frames", "true_reward"),
-    "world_model_reward_vs_true": ("world model (Video2Reward on its video)", "wm_reward"),
+READINGS = {   # report key: (label, short label for tables, the score array it ranks by)
+    "proxy_vs_true_on_true_frames": ("IDM proxy on the true frames", "proxy, true frames", "true_proxy"),
+    "world_model_vs_true": ("world model (IDM proxy on its video)", "proxy, world model", "wm_proxy"),
+    "reward_vs_true_on_true_frames": ("Video2Reward on the true frames", "V2R, true frames", "true_reward"),
+    "world_model_reward_vs_true": ("world model (Video2Reward on its video)", "V2R, world model", "wm_reward"),
 }
 
 
@@ -229,7 +229,7 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
     names = list(policies)
     shape = (len(names), len(states))
     true_score = np.zeros(shape)
-    score = {k: np.full(shape, np.nan) for _, k in READINGS.values()}
+    score = {k: np.full(shape, np.nan) for *_, k in READINGS.values()}
     rows, videos = [], {}
     h_step = int(round(cfg.history_s * cfg.sim_hz))
     first = int(round(cfg.history_s * cfg.fps_hz))            # index of the last history frame
@@ -278,20 +278,19 @@ def closed_loop_eval(policies: dict[str, Callable], cfg: ClosedLoopConfig, idm: 
                    if loop is not None else "")
                 + (f"  Video2Reward true {score['true_reward'][pi, si]:.1f}" if reward is not None else "")
                 + (f" / world model {score['wm_reward'][pi, si]:.1f}" if reward is not None and loop else ""))
-    rep = {"states": [s.name for s in states], "policies": names, "rows": rows}
-    for key, (_, arr) in READINGS.items():
+    rep = {"states": [s.name for s in states], "policies": names, "rows": rows, "readings": {}}
+    for key, (label, _, arr) in READINGS.items():
         if not np.isnan(score[arr]).all():
             rep[key] = rank_agreement(true_score, score[arr], names, cfg.bootstrap)
+            rep["readings"][key] = label
     rep["_videos"] = videos
     return rep
 
 
 def format_closed_loop(rep: dict) -> str:
-    readings = [(key, label) for key, (label, _) in READINGS.items() if key in rep]
+    readings = [(key, label) for key, (label, *_) in READINGS.items() if key in rep]
     names = rep["policies"]
-    short = {"proxy_vs_true_on_true_frames": "proxy, true frames", "world_model_vs_true": "proxy, world model",
-             "reward_vs_true_on_true_frames": "V2R, true frames", "world_model_reward_vs_true": "V2R, world model"}
-    head = f"{'policy':34s} {'true score':>10s}" + "".join(f" {short[key]:>22s}" for key, _ in readings)
+    head = f"{'policy':34s} {'true score':>10s}" + "".join(f" {READINGS[key][1]:>22s}" for key, _ in readings)
     lines = [f"closed loop: {len(names)} policies x {len(rep['states'])} starting states "
              "(mean composed score, 100 = the expert; rank in brackets)", head]
     for n in names:
@@ -344,7 +343,7 @@ def graded_policies(pixel: PixelPolicy, variants: Sequence[str] = tuple(VARIANTS
     run; where they land against constant velocity is what the true world says."""
     make = {"policy": lambda: pixel, "noise": lambda: SteeringNoise(pixel, 0.08, seed=1),
             "bias": lambda: SteeringBias(pixel, 0.05), "bias2": lambda: SteeringBias(pixel, 0.1),
-            "cv": lambda: ConstantVelocity()}
+            "cv": ConstantVelocity}
     return {VARIANTS[v]: make[v]() for v in variants}
 
 

@@ -230,8 +230,8 @@ def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainCo
 
 def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsModel, dict]:
     """Load a trained IDM/planner from a run folder (or its ``final/``), or a shipped one by name (``synth-idm``),
-    built through the registry (``training.exported``). ``FileNotFoundError`` when neither holds the files; a ``ValueError`` naming the file
-    for anything wrong in them (the CLI prints it in one line)."""
+    built through the registry (``training.exported``). ``FileNotFoundError`` when neither holds the files; a
+    ``ValueError`` naming the file for anything wrong in them (the CLI prints it in one line)."""
     try:
         ex = load_exported(run_dir, expect="idm", label="an IDM run", adapt_config=_head_of_old_runs,
                            shipped=True)

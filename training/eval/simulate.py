@@ -26,7 +26,6 @@ import numpy as np
 import torch
 
 from media.frames import cover_crop
-from shards.reader import find_sample
 from synthworld.closed_loop import drive
 from synthworld.drivers import simulate
 from training.eval.closed_loop import (ClosedLoopConfig, ClosedLoopInputError, graded_policies, history_of,
@@ -82,11 +81,8 @@ def _recorded_history(args: Any, vae: Any, clip_hw: tuple[int, int], fps_hz: flo
     try:
         if Path(args.history).is_file():
             h = history_from_video(args.history, vae, 3, clip_hw, fps_hz)
-            traj, command = None, None
         else:
             h = history_from_shard(args.shards, args.history, 3)
-            command = (h.meta or {}).get("command")
-            traj = find_sample(args.shards, args.history, decode_video=False, attach_prompts=False).get("traj.npy")
     except SamplingInputError as e:
         raise ClosedLoopInputError(str(e)) from None
     if abs(h.fps_hz - fps_hz) > 1e-6:   # the loop decides every latent frame = 0.4 s at the training clips' rate
@@ -96,9 +92,10 @@ def _recorded_history(args: Any, vae: Any, clip_hw: tuple[int, int], fps_hz: flo
     if frames is None:    # a shard written without frames.mp4: what the VAE makes of the latents
         frames = decode_latents(vae, h.latents, batch_size=1)[0]
     speed = args.speed_mps
-    if speed is None:
-        speed = float(np.hypot(*np.asarray(traj)[0, :2]) / 0.5) if traj is not None else DEFAULT_SPEED_MPS
-    return h.latents.float(), np.asarray(frames, np.uint8), speed, args.command or command or "Moving forward", h.source
+    if speed is None:   # the first waypoint is 0.5 s ahead
+        speed = float(np.hypot(*h.trajectory[0, :2]) / 0.5) if h.trajectory is not None else DEFAULT_SPEED_MPS
+    command = args.command or (h.meta or {}).get("command") or "Moving forward"
+    return h.latents.float(), np.asarray(frames, np.uint8), speed, command, h.source
 
 
 def run_simulate(args: Any, make_runner: Callable) -> str:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from shards.schema import COMMANDS
 from training.eval.cli import _world_args   # the world-model arguments, as `resim eval` takes them
-from training.policy.variants import VARIANTS   # `resim simulate --variant`
+from training.policy.variants import HELP as VARIANTS_HELP, VARIANTS   # `resim simulate --variant`
 
 
 DESCRIPTION = """\
@@ -70,9 +70,8 @@ def _cmd_train(args) -> int:
     return 0 if h["policy"]["n"] else 1
 
 
-SIMULATE_EPILOG = """\
-variants: policy (as trained), noise (steering noise 0.08/m), bias (steering bias 0.05/m), bias2 (0.1/m),
-cv (constant velocity: reads only the speedometer).
+SIMULATE_EPILOG = f"""\
+variants ({VARIANTS_HELP}); constant velocity reads only the speedometer.
 examples (the shipped synthetic-world models: world model, policy):
   # 30 s from the third fork world of seed 5000, the true world beside it, Video2Reward over time
   resim simulate --checkpoint synth-world --shards data/forks --policy synth-policy --state 2 --seconds 30 \\

@@ -8,3 +8,4 @@ policy with seeded steering noise or a constant steering bias (per metre of curv
 
 VARIANTS = {"policy": "policy", "noise": "policy + steering noise 0.08/m", "bias": "policy + steering bias 0.05/m",
             "bias2": "policy + steering bias 0.1/m", "cv": "constant velocity"}
+HELP = "; ".join(f"{k}: {v}" for k, v in VARIANTS.items())   # the CLIs' help

@@ -137,6 +137,7 @@ class History:
     source: str                       # what it came from
     prompt_root: Path | None = None   # dataset whose prompt table can be used
     meta: dict | None = None
+    trajectory: np.ndarray | None = None   # (8, 3) a shard clip's traj.npy: the recorded future after the history
 
 
 def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> History:
@@ -156,7 +157,9 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
     px = 1 + 4 * (h_meta - 1)
     frames = s.get("frames")
     frames = frames[px - (1 + 4 * (num_latent_frames - 1)):px] if frames is not None else None
-    return History(torch.from_numpy(lat)[None], frames, float(meta["fps_hz"]), f"shard:{key}", Path(root), meta)
+    traj = s.get("traj.npy")
+    return History(torch.from_numpy(lat)[None], frames, float(meta["fps_hz"]), f"shard:{key}", Path(root), meta,
+                   None if traj is None else np.asarray(traj, np.float32))
 
 
 def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_hw: tuple[int, int],
