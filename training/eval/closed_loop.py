@@ -200,8 +200,8 @@ def rank_agreement(true: np.ndarray, model: np.ndarray, names: Sequence[str], bo
 READINGS = {   # report key: (label, short label for tables, the score array it ranks by)
     "proxy_vs_true_on_true_frames": ("IDM proxy on the true frames", "proxy, true frames", "true_proxy"),
     "world_model_vs_true": ("world model (IDM proxy on its video)", "proxy, world model", "wm_proxy"),
-    "reward_vs_true_on_true_frames": ("Video2Reward ×100 on the true frames", "V2R, true frames", "true_reward"),
-    "world_model_reward_vs_true": ("world model (Video2Reward ×100 on its video)", "V2R, world model", "wm_reward"),
+    "reward_vs_true_on_true_frames": ("Video2Reward x100 on the true frames", "V2R, true frames", "true_reward"),
+    "world_model_reward_vs_true": ("world model (Video2Reward x100 on its video)", "V2R, world model", "wm_reward"),
 }
 
 
