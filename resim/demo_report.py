@@ -140,7 +140,7 @@ def _closed_loop_section(out: Path) -> list[str]:
         f"{cfg['seconds']:g} s after a {cfg['history_s']:g}-s expert history, deciding every "
         f"{cfg['decision_s']:g} s: in the <b>true simulator</b> (scored by its infraction rules: 100 = the expert) "
         "and <b>inside the world model</b>, which generates what the policy sees next under the policy's own "
-        "waypoints. The world model's verdict is read off its video by the shipped IDM "
+        "waypoints (it is not told the route's command: the waypoints alone steer it). The world model's verdict is read off its video by the shipped IDM "
         "(<code>synth-idm</code>: the driven path laid on the map, route completion × share inside the lane) and by "
         "the Video2Reward trained in section 3 (tiny, minutes of training: a weak reading). The same readings on "
         "the true frames show how much of a disagreement is the reader's. A small version of "

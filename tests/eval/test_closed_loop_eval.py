@@ -1,6 +1,9 @@
-"""`resim eval closed-loop`'s parts (training/eval/closed_loop.py): the IDM proxy chains 4-s windows into one
-path, a path scored on the map gives the expert 100 and a path off the lane less, and the rank agreement reads
-Spearman's rho with a bootstrap over states."""
+"""`resim eval closed-loop`'s parts (training/eval/closed_loop.py, idm_proxy.py, closed_loop_report.py): the IDM
+proxy chains 4-s windows into one path, a path scored on the map gives the expert 100 and a path off the lane
+less, the rank agreement reads Spearman's rho with a bootstrap over states, and the replay drives the world model
+with the true loop's plans."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -8,14 +11,23 @@ import torch
 from resim.config import from_dict
 from synthworld.drivers import simulate
 from synthworld.policies import ConstantVelocity, SteeringBias
-from training.eval.closed_loop import (ClosedLoopConfig, closed_loop_eval, format_closed_loop, idm_path, path_score,
-                                       rank_agreement, reward_score, starting_states)
+from media.encoders import VideoVAE
+from synthworld.closed_loop import Observation, drive
+from training.eval.closed_loop import (ClosedLoopConfig, ReplayPlans, closed_loop_eval, rank_agreement, reward_score,
+                                       starting_states)
+from training.eval.closed_loop_report import format_closed_loop
+from training.eval.idm_proxy import idm_path, path_score
 from training.eval.idm import IDMConfig
 from training.eval.simulate import reward_over_time
 from training.reward.config import RewardModelConfig
 from training.reward.model import Video2Reward
 from training.reward.score import score_videos
+from training.policy.drive import itinerary
+from training.sampling.rollout import RolloutConfig
+from training.sampling.simulate import WorldModelLoop
+from training.world import build_world
 
+VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogvideox-vae-tiny"
 TINY_REWARD = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
 
 
@@ -106,3 +118,57 @@ def test_the_closed_loop_reads_each_drive_with_video2reward_too(one_torch_thread
     # the biased drive leaves the lane in the true world: the true score ranks it last
     assert rep["reward_vs_true_on_true_frames"]["per_policy"]["cv + bias"]["true_rank"] == 2
     assert "V2R, true frames" in format_closed_loop(rep)
+
+
+def test_replay_answers_the_recorded_plan_of_each_decision_and_standstill_after_a_drive_ended():
+    plans = [(0.8 + 0.4 * k, np.full((8, 3), float(k))) for k in range(3)]
+    rp = ReplayPlans(plans, 0.4)
+    obs = lambda t: Observation(frames=np.zeros((1, 4, 4, 3), np.uint8), speed_mps=5.0, t_s=t)  # noqa: E731
+    assert np.array_equal(rp(obs(0.8)), plans[0][1]) and np.array_equal(rp(obs(1.6000001)), plans[2][1])
+    assert np.array_equal(rp(obs(2.0)), np.zeros((8, 3)))            # the recorded drive had ended
+    with pytest.raises(ValueError, match="no recorded plan near t = 0.40"):
+        rp(obs(0.4))
+
+
+class LooksAtFrames:
+    """Steers by the brightness of the last frame it sees: acts differently on different frames."""
+
+    def __call__(self, obs):
+        y = float(obs.frames[-1].mean()) / 255.0 * 4.0 - 2.0
+        return np.c_[np.arange(1, 9) * 4.0, np.full(8, y), np.zeros(8)]
+
+
+def test_replay_drives_the_world_model_with_the_true_loops_plans(one_torch_thread):
+    """The replay batch is conditioned on the true drive's plans, decision by decision; a policy that ignores its
+    frames acts alike in both loops (plan gap 0), one that reads them does not."""
+    vae = VideoVAE(VAE_DIR, device="cpu")
+    batches = []
+
+    class SpyLoop(WorldModelLoop):
+        def run_batch(self, *a, **kw):
+            batches.append(super().run_batch(*a, **kw))
+            return batches[-1]
+
+    torch.manual_seed(0)
+    loop = SpyLoop(build_world({"preset": "tiny"}).eval(), vae, lambda c: torch.zeros(1, 3, 64),
+                   RolloutConfig(num_steps=2, history_frames=3))
+    cfg = ClosedLoopConfig(states=2, seconds=4.0, bootstrap=20)
+    fixed = lambda obs: np.c_[np.arange(1, 9) * 4.0, np.zeros(8), np.zeros(8)]  # noqa: E731
+    policies = {"fixed": fixed, "looks": LooksAtFrames()}
+    rep = closed_loop_eval(policies, cfg, StraightIDM(), (32, 48), loop=loop, vae=vae, replay=True)
+    assert len(batches) == 4                                       # per state: the closed loop, then the replay
+    st = starting_states(cfg)[0]
+    total = cfg.history_s + cfg.seconds + 0.1
+    true = drive(st.world, policies["looks"], st.renderer(cfg), cfg.loop_cfg(total), "looks",
+                 command_at=itinerary(st.world, total, cfg.sim_hz))
+    replayed = batches[1][1].plans
+    assert len(replayed) == 10 and len(true.plans) >= 10
+    for (t, plan), (t_true, plan_true) in zip(replayed, true.plans):
+        assert t == pytest.approx(t_true) and np.array_equal(plan, plan_true)
+    closed = batches[0][1].plans                                   # the policy on the world model's own frames
+    assert not all(np.array_equal(a, b) for (_, a), (_, b) in zip(closed, true.plans))
+    assert rep["gaps"]["fixed"]["plan_gap_m"] == 0.0 and rep["gaps"]["looks"]["plan_gap_m"] > 0.05
+    assert all(r["replay_idm_proxy"]["path_gap_m"] >= 0 for r in rep["rows"])
+    assert "replay_vs_true" in rep and "proxy, WM replay" in format_closed_loop(rep)
+    with pytest.raises(ValueError, match="replay needs the world model"):
+        closed_loop_eval(policies, cfg, StraightIDM(), (32, 48), replay=True)

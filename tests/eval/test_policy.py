@@ -111,11 +111,12 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert r.returncode == 0, r.stderr[-2000:]
     r = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
             str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl"),
-            "--states", "2", "--seconds", "4", "--steps", "1", "--device", "cpu")      # the shipped world model too
+            "--states", "2", "--seconds", "4", "--steps", "1", "--device", "cpu", "--replay")   # the shipped model too
     assert r.returncode == 0, r.stderr[-2000:]
     rep = json.loads((tmp_path / "cl" / "closed_loop.json").read_text())
     assert len(rep["rows"]) == 2 * 5 and "Spearman" in r.stdout and (tmp_path / "cl" / "closed_loop.png").is_file()
-    assert {"world_model_vs_true", "proxy_vs_true_on_true_frames"} <= set(rep)
+    assert {"world_model_vs_true", "proxy_vs_true_on_true_frames", "replay_vs_true"} <= set(rep)
+    assert "replay gap" in r.stdout and rep["protocol"]["replay"] is True
     assert all(0 <= row["world_model_idm_proxy"]["score"] <= 100 for row in rep["rows"])
     assert (tmp_path / "cl" / "closed_loop_strip.png").is_file()
     # the world model as a simulator: two decisions of the shipped synthetic-world model, the true drive beside
@@ -147,3 +148,7 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
               str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"), "--true-only")
     assert bad.returncode == 2 and "policy checkpoint" in bad.stderr
+    bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
+              str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl3"), "--true-only",
+              "--replay")
+    assert bad.returncode == 2 and "--replay" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1

@@ -73,3 +73,27 @@ def test_a_batch_of_policies_drives_as_each_would_alone(tiny_model):
         assert torch.allclose(b.latents, a.latents, atol=1e-4)
         assert np.abs(b.frames.astype(int) - a.frames).max() <= 1
     assert not torch.allclose(both[0].latents, both[1].latents)
+
+
+def test_the_world_model_can_be_left_without_the_command_the_policy_is_told(tiny_model):
+    """command_to_world=False: the prompt is the null one at every decision, the policy still gets the command."""
+    vae = VideoVAE(VAE_DIR, device="cpu")
+    asked = []
+
+    def text_for(c):
+        asked.append(c)
+        return torch.zeros(1, 3, 8)
+
+    loop = WorldModelLoop(tiny_model(channels=16, text_dim=8), vae, text_for, RolloutConfig(num_steps=1),
+                          command_to_world=False)
+    frames = np.random.default_rng(2).integers(0, 255, (9, 16, 24, 3), dtype=np.uint8)
+    hist = torch.from_numpy(np.asarray(vae.encode(frames[None], seeds=[0]), np.float32))
+    told = []
+
+    def policy(obs):
+        told.append(obs.command)
+        return np.c_[np.arange(1, 9) * 2.0, np.zeros(8), np.zeros(8)]
+
+    res = loop.run(hist, frames, 5.0, policy, 0.8, command_at=lambda t: "Turning left", t0_s=0.8)
+    assert told == ["Turning left"] * 2 and res.commands == ["Turning left"] * 2
+    assert asked and set(asked) == {None}

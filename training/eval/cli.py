@@ -345,6 +345,14 @@ def register(subparsers) -> None:
     cl.add_argument("--seconds", type=float, default=8.0, help="seconds the policy drives after the 0.8-s history "
                     "(>= 4; default 8)")
     cl.add_argument("--true-only", action="store_true", help="the true world only (no world model: seconds)")
+    cl.add_argument("--world-command", action="store_true",
+                    help="prompt the world model with the itinerary's command too (default: the null prompt, so "
+                         "the policy's plan alone says where the car goes; the policy is always told the command; "
+                         "docs/closed_loop.md)")
+    cl.add_argument("--replay", action="store_true",
+                    help="also drive the world model with the true loop's own plans (no policy reads its frames): "
+                         "tells the world model's answer to an action apart from the policy's answer to its "
+                         "frames (twice the world-model time)")
     cl.set_defaults(func=_cmd_closed_loop)
 
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
@@ -698,6 +706,9 @@ def _cmd_closed_loop(args) -> int:
     from training.eval.closed_loop import ClosedLoopInputError, plot_closed_loop, run_closed_loop
 
     if not _device(args, "closed-loop"):
+        return 2
+    if args.replay and args.true_only:
+        print("resim eval closed-loop: --replay drives the world model; it cannot go with --true-only", file=sys.stderr)
         return 2
     try:
         rep, text = run_closed_loop(args, None if args.true_only else _runner)

@@ -10,8 +10,9 @@ simulator (Vid2World's "Real2Sim" policy evaluation; DIAMOND lets one play insid
    first decision reads the recorded speed), and the itinerary's command. It answers 8 waypoints.
 3. **World model.** The sampler (``training.sampling.rollout``, KV cache and guidance as configured) rolls
    ``latents_per_decision`` latent frames out from the last ``history_frames`` latent frames, conditioned on
-   the plan as the trajectory and on the command's prompt, and the VAE decodes them. The window slides over
-   the model's own output, as in a long rollout.
+   the plan as the trajectory and on the command's prompt (``command_to_world=False``: the null prompt, so
+   the plan alone says where the car goes; the policy is still told the command), and the VAE decodes them.
+   The window slides over the model's own output, as in a long rollout.
 
 There is no pose: a policy that reads ``Observation.pose`` (the true simulator's privileged reference
 planners) cannot drive here, by construction.
@@ -47,10 +48,11 @@ class WorldModelLoop:
 
     def __init__(self, model: Any, vae: Any, text_for: Callable[[str | None], torch.Tensor],
                  rollout_cfg: RolloutConfig, *, latents_per_decision: int = 1, fps_hz: float = 10.0,
-                 schedule: Any = None, device: str = "cpu"):
+                 schedule: Any = None, device: str = "cpu", command_to_world: bool = True):
         if latents_per_decision < 1:
             raise ValueError(f"latents_per_decision must be >= 1, got {latents_per_decision}")
         self.model, self.vae, self.text_for, self.device = model, vae, text_for, device
+        self.command_to_world = command_to_world
         self.k = latents_per_decision
         self.cfg = replace(rollout_cfg, frames_per_round=self.k, chunk_frames=self.k)
         self.schedule, self.fps_hz = schedule, fps_hz
@@ -106,7 +108,7 @@ class WorldModelLoop:
                 plan = check_plan(policy(obs), names[j])
                 plans[j].append((t_s, plan))
                 step_plans.append(plan)
-            text = self.text_for(command).to(self.device)
+            text = self.text_for(command if self.command_to_world else None).to(self.device)
             cond = Condition(text=text.expand(b, -1, -1), null_text=null.expand(b, -1, -1),
                              trajectory=torch.from_numpy(np.stack(step_plans)).float().to(self.device),
                              label=command or "")
