@@ -124,7 +124,7 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
             "--state", "1", "--seconds", "0.8", "--steps", "2", "--out", str(tmp_path / "sim"), "--device", "cpu")
     assert r.returncode == 0, r.stderr[-2000:]
     sim = json.loads((tmp_path / "sim" / "simulate.json").read_text())
-    assert sim["decisions"] == 2 and sim["start"] == "s5000-1-straight"
+    assert sim["decisions"] == 2 and sim["start"] == "s5000-1-straight" and sim["world_command"] is False
     meta = json.loads((tmp_path / "sim" / "world_model_meta.json").read_text())
     assert meta["num_frames"] == 9 + 2 * 4 and len(meta["plans"]) == 2 and len(meta["plans"][0]["waypoints"]) == 8
     # from a recorded history (a shard key), Video2Reward over time (an untrained reward: the plumbing only)

@@ -113,7 +113,7 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
     clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(policy_model.cfg.frame_hw)
     runner, meta = make_runner(args)
     loop = WorldModelLoop(runner.model, runner.vae, runner.text_for, runner.cfg, schedule=runner.schedule,
-                          device=args.device)
+                          device=args.device, command_to_world=args.world_command)
     st = expert = None
     if args.history:
         latents, frames, speed, command, where = _recorded_history(args, runner.vae, clip_hw, cfg.fps_hz)
@@ -139,6 +139,7 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
     write_rollout(out, "world_model", w.frames, w.latents[0].numpy(), num_history_px=nh, fps_hz=cfg.fps_hz,
                   title=f"world model: {label} ({where})", meta={"plans": plans})
     summary = {"start": where, "policy": pinfo, "variant": label, "seconds": args.seconds,
+               "world_command": args.world_command,
                "decisions": len(w.plans), "wall_s": round(w.seconds, 1),
                "wall_s_per_generated_s": round(w.seconds / args.seconds, 2), "world_model": meta,
                "device": args.device, "torch_threads": torch.get_num_threads()}

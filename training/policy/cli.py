@@ -103,6 +103,9 @@ def register(subparsers) -> None:
                    help="with --history: the speedometer at the start (default: from the clip's trajectory, else 8)")
     s.add_argument("--reward", default=None, metavar="REWARD_RUN",
                    help="Video2Reward run (resim train reward): score the drive over time")
+    s.add_argument("--world-command", action="store_true",
+                   help="prompt the world model with the navigation command too (default: the null prompt, so the "
+                        "policy's plan alone steers it, as in resim eval closed-loop; the policy is always told)")
     s.add_argument("--variant", default="policy", choices=list(VARIANTS), help="which version of it drives (below)")
     s.add_argument("--state-seed", type=int, default=5000, help="seed of the starting-state fork worlds")
     s.add_argument("--state", type=int, default=0, help="which starting state of that seed (0, 1, ...)")
