@@ -344,6 +344,6 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
     out.mkdir(parents=True, exist_ok=True)
     strip = closed_loop_strip(rep, out / "closed_loop_strip.png", int(round(cfg.history_s * cfg.fps_hz)), cfg.fps_hz,
                               [t for t in (0, 2, 4, 6, 8) if t <= cfg.seconds])
-    text = format_closed_loop(rep) + (f"\nwrote {strip} (first starting state: true world and world model)"
+    text = format_closed_loop(rep) + (f"\nwrote {strip} (first starting state: each policy in every loop)"
                                       if strip else "")
     return rep, text

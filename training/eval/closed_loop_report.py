@@ -78,7 +78,8 @@ def plot_closed_loop(rep: dict, path):
 
 def closed_loop_strip(rep: dict, path, first_frame: int, fps_hz: float = 10.0, times_s=(0, 2, 4, 6, 8)):
     """The first starting state, one row per (policy, loop): frames at ``times_s`` after the last history frame,
-    the true world's row above the world model's. A PNG; None when there are no videos."""
+    the true world's row, then the world model's, then (with the replay) the world model's under the true plans.
+    A PNG; None when there are no videos."""
     videos = rep.get("_videos") or {}
     rows = []
     for name in rep["policies"]:
