@@ -23,12 +23,17 @@ the trainer to ``training.checkpoint.load``).
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import TYPE_CHECKING, Mapping
 
 import torch
-from peft import LoraConfig, inject_adapter_in_model
-from peft.tuners.lora import LoraLayer
 from torch import nn
+
+if TYPE_CHECKING:
+    from peft.tuners.lora import LoraLayer
+
+# peft is imported by the three functions that use it, not here: it pulls in transformers, several seconds of
+# every `resim` process that loads a world model (measured: `import peft` after torch is 1-2x torch's own import
+# time on the 2-core CPU), while only LoRA runs need it. The renaming helpers below are plain string work.
 
 ADAPTER = "default"   # peft's adapter name: one adapter per model
 
@@ -49,6 +54,8 @@ def add_lora(model: nn.Module, targets: tuple[str, ...], rank: int, alpha: float
     if not names:
         raise ValueError(f"LoRA targets {tuple(targets)} match no nn.Linear in the transformer blocks of "
                          f"{type(model).__name__}")
+    from peft import LoraConfig, inject_adapter_in_model   # heavy, LoRA only (above)
+
     weights = [model.get_submodule(n).weight for n in names]
     cuda = sorted({w.device.index or 0 for w in weights if w.is_cuda})
     # peft's own initialisation draws from the RNG in another order; it is undone (fork_rng) and the draws of the
@@ -105,6 +112,8 @@ def to_peft_layout(state: Mapping[str, torch.Tensor], model: nn.Module) -> dict[
 @torch.no_grad()
 def merge_lora(model: nn.Module) -> nn.Module:
     """Fold every LoRA adapter into its base layer and put the base layer back (in place)."""
+    from peft.tuners.lora import LoraLayer   # heavy, LoRA only (above)
+
     for name, mod in [(n, m) for n, m in model.named_modules() if isinstance(m, LoraLayer)]:
         mod.merge()
         parent_name, _, attr = name.rpartition(".")
