@@ -94,9 +94,11 @@ def test_the_itinerary_turns_where_the_expert_does():
 
 
 @pytest.mark.slow
-def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_world):
+def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_world, capsys):
     import subprocess
     import sys
+
+    from resim.cli import main
 
     root = tmp_path / "shards"
     road_world.write_shards(root, episodes=6, frames_per_episode=100, frames_hw=(64, 96), clip_stride_frames=10)
@@ -111,10 +113,14 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert r.returncode == 0, r.stderr[-2000:]
     r = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
             str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl"),
-            "--states", "2", "--seconds", "4", "--steps", "1", "--device", "cpu", "--replay")   # the shipped model too
+            "--states", "2", "--seconds", "4", "--steps", "1", "--device", "cpu", "--replay",   # the shipped model too
+            "--variants", "policy", "bias2")   # two of the five graded policies: each drive costs seconds here
     assert r.returncode == 0, r.stderr[-2000:]
     rep = json.loads((tmp_path / "cl" / "closed_loop.json").read_text())
-    assert len(rep["rows"]) == 2 * 5 and "Spearman" in r.stdout and (tmp_path / "cl" / "closed_loop.png").is_file()
+    assert len(rep["rows"]) == 2 * 2 and "Spearman" in r.stdout and (tmp_path / "cl" / "closed_loop.png").is_file()
+    assert {row["policy"] for row in rep["rows"]} == {"policy", "policy + steering bias 0.1/m"}
+    # the null prompt's trajectory guidance starts at 15 unless the command line says otherwise
+    assert rep["protocol"]["world_model"]["guidance_scale_start"] == 15.0
     assert {"world_model_vs_true", "proxy_vs_true_on_true_frames", "replay_vs_true"} <= set(rep)
     assert "replay gap" in r.stdout and rep["protocol"]["replay"] is True
     assert all(0 <= row["world_model_idm_proxy"]["score"] <= 100 for row in rep["rows"])
@@ -142,13 +148,18 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     meta = json.loads((tmp_path / "sim2" / "world_model_meta.json").read_text())
     assert {p["command"] for p in meta["plans"]} == {"Turning left"} and not (tmp_path / "sim2" / "true_world.mp4").exists()
     assert (tmp_path / "sim2" / "reward_over_time.png").is_file()
-    bad = run("simulate", "--checkpoint", "synth-world", "--shards", str(root), "--policy", str(tmp_path / "pol"),
-              "--history", "no-such-key", "--out", str(tmp_path / "sim3"), "--device", "cpu")
-    assert bad.returncode == 2 and "no-such-key" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
-    bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
-              str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"), "--true-only")
-    assert bad.returncode == 2 and "policy checkpoint" in bad.stderr
-    bad = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
-              str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl3"), "--true-only",
-              "--replay")
-    assert bad.returncode == 2 and "--replay" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    # mistakes: one line each (in this process: a new interpreter per mistake would cost seconds of imports)
+    capsys.readouterr()
+    assert main(["simulate", "--checkpoint", "synth-world", "--shards", str(root), "--policy", str(tmp_path / "pol"),
+                 "--history", "no-such-key", "--out", str(tmp_path / "sim3"), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert "no-such-key" in err and len(err.strip().splitlines()) == 1
+    assert main(["eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
+                 str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"),
+                 "--true-only"]) == 2
+    assert "policy checkpoint" in capsys.readouterr().err
+    assert main(["eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
+                 str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl3"), "--true-only",
+                 "--replay"]) == 2
+    err = capsys.readouterr().err
+    assert "--replay" in err and len(err.strip().splitlines()) == 1

@@ -10,7 +10,7 @@ import torch
 from media.encoders import VideoVAE
 from synthworld.closed_loop import PolicyError
 from training.sampling.rollout import RolloutConfig
-from training.sampling.simulate import WorldModelLoop
+from training.sampling.simulate import NULL_PROMPT_GUIDANCE_START, WorldModelLoop, loop_guidance_start
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogvideox-vae-tiny"
@@ -97,3 +97,12 @@ def test_the_world_model_can_be_left_without_the_command_the_policy_is_told(tiny
     res = loop.run(hist, frames, 5.0, policy, 0.8, command_at=lambda t: "Turning left", t0_s=0.8)
     assert told == ["Turning left"] * 2 and res.commands == ["Turning left"] * 2
     assert asked and set(asked) == {None}
+
+
+def test_the_null_prompt_loop_starts_its_trajectory_guidance_higher():
+    # null prompt: the measured closed-loop default; anything the user or the checkpoint decided is kept
+    assert loop_guidance_start(None, False, False, False) == NULL_PROMPT_GUIDANCE_START == 15.0
+    assert loop_guidance_start(3.0, False, False, False) == 3.0
+    assert loop_guidance_start(None, False, True, False) is None      # command in the prompt: the preset's 7.5
+    assert loop_guidance_start(None, True, False, False) is None      # --no-guidance
+    assert loop_guidance_start(None, False, False, True) is None      # a distilled student samples unguided

@@ -51,8 +51,8 @@ from training.policy.variants import VARIANTS
 from training.reward.checkpoint import load_checkpoint as load_reward
 from training.reward.metrics import spearman
 from training.reward.score import score_videos
-from training.sampling.load import trained_size_hw
-from training.sampling.simulate import WorldModelLoop
+from training.sampling.load import sampling_defaults, trained_size_hw
+from training.sampling.simulate import WorldModelLoop, loop_guidance_start
 
 
 @dataclass
@@ -303,6 +303,13 @@ def graded_policies(pixel: PixelPolicy, variants: Sequence[str] = tuple(VARIANTS
     return {VARIANTS[v]: make[v]() for v in variants}
 
 
+def loop_guidance(args: Any) -> None:
+    """``args.guidance_scale`` for a closed loop in the world model (``resim eval closed-loop``, ``resim simulate``):
+    the command line's, else ``loop_guidance_start``'s (15 with the null prompt; training/sampling/simulate.py)."""
+    unguided = sampling_defaults(args.checkpoint).get("guidance") == "none"
+    args.guidance_scale = loop_guidance_start(args.guidance_scale, args.no_guidance, args.world_command, unguided)
+
+
 def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]:
     """``resim eval closed-loop``: parsed ``args``; ``make_runner(args) -> (WorldRollouts, meta)`` builds the
     world model, its VAE and prompts (None: the true world only). Returns (report, text)."""
@@ -319,6 +326,7 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
     clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(pixel.cfg.frame_hw)
     loop, vae, meta = None, None, {}
     if make_runner is not None:
+        loop_guidance(args)
         runner, meta = make_runner(args)
         vae = runner.vae
         loop = WorldModelLoop(runner.model, vae, runner.text_for, runner.cfg, schedule=runner.schedule,

@@ -29,7 +29,7 @@ from media.frames import cover_crop
 from synthworld.closed_loop import drive
 from synthworld.drivers import simulate
 from training.eval.closed_loop import (ClosedLoopConfig, ClosedLoopInputError, graded_policies, history_of,
-                                       starting_states)
+                                       loop_guidance, starting_states)
 from training.policy.drive import PixelPolicy, itinerary
 from training.policy.train import load_policy
 from training.reward.checkpoint import load_checkpoint as load_reward
@@ -111,6 +111,7 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
         raise ClosedLoopInputError(str(e)) from None
     label, policy = next(iter(graded_policies(PixelPolicy(policy_model, args.device), [args.variant]).items()))
     clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(policy_model.cfg.frame_hw)
+    loop_guidance(args)
     runner, meta = make_runner(args)
     loop = WorldModelLoop(runner.model, runner.vae, runner.text_for, runner.cfg, schedule=runner.schedule,
                           device=args.device, command_to_world=args.world_command)

@@ -31,6 +31,23 @@ from training.sampling.outputs import decode_latents
 from training.sampling.rollout import Condition, RolloutConfig, rollout
 
 
+# With the null prompt the unconditional branch of ReSim's guidance drops only the trajectory, so the guidance is
+# trajectory guidance alone. Started at 15 instead of ReSim's 7.5 (linear to 1, as in ReSim), it brought the
+# world model's replay of a true drive's plans 0.78 m closer to the true path on the dev starting states, the
+# only one of three settings that did so by 0.5 m (docs/closed_loop.md, "Trajectory guidance").
+NULL_PROMPT_GUIDANCE_START = 15.0
+
+
+def loop_guidance_start(guidance_scale: float | None, no_guidance: bool, world_command: bool,
+                        student_unguided: bool) -> float | None:
+    """The start guidance scale a closed loop samples with: the command line's, else
+    ``NULL_PROMPT_GUIDANCE_START`` when the world model gets the null prompt (None, the preset's 7.5, with the
+    command in the prompt, with ``--no-guidance``, or for a distilled student that samples without guidance)."""
+    if guidance_scale is not None or no_guidance or world_command or student_unguided:
+        return guidance_scale
+    return NULL_PROMPT_GUIDANCE_START
+
+
 @dataclass
 class WorldLoopResult:
     frames: np.ndarray                 # (T, H, W, 3) uint8: the history frames, then every generated frame
