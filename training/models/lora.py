@@ -31,9 +31,10 @@ from torch import nn
 if TYPE_CHECKING:
     from peft.tuners.lora import LoraLayer
 
-# peft is imported by the three functions that use it, not here: it pulls in transformers, several seconds of
-# every `resim` process that loads a world model (measured: `import peft` after torch is 1-2x torch's own import
-# time on the 2-core CPU), while only LoRA runs need it. The renaming helpers below are plain string work.
+# peft is imported by the two functions that use it, not here: it pulls in transformers (measured: `import peft`
+# after torch costs 1-2x torch's own import time on the 2-core CPU), and every process that imports the world model
+# paid it, LoRA or not. (A process that loads the CogVideoX VAE still does: diffusers' autoencoders import peft.)
+# The renaming helpers below are plain string work.
 
 ADAPTER = "default"   # peft's adapter name: one adapter per model
 
