@@ -101,8 +101,9 @@ def test_the_world_model_can_be_left_without_the_command_the_policy_is_told(tiny
 
 def test_the_null_prompt_loop_starts_its_trajectory_guidance_higher():
     # null prompt: the measured closed-loop default; anything the user or the checkpoint decided is kept
-    assert loop_guidance_start(None, False, False, False) == NULL_PROMPT_GUIDANCE_START == 15.0
-    assert loop_guidance_start(3.0, False, False, False) == 3.0
-    assert loop_guidance_start(None, False, True, False) is None      # command in the prompt: the preset's 7.5
-    assert loop_guidance_start(None, True, False, False) is None      # --no-guidance
-    assert loop_guidance_start(None, False, False, True) is None      # a distilled student samples unguided
+    assert loop_guidance_start(None, "resim", False, False, False) == NULL_PROMPT_GUIDANCE_START == 15.0
+    assert loop_guidance_start(3.0, "resim", False, False, False) == 3.0
+    assert loop_guidance_start(None, "resim", False, True, False) is None      # command in the prompt: the preset's 7.5
+    assert loop_guidance_start(None, "vid2world", False, False, False) is None  # its own action guidance (2.5)
+    assert loop_guidance_start(None, "resim", True, False, False) is None      # --no-guidance
+    assert loop_guidance_start(None, "resim", False, False, True) is None      # a distilled student samples unguided

@@ -169,7 +169,7 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
     p.add_argument("--guidance-scale", type=float, default=None,
                    help="start guidance scale (default: the preset's, 7.5 for resim, decreasing linearly to 1; 15 "
-                        "in a closed loop whose world model gets the null prompt: closed-loop, simulate)")
+                        "in a resim-preset closed loop whose world model gets the null prompt: closed-loop, simulate)")
     p.add_argument("--guidance-schedule", default=None, choices=["linear", "constant", "cosine"],
                    help="how the scale goes from the start to 1 over the DDIM steps (default: the preset's, linear "
                         "for resim; constant keeps the start scale at every step)")

@@ -307,7 +307,8 @@ def loop_guidance(args: Any) -> None:
     """``args.guidance_scale`` for a closed loop in the world model (``resim eval closed-loop``, ``resim simulate``):
     the command line's, else ``loop_guidance_start``'s (15 with the null prompt; training/sampling/simulate.py)."""
     unguided = sampling_defaults(args.checkpoint).get("guidance") == "none"
-    args.guidance_scale = loop_guidance_start(args.guidance_scale, args.no_guidance, args.world_command, unguided)
+    args.guidance_scale = loop_guidance_start(args.guidance_scale, args.preset, args.no_guidance, args.world_command,
+                                              unguided)
 
 
 def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]:

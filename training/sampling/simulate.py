@@ -38,12 +38,13 @@ from training.sampling.rollout import Condition, RolloutConfig, rollout
 NULL_PROMPT_GUIDANCE_START = 15.0
 
 
-def loop_guidance_start(guidance_scale: float | None, no_guidance: bool, world_command: bool,
+def loop_guidance_start(guidance_scale: float | None, preset: str, no_guidance: bool, world_command: bool,
                         student_unguided: bool) -> float | None:
     """The start guidance scale a closed loop samples with: the command line's, else
-    ``NULL_PROMPT_GUIDANCE_START`` when the world model gets the null prompt (None, the preset's 7.5, with the
-    command in the prompt, with ``--no-guidance``, or for a distilled student that samples without guidance)."""
-    if guidance_scale is not None or no_guidance or world_command or student_unguided:
+    ``NULL_PROMPT_GUIDANCE_START`` when the world model gets the null prompt under ReSim's guidance (None = the
+    preset's own: with the command in the prompt, with the vid2world preset's action guidance, with
+    ``--no-guidance``, or for a distilled student that samples without guidance; none of them was measured)."""
+    if guidance_scale is not None or preset != "resim" or no_guidance or world_command or student_unguided:
         return guidance_scale
     return NULL_PROMPT_GUIDANCE_START
 
