@@ -9,6 +9,7 @@ H100 (diffusers, 50 steps, CFG). Target: <= 20 s on an H100/H200.
 Model forward only (the VAE decode and T5 are not timed; the T5 embedding is random). Needs CUDA.
 
   PYTHONPATH=. python bench/rollout_gpu_cogvideox2b.py [--steps 50] [--chunk 10] [--repeats 2] [--compile]
+                                                       [--compile-mode default|reduce-overhead]
                                                        [--attention sdpa,flex]
   PYTHONPATH=. python bench/rollout_gpu_cogvideox2b.py --sdpa-probe     # which SDPA kernel runs, then exit
   PYTHONPATH=. python bench/rollout_gpu_cogvideox2b.py --flex-probe     # model's attention: sdpa vs flex, exit
@@ -44,6 +45,7 @@ from training.models.attention import Attention, block_causal_block_mask, block_
 from training.models.config import preset
 from training.models.dit import WorldModel
 from training.models.flex import flex_block_attention
+from training.sampling.compile import COMPILE_MODES, compile_blocks
 from training.sampling.guidance import guidance_preset
 from training.sampling.rollout import Condition, RolloutConfig, rollout
 
@@ -56,7 +58,12 @@ def main() -> None:
     ap.add_argument("--width-px", type=int, default=896)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--modes", default="on,off", help="KV-cache modes to time, comma-separated")
-    ap.add_argument("--compile", action="store_true", help="torch.compile the transformer blocks")
+    ap.add_argument("--compile", action="store_true",
+                    help="torch.compile the transformer blocks as resim sample does (its default on CUDA)")
+    ap.add_argument("--compile-mode", default="default", choices=COMPILE_MODES,
+                    help="torch.compile mode (reduce-overhead: CUDA graphs)")
+    ap.add_argument("--eager-baseline", action="store_true",
+                    help="with --compile: time the eager model first, in the same process, and print the ratio")
     ap.add_argument("--no-guidance", action="store_true",
                     help="conditional branch only (one sample per forward): a distilled student's sampler, with "
                          "e.g. --steps 4 (docs/distill.md); target 4 s per 4-s clip")
@@ -86,9 +93,6 @@ def main() -> None:
     with dev:
         model = WorldModel(cfg)
     model = model.to(torch.bfloat16).eval().requires_grad_(False)
-    if args.compile:
-        for i, blk in enumerate(model.transformer_blocks):
-            model.transformer_blocks[i] = torch.compile(blk, dynamic=True)
     n_params = sum(p.numel() for p in model.parameters())
     h, w = args.height_px // 8, args.width_px // 8
     g = torch.Generator().manual_seed(0)
@@ -103,33 +107,45 @@ def main() -> None:
           f"chunk {args.chunk}")
     guidance = "none" if args.no_guidance else "resim"
     target_s = 4.0 if args.no_guidance else 20.0     # issue targets: the student real time, the teacher 20 s
-    results = {}
-    for backend in backends:
-        model.set_attention_backend(backend)
-        for mode in args.modes.split(","):
-            rc = RolloutConfig(num_steps=args.steps, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
-                               kv_cache=mode, guidance=guidance_preset(guidance))
-            warm = RolloutConfig(num_steps=2, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
-                                 kv_cache=mode, guidance=guidance_preset(guidance))
-            t0 = time.perf_counter()
-            rollout(model, hist, cond, 10, warm)               # warm-up (kernels, allocator, compile)
-            _sync(dev)
-            warm_s = time.perf_counter() - t0
-            if dev.type == "cuda":
-                torch.cuda.reset_peak_memory_stats()
-            best = float("inf")
-            for _ in range(args.repeats):
+    def time_all(tag: str) -> dict:
+        results = {}
+        for backend in backends:
+            model.set_attention_backend(backend)
+            for mode in args.modes.split(","):
+                rc = RolloutConfig(num_steps=args.steps, history_frames=3, frames_per_round=10,
+                                   chunk_frames=args.chunk, kv_cache=mode, guidance=guidance_preset(guidance))
+                warm = RolloutConfig(num_steps=2, history_frames=3, frames_per_round=10, chunk_frames=args.chunk,
+                                     kv_cache=mode, guidance=guidance_preset(guidance))
                 t0 = time.perf_counter()
-                res = rollout(model, hist, cond, 10, rc, seed=0)
+                rollout(model, hist, cond, 10, warm)               # warm-up (kernels, allocator, compile)
                 _sync(dev)
-                best = min(best, time.perf_counter() - t0)
-            results[(backend, mode)] = (best, res.latents.float())
-            print(f"attention {backend:4s}, KV cache {mode:3s}: {best:7.2f} s per 4-s clip ({res.model_forwards} "
-                  f"forwards, {best / res.model_forwards * 1e3:.0f} ms per forward, "
-                  f"peak {_peak_gib(dev):.1f} GiB; 2-step warm-up {warm_s:.1f} s); "
-                  f"vs ReSim's 120 s on an A100: {120 / best:.1f}x; target {target_s:g} s: "
-                  f"{'met' if best <= target_s else 'NOT met'}",
-                  flush=True)
+                warm_s = time.perf_counter() - t0
+                if dev.type == "cuda":
+                    torch.cuda.reset_peak_memory_stats()
+                best = float("inf")
+                for _ in range(args.repeats):
+                    t0 = time.perf_counter()
+                    res = rollout(model, hist, cond, 10, rc, seed=0)
+                    _sync(dev)
+                    best = min(best, time.perf_counter() - t0)
+                results[(backend, mode)] = (best, res.latents.float())
+                print(f"[{tag}] attention {backend:4s}, KV cache {mode:3s}: {best:7.2f} s per 4-s clip = "
+                      f"{40 / best:.1f} generated frames/s ({res.model_forwards} forwards, "
+                      f"{best / res.model_forwards * 1e3:.0f} ms per forward, "
+                      f"peak {_peak_gib(dev):.1f} GiB; 2-step warm-up {warm_s:.1f} s); "
+                      f"vs ReSim's 120 s on an A100: {120 / best:.1f}x; target {target_s:g} s: "
+                      f"{'met' if best <= target_s else 'NOT met'}",
+                      flush=True)
+        return results
+
+    results = {} if args.compile and not args.eager_baseline else time_all("eager")
+    if args.compile:   # what `resim sample` does on CUDA by default (training/sampling/compile.py)
+        eager = results
+        compile_blocks(model, mode=args.compile_mode)
+        results = time_all(f"compiled, {args.compile_mode}")
+        for key in eager:
+            print(f"attention {key[0]}, KV cache {key[1]}: compiled blocks ({args.compile_mode}) speed-up over eager "
+                  f"{eager[key][0] / results[key][0]:.2f}x (same process)")
     for backend in backends:
         if (backend, "on") in results and (backend, "off") in results:
             print(f"attention {backend}: KV cache speed-up {results[(backend, 'off')][0] / results[(backend, 'on')][0]:.2f}x")

@@ -9,12 +9,21 @@ with bf16 params / fp32 reduction, in a one-rank process group), and times full 
 peak bf16 FLOP/s. An out-of-memory configuration is reported as such, not skipped silently.
 
     PYTHONPATH=. python bench/train_mfu.py [--batch 1] [--steps 6] [--peak-tflops 989] [--sizes 32x56,64x112]
-                                           [--ac off,on] [--attention sdpa,flex] [--profile] [--json FILE]
+                                           [--ac off,on,2] [--compile off,on] [--adamw fused] [--attention sdpa,flex]
+                                           [--profile] [--json FILE]
 
 ``--attention``: the model's attention backend(s) for the block-causal mask (``attention_backend`` override:
 ``sdpa`` = SDPA with the boolean mask, ``flex`` = flex_attention with a BlockMask, compiled; the compile happens
 in the 2 warm-up steps). The FLOP count is the same for both (all S^2 scores, although flex skips ~45 % of the
 tiles), so their MFU ratio is their step-time ratio.
+
+``--ac``: ``off``, ``on`` (every block) or an integer k >= 2 (selective AC: every k-th block, the trainer's
+``trainer.activation_checkpointing_every_blocks``). ``--compile off,on``: each block ``torch.compile``d as the
+trainer does (``trainer.compile``), the compile happening in the warm-up steps. ``--adamw``: AdamW's kernel
+(``optim.implementation``; fused is the trainer's default on CUDA). Each line ends with its step time against the
+first configuration of the same size (the baseline), all in this process.
+
+``--preset tiny --device cpu --sizes 4x6``: a smoke run of this script on a CPU (seconds; MFU meaningless).
 
 ``--profile``: one extra (untimed) step per configuration under torch.profiler, printing the GPU time shares
 (attention / matmul / other) and the top kernels. Results (H100, 2026-11-24): docs/benchmarks.md, "GPU".
@@ -33,6 +42,7 @@ from torch.profiler import ProfilerActivity, profile
 
 from training.data import Batch
 from training.distributed import init_distributed, wrap_model
+from training.trainer import adamw_kernel
 from training.world import build_world
 
 
@@ -70,33 +80,43 @@ def _profile_step(step_fn) -> None:
         print(f"      {t / 1e3:8.1f} ms  {k[:120]}")
 
 
-def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: bool = False,
-            attention: str = "sdpa") -> dict:
+def _sync(device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def run_one(hw, ac: int, batch: int, steps: int, peak: float, env, profile: bool = False, attention: str = "sdpa",
+            compile: bool = False, adamw: str = "fused", preset: str = "cogvideox-2b") -> dict:
+    """``ac``: 0 = off, 1 = every block, k = every k-th block."""
     torch.manual_seed(0)
+    cuda = env.device.type == "cuda"
     # built on the GPU (random init there; a 1.7B-parameter fp32 init on the CPU only costs start-up time)
-    model = build_world({"preset": "cogvideox-2b", "overrides": {"attention_backend": attention},
+    model = build_world({"preset": preset, "overrides": {"attention_backend": attention},
                          "objective": {"noise_mode": "resim_cond_aug", "num_history_frames": 3}}, device=env.device)
-    lm, layout = wrap_model(model, env, parallel="fsdp", activation_checkpointing=ac, bf16_params=True)
-    opt = torch.optim.AdamW([p for p in lm.parameters() if p.requires_grad], lr=1e-5, foreach=True)
-    data = synthetic_batch(batch, hw, env.device)
+    lm, layout = wrap_model(model, env, parallel="fsdp", activation_checkpointing=ac > 0, bf16_params=cuda,
+                            compile=compile, checkpoint_every_blocks=max(ac, 1))
+    opt = torch.optim.AdamW([p for p in lm.parameters() if p.requires_grad], lr=1e-5,
+                            **adamw_kernel(adamw, env.device))
+    data = synthetic_batch(batch, hw, env.device, seq=model.cfg.max_text_seq_length, dim=model.cfg.text_embed_dim)
     flops = model.flops_per_sample(data) * batch
     times = []
 
     def step_fn():
-        with torch.autocast("cuda", dtype=torch.bfloat16):
+        with torch.autocast(env.device.type, dtype=torch.bfloat16, enabled=cuda):
             loss, _ = lm(data)
         loss.float().backward()
         torch.nn.utils.clip_grad_norm_(lm.parameters(), 1.0)
         opt.step()
         opt.zero_grad(set_to_none=True)
 
-    torch.cuda.reset_peak_memory_stats()
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
     warm_s = 0.0
-    for i in range(steps + 2):  # 2 warm-up steps (flex: its kernels compile here)
-        torch.cuda.synchronize()
+    for i in range(steps + 2):  # 2 warm-up steps (flex and --compile: their kernels compile here)
+        _sync(env.device)
         t = time.perf_counter()
         step_fn()
-        torch.cuda.synchronize()
+        _sync(env.device)
         if i >= 2:
             times.append(time.perf_counter() - t)
         else:
@@ -104,12 +124,24 @@ def run_one(hw, ac: bool, batch: int, steps: int, peak: float, env, profile: boo
     if profile:
         _profile_step(step_fn)
     step = sorted(times)[len(times) // 2]
-    return {"latent_hw": hw, "activation_checkpointing": ac, "attention": attention, "warmup_s": warm_s,
-            "batch": batch, "step_s": step,
+    return {"latent_hw": hw, "activation_checkpointing": ac, "attention": attention, "compile": compile,
+            "adamw": adamw, "warmup_s": warm_s, "batch": batch, "step_s": step,
             "samples_per_s": batch / step, "tokens_per_s": model.tokens_per_sample(data) * batch / step,
             "tflops_per_s": flops / step / 1e12, "mfu": flops / step / (peak * 1e12),
-            "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30, "layout": layout, "times": times,
-            "flops_per_step": flops}
+            "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30 if cuda else float("nan"), "layout": layout,
+            "times": times, "flops_per_step": flops}
+
+
+def _ac_setting(a: str) -> int:
+    if a in ("off", "on"):
+        return int(a == "on")
+    if not a.isdigit() or int(a) < 2:
+        raise SystemExit(f"--ac: {a!r} is not off, on or an integer k >= 2 (every k-th block)")
+    return int(a)
+
+
+def _ac_words(ac: int) -> str:
+    return "off" if ac == 0 else "on" if ac == 1 else f"1/{ac}"
 
 
 def main() -> None:
@@ -119,59 +151,60 @@ def main() -> None:
     ap.add_argument("--peak-tflops", type=float, default=989.0)
     ap.add_argument("--json", help="also write the results here")
     ap.add_argument("--sizes", default="32x56,64x112", help="latent h x w, comma-separated (pixels / 8)")
-    ap.add_argument("--ac", default="off,on", help="activation checkpointing settings to run")
+    ap.add_argument("--ac", default="off,on", help="activation checkpointing settings: off, on, k (every k-th block)")
+    ap.add_argument("--compile", default="off", help="off, on or off,on: torch.compile of each block")
+    ap.add_argument("--adamw", default="fused", choices=["fused", "foreach", "for-loop"], help="AdamW's kernel")
     ap.add_argument("--attention", default="sdpa", help="attention backend(s) to run: sdpa, flex or sdpa,flex")
     ap.add_argument("--profile", action="store_true", help="profile one extra step per config (not timed)")
+    ap.add_argument("--preset", default="cogvideox-2b", help="world-model preset (tiny: a CPU smoke run)")
+    ap.add_argument("--device", default="cuda", choices=["cuda", "cpu"], help="cpu: a smoke run only")
     args = ap.parse_args()
-    if not torch.cuda.is_available():
-        raise SystemExit("bench/train_mfu.py needs a CUDA GPU")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("bench/train_mfu.py needs a CUDA GPU (--device cpu --preset tiny for a smoke run)")
 
-    env = init_distributed(force_group=True)
-    torch.backends.cuda.matmul.allow_tf32 = True
-    print(f"device: {torch.cuda.get_device_name()} ; torch {torch.__version__}; peak {args.peak_tflops} TFLOP/s bf16")
+    env = init_distributed(device=args.device, force_group=True)
+    if args.device == "cpu":
+        print(f"device: CPU (smoke run) ; torch {torch.__version__}")
+    else:
+        torch.backends.cuda.matmul.allow_tf32 = True
+        print(f"device: {torch.cuda.get_device_name()} ; torch {torch.__version__}; peak {args.peak_tflops} TFLOP/s bf16")
     backends = args.attention.split(",")
     for b in backends:
         if b not in ("sdpa", "flex"):
             raise SystemExit(f"--attention: unknown backend {b!r} (sdpa, flex)")
+    compiles = [{"off": False, "on": True}[c] for c in args.compile.split(",")]
     results = []
     for hw in [tuple(map(int, s.split("x"))) for s in args.sizes.split(",")]:
-        for ac in [{"off": False, "on": True}[a] for a in args.ac.split(",")]:
-            for attention in backends:
-                try:
-                    r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env, args.profile, attention)
-                except torch.OutOfMemoryError:
-                    r = {"latent_hw": hw, "activation_checkpointing": ac, "attention": attention, "batch": args.batch,
-                         "oom": True, "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30}
-                gc.collect()              # FSDP2 hooks keep module cycles: free the model before the next config
-                torch.cuda.empty_cache()
-                results.append(r)
-                px = f"{hw[0] * 8}x{hw[1] * 8}"
-                head = f"{px:>8s} AC {'on ' if ac else 'off'} attention {attention:4s} batch {args.batch}"
-                if r.get("oom"):
-                    print(f"{head}: out of memory (peak {r['max_mem_gib']:.1f} GiB allocated before the failure)",
-                          flush=True)
-                else:
-                    print(f"{head}: step {r['step_s']:.3f} s, {r['tokens_per_s']:,.0f} tokens/s, "
-                          f"{r['tflops_per_s']:.0f} TFLOP/s, MFU {r['mfu']:.1%}, max mem {r['max_mem_gib']:.1f} GiB; "
-                          f"step times {[round(x, 3) for x in r['times']]}; 2 warm-up steps {r['warmup_s']:.1f} s; "
-                          f"{r['layout']}", flush=True)
-    ok = [r for r in results if not r.get("oom")]
-    for hw in {tuple(r["latent_hw"]) for r in ok}:
-        for attention in backends:
-            by_ac = {r["activation_checkpointing"]: r for r in ok
-                     if tuple(r["latent_hw"]) == hw and r["attention"] == attention}
-            if True in by_ac and False in by_ac:
-                print(f"{hw[0] * 8}x{hw[1] * 8} attention {attention}: step time AC on / AC off = "
-                      f"{by_ac[True]['step_s'] / by_ac[False]['step_s']:.2f}x (same process)")
-        for ac in (False, True):
-            by_att = {r["attention"]: r for r in ok if tuple(r["latent_hw"]) == hw and r["activation_checkpointing"] == ac}
-            if "sdpa" in by_att and "flex" in by_att:
-                print(f"{hw[0] * 8}x{hw[1] * 8} AC {'on' if ac else 'off'}: step time sdpa / flex = "
-                      f"{by_att['sdpa']['step_s'] / by_att['flex']['step_s']:.2f}x (same process)")
+        base = None
+        for ac in [_ac_setting(a) for a in args.ac.split(",")]:
+            for comp in compiles:
+                for attention in backends:
+                    try:
+                        r = run_one(hw, ac, args.batch, args.steps, args.peak_tflops, env, args.profile, attention,
+                                    comp, args.adamw, args.preset)
+                    except torch.OutOfMemoryError:
+                        r = {"latent_hw": hw, "activation_checkpointing": ac, "attention": attention,
+                             "compile": comp, "batch": args.batch, "oom": True,
+                             "max_mem_gib": torch.cuda.max_memory_allocated() / 2**30}
+                    gc.collect()              # FSDP2 hooks keep module cycles: free the model before the next config
+                    if env.device.type == "cuda":
+                        torch.cuda.empty_cache()
+                    results.append(r)
+                    px = f"{hw[0] * 8}x{hw[1] * 8}"
+                    head = (f"{px:>8s} AC {_ac_words(ac):3s} compile {'on ' if comp else 'off'} attention "
+                            f"{attention:4s} AdamW {args.adamw} batch {args.batch}")
+                    if r.get("oom"):
+                        print(f"{head}: out of memory (peak {r['max_mem_gib']:.1f} GiB allocated before the failure)",
+                              flush=True)
+                        continue
+                    base = base or r
+                    print(f"{head}: step {r['step_s']:.3f} s (x{base['step_s'] / r['step_s']:.2f} of the first), "
+                          f"{r['tokens_per_s']:,.0f} tokens/s, {r['tflops_per_s']:.1f} TFLOP/s, MFU {r['mfu']:.1%}, "
+                          f"max mem {r['max_mem_gib']:.1f} GiB; step times {[round(x, 3) for x in r['times']]}; "
+                          f"2 warm-up steps {r['warmup_s']:.1f} s; {r['layout']}", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
-
 
 if __name__ == "__main__":
     main()

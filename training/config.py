@@ -26,6 +26,9 @@ class OptimConfig:
     schedule: Literal["constant", "cosine"] = "constant"
     min_lr_ratio: float = 0.0          # cosine decays to lr * min_lr_ratio at the last step
     grad_clip_norm: float = 1.0        # <= 0 disables clipping (the norm is still logged)
+    # AdamW's kernel: auto = fused on CUDA (one kernel for all parameters, as torchtitan), the plain per-parameter
+    # loop elsewhere (what every CPU run so far used, so their resumes stay bit-exact)
+    implementation: Literal["auto", "for-loop", "foreach", "fused"] = "auto"
 
     def __post_init__(self):
         if self.lr <= 0:
@@ -51,7 +54,10 @@ class TrainerConfig:
     # weights early instead of keeping the initial ones for ~1 / (1 - ema_decay) steps (training/ema.py)
     ema_warmup: bool = True
     activation_checkpointing: bool = False
-    compile: bool = False                  # torch.compile the model's loss module
+    # selective activation checkpointing by block (torchtitan's "selective layer" AC): with the above on, only
+    # every k-th block (index % k == 0) recomputes its activations; 1 = every block (full AC), 2 = half of them
+    activation_checkpointing_every_blocks: int = 1
+    compile: bool = False                  # torch.compile each block (the whole loss module for a model without blocks)
     parallel: Literal["auto", "none", "ddp", "fsdp"] = "auto"  # auto: DDP if world > 1 (FSDP for presets that say so)
     fsdp_reshard_after_forward: bool = True
     checkpoint_every_steps: int = 0        # 0: only at the end
@@ -82,6 +88,9 @@ class TrainerConfig:
             raise ConfigError("trainer.checkpoint_every_steps must be >= 0 and keep_checkpoints >= 1")
         if self.log_every_steps < 1:
             raise ConfigError("trainer.log_every_steps must be >= 1")
+        if self.activation_checkpointing_every_blocks < 1:
+            raise ConfigError("trainer.activation_checkpointing_every_blocks must be >= 1 (1: every block), got "
+                              f"{self.activation_checkpointing_every_blocks}")
         if self.max_wall_s is not None and not self.max_wall_s >= 0:
             raise ConfigError(f"trainer.max_wall_s must be >= 0 seconds (or null), got {self.max_wall_s}")
 

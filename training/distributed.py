@@ -4,8 +4,8 @@
   NCCL on GPUs, gloo on CPUs. A plain ``python`` run is world size 1 with no process group.
 * ``LossModule`` makes ``model.loss(batch)`` the *forward* of a module, so DDP's gradient
   hooks and FSDP2's all-gather hooks fire: calling ``ddp.module.loss`` directly would bypass them.
-* ``wrap_model`` applies activation checkpointing, then DDP or FSDP2 (``fully_shard`` per block,
-  then the root), then optionally ``torch.compile``.
+* ``wrap_model`` applies activation checkpointing (all blocks or every k-th), then optionally
+  ``torch.compile`` per block, then DDP or FSDP2 (``fully_shard`` per block, then the root).
 
 FSDP2 units: ``model.fsdp_units()`` if the model defines it (the world model returns its
 transformer blocks), else every child of every ``nn.ModuleList``.
@@ -107,19 +107,38 @@ def block_modules(model: nn.Module) -> list[nn.Module]:
     return out
 
 
-def apply_activation_checkpointing(model: nn.Module) -> str:
-    """Recompute block activations in backward. Uses ``model.set_activation_checkpointing(True)``
-    if the model has it, else wraps each block with torch's non-reentrant checkpoint wrapper."""
+def apply_activation_checkpointing(model: nn.Module, every_blocks: int = 1) -> str:
+    """Recompute block activations in backward: all blocks, or only every k-th (``every_blocks`` = k, blocks
+    i % k == 0: torchtitan's selective layer AC, memory traded for less recompute). Uses
+    ``model.set_activation_checkpointing(True, every_blocks)`` if the model has it, else wraps the chosen blocks
+    with torch's non-reentrant checkpoint wrapper."""
     if hasattr(model, "set_activation_checkpointing"):
-        model.set_activation_checkpointing(True)
-        return "model hook"
-    blocks = set(id(b) for b in block_modules(model))
-    if not blocks:
+        model.set_activation_checkpointing(True, every_blocks=every_blocks)
+        return "model hook" + (f", every {every_blocks} blocks" if every_blocks > 1 else "")
+    units = block_modules(model)
+    if not units:
         raise ValueError(f"activation checkpointing: {type(model).__name__} has no ModuleList blocks "
                          "and no set_activation_checkpointing(); nothing to checkpoint")
+    blocks = set(id(b) for i, b in enumerate(units) if i % every_blocks == 0)
     _apply(model, checkpoint_wrapper_fn=lambda m: checkpoint_wrapper(m, checkpoint_impl=CheckpointImpl.NO_REENTRANT),
            check_fn=lambda m: id(m) in blocks)
-    return f"checkpoint_wrapper on {len(blocks)} blocks"
+    return f"checkpoint_wrapper on {len(blocks)} of {len(units)} blocks"
+
+
+def compile_model(model: nn.Module, lm: nn.Module) -> str:
+    """``torch.compile`` each block's ``forward`` (torchtitan's ``apply_compile``): the blocks are identical, so
+    one graph serves them all; the loss's noise draws and condition dropout stay eager, where they use torch's
+    RNG exactly as without compile (a compiled RNG call draws other numbers); FSDP2's hooks, which run around a
+    module's forward, stay eager as in torchtitan (it compiles the block that ``fully_shard`` then wraps).
+    Parameter names do not change, so checkpoints are the same with and without. A model without blocks
+    compiles its whole loss module."""
+    units = block_modules(model)
+    if not units:
+        lm.compile()
+        return "torch.compile (whole loss module)"
+    for b in units:
+        b.forward = torch.compile(b.forward)
+    return f"torch.compile on {len(units)} blocks"
 
 
 def resolve_parallel(mode: str, env: DistEnv) -> str:
@@ -131,17 +150,20 @@ def resolve_parallel(mode: str, env: DistEnv) -> str:
 
 
 def wrap_model(model: nn.Module, env: DistEnv, *, parallel: str = "auto", activation_checkpointing: bool = False,
-               compile: bool = False, bf16_params: bool = False, reshard_after_forward: bool = True) -> tuple[nn.Module, str]:
+               compile: bool = False, bf16_params: bool = False, reshard_after_forward: bool = True,
+               checkpoint_every_blocks: int = 1) -> tuple[nn.Module, str]:
     """Return (loss module to call with a batch, description of the layout).
 
-    Order matters: activation checkpointing wraps blocks first, FSDP2 shards the (wrapped)
-    blocks then the root, compile goes last.
+    Order matters (torchtitan's): activation checkpointing wraps blocks first, compile compiles each
+    (wrapped) block, FSDP2 shards the blocks then the root.
     """
     notes = []
     if activation_checkpointing:
-        notes.append("activation checkpointing: " + apply_activation_checkpointing(model))
+        notes.append("activation checkpointing: " + apply_activation_checkpointing(model, checkpoint_every_blocks))
     model.to(env.device)
     lm: nn.Module = LossModule(model)
+    if compile:
+        notes.append(compile_model(model, lm))
     mode = resolve_parallel(parallel, env)
     if mode == "ddp":
         lm = DDP(lm, device_ids=[env.device.index] if env.device.type == "cuda" else None,
@@ -160,7 +182,4 @@ def wrap_model(model: nn.Module, env: DistEnv, *, parallel: str = "auto", activa
                      f" (params {'bf16' if bf16_params else 'fp32'}, reduce fp32)")
     else:
         notes.append("single process" if not env.distributed else "no wrapping")
-    if compile:
-        lm.compile()
-        notes.append("torch.compile")
     return lm, "; ".join(notes)

@@ -91,6 +91,13 @@ srun --kill-on-bad-exit=1 {shlex.quote(sys.executable)} -m torch.distributed.run
 """
 
 
+def _ac_words(tc) -> str:
+    if not tc.activation_checkpointing:
+        return "no AC"
+    k = tc.activation_checkpointing_every_blocks
+    return "AC on every block" if k == 1 else f"selective AC, every {k} blocks"
+
+
 def dry_run(args, train: list[str]) -> dict:
     """Resolve config, build on meta, estimate per-GPU memory for N x G ranks. Returns the numbers."""
     import torch
@@ -145,9 +152,9 @@ def dry_run(args, train: list[str]) -> dict:
         if not all(hw):
             hw = (model.cfg.sample_height, model.cfg.sample_width)
         thw = (int(mcfg.get("latent_frames", 13)), int(hw[0]), int(hw[1]))
-        act = model.activation_bytes_per_sample(thw, tc.activation_checkpointing, 2 if bf16 else 4)
-        mem[f"activations ({dc.batch_size_per_gpu}/gpu, {'AC' if tc.activation_checkpointing else 'no AC'}, estimate)"] = \
-            act * dc.batch_size_per_gpu
+        act = model.activation_bytes_per_sample(thw, tc.activation_checkpointing, 2 if bf16 else 4,
+                                                every_blocks=tc.activation_checkpointing_every_blocks)
+        mem[f"activations ({dc.batch_size_per_gpu}/gpu, {_ac_words(tc)}, estimate)"] = act * dc.batch_size_per_gpu
     total = sum(mem.values())
     gbs = dc.batch_size_per_gpu * world * accum
     out = {"model": type(model).__name__, "preset": cfg.preset, "world_size": world, "parallel": parallel,
@@ -164,7 +171,7 @@ def dry_run(args, train: list[str]) -> dict:
           f"({100 * n_train / max(n_total, 1):.1f}%)")
     print(f"  layout: {args.nnodes} node(s) x {args.nproc_per_node} GPU(s) = {world} ranks; {parallel.upper()}"
           + (f" with fully_shard on {len(units)} blocks (largest {unit_max:,} params) + root" if parallel == "fsdp" else "")
-          + f"; precision {tc.precision}; activation checkpointing {'on' if tc.activation_checkpointing else 'off'}")
+          + f"; precision {tc.precision}; activation checkpointing: {_ac_words(tc)}")
     print(f"  global batch: {gbs} = {dc.batch_size_per_gpu}/gpu x {world} ranks x {accum} accumulation"
           + (f" (paper: {cfg.reference.get('batch')} on {cfg.reference.get('gpus')} GPUs)" if cfg.reference else ""))
     if "tokens_per_sample" in out:

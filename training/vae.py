@@ -179,7 +179,10 @@ class TrainableVAE(AutoencoderKLCogVideoX):
     def fsdp_units(self):
         return [*self.encoder.down_blocks, *self.decoder.up_blocks]
 
-    def set_activation_checkpointing(self, on: bool = True) -> None:
+    def set_activation_checkpointing(self, on: bool = True, every_blocks: int = 1) -> None:
+        if on and every_blocks != 1:
+            raise ConfigError("trainer.activation_checkpointing_every_blocks: the VAE checkpoints all of its "
+                              "blocks or none (diffusers' gradient checkpointing); leave it at 1")
         if on:
             self.enable_gradient_checkpointing()
         else:

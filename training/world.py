@@ -78,8 +78,9 @@ class TrainableWorldModel(WorldModel):
     def fsdp_units(self):
         return list(self.transformer_blocks)
 
-    def set_activation_checkpointing(self, on: bool = True) -> None:
-        self.cfg.gradient_checkpointing = bool(on)  # the DiT checkpoints each block itself
+    def set_activation_checkpointing(self, on: bool = True, every_blocks: int = 1) -> None:
+        self.cfg.gradient_checkpointing = bool(on)  # the DiT checkpoints its blocks itself
+        self.cfg.gradient_checkpointing_every = int(every_blocks)
 
     def tokens_per_sample(self, batch: Any = None, latent_thw: tuple[int, int, int] | None = None) -> int:
         c = self.cfg
@@ -118,15 +119,18 @@ class TrainableWorldModel(WorldModel):
         return counts
 
     def activation_bytes_per_sample(self, latent_thw: tuple[int, int, int], checkpointing: bool,
-                                    bytes_per_value: int = 2) -> float:
+                                    bytes_per_value: int = 2, every_blocks: int = 1) -> float:
         """Rough activation memory of one sample: ~34 values per token per hidden unit per block without
-        checkpointing (Korthikanti et al. 2022, flash attention so no S^2 term), the block inputs (2 tensors)
-        plus one block's worth with it."""
+        checkpointing (Korthikanti et al. 2022, flash attention so no S^2 term); a checkpointed block keeps its
+        inputs (2 tensors), and one block's worth is live while it recomputes. ``every_blocks``: only blocks
+        i % k == 0 are checkpointed (selective AC)."""
         c = self.cfg
         s = self.tokens_per_sample(latent_thw=latent_thw)
         per_block = 34 * s * c.hidden_dim * bytes_per_value
         if checkpointing:
-            return c.num_layers * 2 * s * c.hidden_dim * bytes_per_value + per_block
+            ckpt_blocks = len(range(0, c.num_layers, max(1, every_blocks)))
+            return (ckpt_blocks * 2 * s * c.hidden_dim * bytes_per_value + per_block
+                    + (c.num_layers - ckpt_blocks) * per_block)
         return c.num_layers * per_block
 
 

@@ -73,6 +73,16 @@ def test_sample_cli(setup, capsys):
     assert main(args[:-2] + ["--attention", "flex", "--out", str(out3)]) == 0
     np.testing.assert_allclose(np.load(out3 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
     assert json.loads((out3 / "run.json").read_text())["attention_backend"] == "flex"
+    # --compile: eager by default on a CPU (recorded); on, the compiled blocks give the same rollout
+    assert (run["compile"], run["compile_flag"]) == (False, "auto")
+    try:
+        torch.compile(lambda x: x + 1)(torch.ones(1))
+    except Exception as e:   # no C++ compiler / Python headers here: the rest needs inductor
+        pytest.skip(f"torch.compile cannot build CPU kernels here: {str(e).splitlines()[0][:100]}")
+    out4 = setup["root"] / "s4"
+    assert main(args[:-2] + ["--compile", "on", "--out", str(out4)]) == 0
+    np.testing.assert_allclose(np.load(out4 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
+    assert json.loads((out4 / "run.json").read_text())["compile"] is True
 
 
 def test_sample_cli_errors(setup, capsys):

@@ -21,6 +21,7 @@ from resim.models import shipped_model
 from shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
 from training.policy.variants import HELP as CL_VARIANTS_HELP, VARIANTS as CL_VARIANTS
 from training.sampling.cli import UsageError, resolve_device
+from training.sampling.compile import add_compile_args, maybe_compile
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
@@ -182,6 +183,7 @@ def _world_args(p: argparse.ArgumentParser) -> None:
                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     p.add_argument("--device", type=_torch_device, default=None,
                    help="cpu, cuda or cuda:N (default: cuda if available)")
+    add_compile_args(p)
 
 
 def register(subparsers) -> None:
@@ -423,6 +425,8 @@ def _runner(args):
     rc["guidance"] = guidance_from_cli(guidance, args.guidance_scale, args.guidance_schedule)
     cfg = from_dict(RolloutConfig, rc)
     ddim_schedule(cfg, schedule)   # --steps vs the run's schedule, before any rollout
+    info = {**info, **maybe_compile(model, args.compile, device, mode=args.compile_mode,
+                                    log=lambda m: print(f"[resim eval] {m}", file=sys.stderr))}
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
                            max_tokens=model.cfg.max_text_seq_length)
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,

@@ -136,6 +136,7 @@ class WorldModelConfig:
     actions: ActionConfig = field(default_factory=ActionConfig)
     text_pool: TextPoolConfig = field(default_factory=TextPoolConfig)
     gradient_checkpointing: bool = False
+    gradient_checkpointing_every: int = 1   # with it on, blocks i % k == 0 recompute (selective AC); 1 = all
     # kernel for the block-causal mask (attention.py, flex.py): "sdpa" = F.scaled_dot_product_attention with a
     # boolean (S, S) mask (cuDNN attention on an H100, every tile computed); "flex" = flex_attention with a
     # BlockMask that skips fully masked tiles (compiled on CUDA; eager and slower than sdpa on CPU). Outputs

@@ -230,7 +230,8 @@ class WorldModel(nn.Module):
         keys, values = [], []
         for i, blk in enumerate(self.transformer_blocks):
             past = (kv_cache.keys[i], kv_cache.values[i]) if kv_cache is not None else None
-            if cfg.gradient_checkpointing and torch.is_grad_enabled():
+            if (cfg.gradient_checkpointing and torch.is_grad_enabled()
+                    and i % max(1, cfg.gradient_checkpointing_every) == 0):
                 video, txt, kv = checkpoint(blk, video, txt, temb, temb_text, mask, past, return_kv_cache,
                                              use_reentrant=False)
             else:

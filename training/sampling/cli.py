@@ -14,6 +14,7 @@ from pathlib import Path
 from resim.argtypes import (height_width, local_dir, non_negative_float, non_negative_int, positive_float,
                             positive_int, torch_device)
 from resim.config import ConfigError, from_dict, save, to_dict
+from training.sampling.compile import add_compile_args, maybe_compile   # no torch: see its imports
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
@@ -98,6 +99,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--attention", default=None, choices=["sdpa", "flex"],
                    help="kernel for the block-causal attention (default: the checkpoint's model config); flex is "
                         "1.29x faster per rollout on an H100 (docs/benchmarks.md) and slower than sdpa on a CPU")
+    add_compile_args(p)
     p.add_argument("--out", required=True, help="output folder")
 
 
@@ -243,7 +245,9 @@ class _Setup:
         self.objective = run_objective(args.checkpoint)   # the run's: its schedule is what DDIM steps over
         if args.attention is not None:
             self.model.set_attention_backend(args.attention)
-        self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend}
+        self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend,
+                           **maybe_compile(self.model, args.compile, self.device, mode=args.compile_mode,
+                                           log=lambda m: print(f"[resim] {m}", file=sys.stderr))}
         mcfg = self.model.cfg
         self.vae = VideoVAE(args.vae or encoded_with(args.checkpoint, args.shards), device=self.device)
         self.cfg = cfg

@@ -1,0 +1,91 @@
+"""``torch.compile`` for sampling: each transformer block compiled in place, applied from outside the model.
+
+Why per block (torchtitan's ``apply_compile``) rather than the whole forward: the blocks are where the time goes
+(attention, the MLP and the AdaLN/gating elementwise work that the GPU profile found around them), they are
+identical, so dynamo traces one and reuses the code for all of them, and the model's own Python (patch and
+position embeddings, the block-causal mask, the KV cache bookkeeping, the rollout's DDIM and guidance loop) stays
+eager, where graph breaks and shape changes would otherwise cost recompiles.
+
+Shapes. A ReSim-preset rollout feeds every DDIM step the same shapes (a 10-frame chunk over a 3-frame history
+cache), so its blocks compile once, static, and every later step and round reuses that code. Frame-by-frame
+rollouts (Vid2World) grow the cache by one frame per chunk: torch's default ``dynamic=None`` compiles the first
+shape static and, at the first change, once more with symbolic lengths, instead of once per length (dynamo's
+recompile limit would otherwise send the later lengths back to eager). The compiled code lives on the module, so
+it is reused by every rollout of the process (``resim eval`` rolls out hundreds).
+
+``mode="reduce-overhead"`` adds CUDA graphs (recorded per static shape); it is offered, not the default, until it
+is measured on a GPU (docs/benchmarks.md lists the command).
+
+Where: ``resim sample``/``plan``/``simulate``/``eval`` take ``--compile auto|on|off``; ``auto`` (the default)
+compiles on CUDA only. On a CPU the compile costs about a minute per geometry for a few percent
+(bench/compile_rollout.py), and it needs a C++ compiler and the Python headers.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+# no torch import here: the CLIs import the choices below for their --help, which stays fast; the functions get
+# torch modules and devices from their callers
+COMPILE_CHOICES = ("auto", "on", "off")
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune")
+_MARK = "_resim_compiled"
+
+
+def wants_compile(flag: str, device: Any) -> bool:
+    """``--compile`` → whether to compile: ``auto`` = on CUDA only."""
+    if flag not in COMPILE_CHOICES:
+        raise ValueError(f"compile={flag!r}: expected one of {', '.join(COMPILE_CHOICES)}")
+    if flag == "auto":
+        return str(device).startswith("cuda")   # "cuda", "cuda:1" or a torch.device of either
+    return flag == "on"
+
+
+def compile_blocks(model: Any, *, mode: str = "default", dynamic: bool | None = None) -> int:
+    """Compile every block of ``model.transformer_blocks`` in place (``nn.Module.compile``: parameter names and
+    state dicts are unchanged, so checkpoints and EMA weights load as before). Idempotent: blocks compiled
+    earlier are left as they are. Returns the number of blocks compiled by this call. Compilation itself happens
+    at each block's first call (the first rollout's first step)."""
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"compile mode {mode!r}: expected one of {', '.join(COMPILE_MODES)}")
+    blocks = getattr(model, "transformer_blocks", None)
+    if blocks is None or len(blocks) == 0:
+        raise TypeError(f"{type(model).__name__} has no transformer_blocks to compile")
+    n = 0
+    for blk in blocks:
+        if getattr(blk, _MARK, False):
+            continue
+        blk.compile(mode=None if mode == "default" else mode, dynamic=dynamic)
+        setattr(blk, _MARK, True)
+        n += 1
+    return n
+
+
+def is_compiled(model: Any) -> bool:
+    blocks = getattr(model, "transformer_blocks", None) or []
+    return len(blocks) > 0 and all(getattr(b, _MARK, False) for b in blocks)
+
+
+def maybe_compile(model: Any, flag: str, device: Any, *, mode: str = "default",
+                  log: Any = None) -> dict:
+    """Apply ``--compile`` to a loaded world model; returns what to record in an output's protocol."""
+    on = wants_compile(flag, device)
+    info = {"compile": on, "compile_flag": flag}
+    if on:
+        t0 = time.perf_counter()
+        compile_blocks(model, mode=mode)
+        info["compile_mode"] = mode
+        if log is not None:
+            log(f"torch.compile: {len(model.transformer_blocks)} blocks, mode {mode} (compiled at the first "
+                f"step, {time.perf_counter() - t0:.1f} s set-up)")
+    return info
+
+
+def add_compile_args(p: argparse.ArgumentParser) -> None:
+    """``--compile`` and ``--compile-mode`` of every command that samples a world model."""
+    p.add_argument("--compile", default="auto", choices=COMPILE_CHOICES,
+                   help="torch.compile the world model's blocks: auto = on CUDA only (default; on a CPU it costs "
+                        "~15 s of compiling per rollout geometry for ~1.2x, bench/compile_rollout.py)")
+    p.add_argument("--compile-mode", default="default", choices=COMPILE_MODES,
+                   help="torch.compile mode; reduce-overhead adds CUDA graphs (default: default)")
