@@ -17,8 +17,8 @@ it is reused by every rollout of the process (``resim eval`` rolls out hundreds)
 is measured on a GPU (docs/benchmarks.md lists the command).
 
 Where: ``resim sample``/``plan``/``simulate``/``eval`` take ``--compile auto|on|off``; ``auto`` (the default)
-compiles on CUDA only. On the 2-core CPU the compile costs 15-20 s per process for 1.19x on a ReSim-chunk
-rollout of the shipped synthetic-world model (1.22x alone at 2 threads) and 1.01-1.06x frame by frame (bench/compile_rollout.py,
+compiles on CUDA only. On the 2-core CPU the compile costs 13-20 s per process for 1.19-1.22x on a ReSim-chunk
+rollout of the shipped synthetic-world model and 1.01-1.06x frame by frame (bench/compile_rollout.py,
 docs/benchmarks.md), and it needs a C++ compiler and the Python headers.
 """
 from __future__ import annotations
