@@ -122,8 +122,12 @@ def test_activation_estimate_follows_the_setting():
 def test_every_blocks_validated():
     with pytest.raises(ConfigError, match="activation_checkpointing_every_blocks"):
         TrainerConfig(activation_checkpointing_every_blocks=0)
+    vae = build("vae", {"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "clip_frames": 9})
+    assert isinstance(vae, TrainableVAE)
     with pytest.raises(ConfigError, match="all of its blocks or none"):
-        TrainableVAE.set_activation_checkpointing(None, True, every_blocks=2)
+        vae.set_activation_checkpointing(True, every_blocks=2)
+    vae.set_activation_checkpointing(True)                        # every block: diffusers' own checkpointing
+    assert vae.is_gradient_checkpointing
 
 
 def test_adamw_kernels(tmp_path):
