@@ -20,6 +20,18 @@ SHARED = REPO.parent / "shared"
 
 
 @pytest.fixture
+def needs_inductor():
+    """Skip, with the reason, where torch.compile cannot build CPU kernels (no C++ compiler or Python headers):
+    the compile tests need inductor, the product only uses it when asked (``--compile``, ``trainer.compile``)."""
+    import torch   # as in one_torch_thread
+
+    try:
+        torch.compile(lambda x: x * 2 + 1)(torch.ones(2))
+    except Exception as e:
+        pytest.skip(f"torch.compile cannot build CPU kernels on this machine: {str(e).splitlines()[0][:120]}")
+
+
+@pytest.fixture
 def one_torch_thread():
     """torch on one thread for the test, restored after (a test module opts in with
     ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``): tiny models run fastest so, and a reduction

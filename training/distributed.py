@@ -23,6 +23,8 @@ from torch.distributed.algorithms._checkpoint.checkpoint_wrapper import (
     CheckpointImpl, apply_activation_checkpointing as _apply, checkpoint_wrapper)
 from torch.nn.parallel import DistributedDataParallel as DDP
 
+from training.sampling.compile import compile_modules
+
 
 @dataclass(frozen=True)
 class DistEnv:
@@ -126,18 +128,16 @@ def apply_activation_checkpointing(model: nn.Module, every_blocks: int = 1) -> s
 
 
 def compile_model(model: nn.Module, lm: nn.Module) -> str:
-    """``torch.compile`` each block's ``forward`` (torchtitan's ``apply_compile``): the blocks are identical, so
-    one graph serves them all; the loss's noise draws and condition dropout stay eager, where they use torch's
-    RNG exactly as without compile (a compiled RNG call draws other numbers); FSDP2's hooks, which run around a
-    module's forward, stay eager as in torchtitan (it compiles the block that ``fully_shard`` then wraps).
-    Parameter names do not change, so checkpoints are the same with and without. A model without blocks
-    compiles its whole loss module."""
+    """``torch.compile`` each block (``training.sampling.compile.compile_modules``: the block's ``forward``, so
+    FSDP2's hooks around it stay eager, as in torchtitan's ``apply_compile``). The loss's noise draws and
+    condition dropout stay eager too, where they use torch's RNG exactly as without compile (a compiled RNG call
+    draws other numbers), so a compiled step gives the eager step's loss. A model without blocks compiles its
+    whole loss module."""
     units = block_modules(model)
     if not units:
         lm.compile()
         return "torch.compile (whole loss module)"
-    for b in units:
-        b.forward = torch.compile(b.forward)
+    compile_modules(units)
     return f"torch.compile on {len(units)} blocks"
 
 

@@ -33,13 +33,6 @@ def _inputs():
     return torch.randn(B, 3, C, H, W, generator=g), cond
 
 
-def _toolchain_or_skip():
-    try:
-        torch.compile(lambda x: x * 2 + 1)(torch.ones(2))
-    except Exception as e:   # no C++ compiler / Python headers: inductor cannot build CPU kernels here
-        pytest.skip(f"torch.compile cannot build CPU kernels on this machine: {str(e).splitlines()[0][:120]}")
-
-
 def test_wants_compile():
     assert wants_compile("auto", "cuda") and wants_compile("auto", torch.device("cuda", 1))
     assert not wants_compile("auto", "cpu") and not wants_compile("auto", torch.device("cpu"))
@@ -63,19 +56,18 @@ def test_cli_flags():
         p.parse_args(["--compile", "yes"])
 
 
-def test_compiled_rollout_equals_eager(world):
+def test_compiled_rollout_equals_eager(world, needs_inductor):
     """Same seed, same inputs: compiled blocks give the eager rollout up to rounding, through the KV cache and
     CFG batching, frame by frame (Vid2World: the cache grows every chunk, the hard case for shapes; ReSim's
     one-chunk rollout with --compile on is checked by tests/sampling/test_cli.py). The compiled code is what
     runs: dynamo captured graphs, below its recompile limit (past it a block would quietly run eager), and a
     second rollout reuses them."""
-    _toolchain_or_skip()
     torch._dynamo.reset()
     model = world
     hist, cond = _inputs()
-    cfgs = {p: RolloutConfig(num_steps=2, history_frames=3, frames_per_round=6, chunk_frames=chunk,
-                             guidance=guidance_preset(p)) for p, chunk in (("vid2world", 1),)}
-    eager = {p: rollout(model, hist, cond, 6, cfg, seed=4).future for p, cfg in cfgs.items()}
+    cfg = RolloutConfig(num_steps=2, history_frames=3, frames_per_round=6, chunk_frames=1,
+                        guidance=guidance_preset("vid2world"))
+    eager = rollout(model, hist, cond, 6, cfg, seed=4).future
     names = list(model.state_dict())
     info = maybe_compile(model, "on", "cpu")
     assert info["compile"] and is_compiled(model)
@@ -83,15 +75,13 @@ def test_compiled_rollout_equals_eager(world):
     assert compile_blocks(model) == 0                  # idempotent
     torch._dynamo.utils.counters.clear()
     stats = torch._dynamo.utils.counters["stats"]
-    for p, cfg in cfgs.items():
-        compiled = rollout(model, hist, cond, 6, cfg, seed=4).future
-        assert stats["unique_graphs"] >= 1, (p, dict(stats))
-        torch.testing.assert_close(compiled, eager[p], rtol=1e-4, atol=1e-4, msg=p)
+    compiled = rollout(model, hist, cond, 6, cfg, seed=4).future
+    torch.testing.assert_close(compiled, eager, rtol=1e-4, atol=1e-4)
     graphs = stats["unique_graphs"]
     # 6 cache lengths frame by frame, each with a chunk step and an append: static graphs per length would be
-    # 13, past the limit
-    assert graphs < 8, dict(stats)   # torch's default: static first, then once with symbolic lengths
-    again = rollout(model, hist, cond, 6, cfgs["vid2world"], seed=4).future
+    # 13, past the limit; torch's default compiles static first, then once with symbolic lengths
+    assert 1 <= graphs < 8, dict(stats)
+    again = rollout(model, hist, cond, 6, cfg, seed=4).future
     torch.testing.assert_close(again, compiled, rtol=0, atol=0)
     assert stats["unique_graphs"] == graphs            # the code compiled above, reused
 

@@ -1,4 +1,5 @@
-"""``torch.compile`` for sampling: each transformer block compiled in place, applied from outside the model.
+"""``torch.compile`` of a model's blocks, applied from outside the model: for sampling (``--compile``) and, through
+``compile_modules``, for training (``trainer.compile``).
 
 Why per block (torchtitan's ``apply_compile``) rather than the whole forward: the blocks are where the time goes
 (attention, the MLP and the AdaLN/gating elementwise work that the GPU profile found around them), they are
@@ -43,24 +44,35 @@ def wants_compile(flag: str, device: Any) -> bool:
     return flag == "on"
 
 
+def compile_modules(modules: Any, *, mode: str = "default", dynamic: bool | None = None) -> int:
+    """Compile each module's ``forward`` in place, the one way resim compiles blocks (here for sampling, and
+    ``training.distributed.compile_model`` for training). Only ``forward``: hooks registered on the module (FSDP2's
+    all-gathers) stay eager around it, as in torchtitan, which compiles the block that ``fully_shard`` then wraps;
+    parameter names and state dicts are unchanged, so checkpoints and EMA weights load as before. Identical blocks
+    share one graph. Idempotent: modules compiled earlier are left as they are. Returns the number compiled by
+    this call; compilation itself happens at each module's first call."""
+    import torch   # here, not at the top: this module stays torch-free for the CLIs' --help (see the imports)
+
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"compile mode {mode!r}: expected one of {', '.join(COMPILE_MODES)}")
+    n = 0
+    for m in modules:
+        if getattr(m, _MARK, False):
+            continue
+        m.forward = torch.compile(m.forward, mode=None if mode == "default" else mode, dynamic=dynamic)
+        setattr(m, _MARK, True)
+        n += 1
+    return n
+
+
 def compile_blocks(model: Any, *, mode: str = "default", dynamic: bool | None = None) -> int:
-    """Compile every block of ``model.transformer_blocks`` in place (``nn.Module.compile``: parameter names and
-    state dicts are unchanged, so checkpoints and EMA weights load as before). Idempotent: blocks compiled
-    earlier are left as they are. Returns the number of blocks compiled by this call. Compilation itself happens
-    at each block's first call (the first rollout's first step)."""
+    """:func:`compile_modules` on ``model.transformer_blocks`` (a world model's)."""
     if mode not in COMPILE_MODES:
         raise ValueError(f"compile mode {mode!r}: expected one of {', '.join(COMPILE_MODES)}")
     blocks = getattr(model, "transformer_blocks", None)
     if blocks is None or len(blocks) == 0:
         raise TypeError(f"{type(model).__name__} has no transformer_blocks to compile")
-    n = 0
-    for blk in blocks:
-        if getattr(blk, _MARK, False):
-            continue
-        blk.compile(mode=None if mode == "default" else mode, dynamic=dynamic)
-        setattr(blk, _MARK, True)
-        n += 1
-    return n
+    return compile_modules(blocks, mode=mode, dynamic=dynamic)
 
 
 def is_compiled(model: Any) -> bool:
