@@ -11,14 +11,16 @@
 #             (40 px frames per rollout / seconds)
 #   mfu       training step at 512x896, FSDP2 on one GPU, full vs selective (every 2nd block) activation
 #             checkpointing, eager vs compiled blocks, fused AdamW; target MFU >= 40 %
+#   blocks    one 2B-size block's forward + backward at 256x448 under bf16 autocast: the block as it was against
+#             the block without its gate and cast copies (bytes written outside matmul, seconds, same process)
 #
 # Usage (from the repository root): PARTS="teacher student stream mfu" bash scripts/gpu_realtime.sh OUT_DIR
 # Not yet run (written without a GPU; each bench was smoke-run on a CPU with --smoke-cpu / --device cpu). The
 # eager 50-step rollouts alone took ~50 s each on an H100, so all five parts may need more than one 10-minute
-# call: run "teacher student stream" in one and "graphs mfu" in the next. Logs in OUT_DIR/<part>.log.
+# call: run "teacher student stream" in one and "graphs mfu blocks" in the next. Logs in OUT_DIR/<part>.log.
 set -uo pipefail
 OUT=${1:?usage: PARTS="teacher student stream mfu" bash scripts/gpu_realtime.sh OUT_DIR}
-PARTS=${PARTS:-teacher graphs student stream mfu}
+PARTS=${PARTS:-teacher graphs student stream mfu blocks}
 PYTHON=${PYTHON:-python3}
 mkdir -p "$OUT"
 export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
@@ -34,7 +36,9 @@ for part in $PARTS; do
     stream)  timeout 180 "${roll[@]}" --repeats 2 --steps 4 --no-guidance --chunk 1 --height-px 256 --width-px 448 ;;
     mfu)     timeout 300 "$PYTHON" bench/train_mfu.py --sizes 64x112 --ac on,2 --compile off,on --attention flex \
                --adamw fused --steps 4 ;;
-    *) echo "unknown part $part (teacher graphs student stream mfu)" >&2; continue ;;
+    blocks)  timeout 120 "$PYTHON" bench/block_elementwise.py --dim 1920 --heads 30 --frames 13 --hw 16x28 --text 226 \
+               --batch 2 --device cuda --precision bf16 --repeats 10 ;;
+    *) echo "unknown part $part (teacher graphs student stream mfu blocks)" >&2; continue ;;
   esac 2>&1 | tee "$OUT/$part.log"
   echo "== $part: exit ${PIPESTATUS[0]}"
 done

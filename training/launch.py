@@ -6,7 +6,8 @@
 * ``--slurm``: prints an sbatch script that starts one torchrun per node with ``srun``.
 * ``--dry-run``: resolves the config, builds the model on the meta device (no memory), works out the
   parallel layout for N x G ranks and prints parameters, global batch size and an estimate of memory
-  per GPU (parameters, gradients, optimizer states, EMA, gathered FSDP units, activations).
+  per GPU (parameters, gradients, optimizer states, EMA, gathered FSDP units, activations); with
+  ``--gpu-memory-gib`` also the largest batch per GPU that fits, with and without activation checkpointing.
   ``-- reward ...``: the config is resolved and checked and the launch command printed, without a memory
   estimate (Video2Reward is not a presets.py model and trains on one process: a launch or ``--slurm`` script
   of reward with more than one rank is refused).
@@ -41,6 +42,9 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--slurm-time", default="72:00:00", help="#SBATCH --time for --slurm")
     p.add_argument("--dry-run", action="store_true",
                    help="build config + model (meta device) + layout on this machine, print sizes and memory per GPU")
+    p.add_argument("--gpu-memory-gib", type=float, default=None, metavar="GIB",
+                   help="with --dry-run: the GPU's memory (e.g. 80 for an H100, 141 for an H200); prints the largest "
+                        "batch per GPU that fits for each activation-checkpointing setting, from the same estimate")
     p.add_argument("train_args", nargs=argparse.REMAINDER, metavar="-- NAME ARGS",
                    help="what to run: `resim train` arguments after `--`, e.g. -- world --preset stage2 ...")
 
@@ -180,7 +184,35 @@ def dry_run(args, train: list[str]) -> dict:
     for k, v in mem.items():
         print(f"    {k:<48s} {v / GiB:9.2f} GiB")
     print(f"    {'total':<48s} {total / GiB:9.2f} GiB   (+ CUDA context, allocator fragmentation, NCCL buffers)")
+    if getattr(args, "gpu_memory_gib", None):
+        if act is None:
+            print("  largest batch per GPU: no activation estimate for this model")
+        else:
+            out["max_batch_per_gpu"] = _max_batch(model, thw, 2 if bf16 else 4, total - act * dc.batch_size_per_gpu,
+                                                  args.gpu_memory_gib, tc)
     return out
+
+
+# of the GPU's memory, what the estimate may fill: the rest is for the CUDA context, the allocator's
+# fragmentation, NCCL buffers and the estimate's error (it counts ~34 values per token and hidden unit per block,
+# Korthikanti et al. 2022; bench/block_elementwise.py measures 30-35 for our block in bf16 on a CPU)
+_USABLE_FRACTION = 0.85
+
+
+def _max_batch(model, thw, bytes_per_value: int, fixed_bytes: float, gpu_gib: float, tc) -> dict[str, int]:
+    """The largest batch per GPU whose estimate fits in ``_USABLE_FRACTION`` of ``gpu_gib``, for no AC, selective
+    AC every 2nd block and AC on every block (0: not even one sample). Printed, and returned by setting."""
+    budget = _USABLE_FRACTION * gpu_gib * GiB - fixed_bytes
+    settings = {"no AC": (False, 1), "selective AC, every 2 blocks": (True, 2), "AC on every block": (True, 1)}
+    res = {}
+    print(f"  largest batch per GPU in {_USABLE_FRACTION:.0%} of {gpu_gib:g} GiB "
+          f"({fixed_bytes / GiB:.2f} GiB of it not activations):")
+    for name, (on, k) in settings.items():
+        per = model.activation_bytes_per_sample(thw, on, bytes_per_value, every_blocks=k)
+        res[name] = max(0, int(budget // per))
+        mine = " (this config)" if name == _ac_words(tc) else ""
+        print(f"    {name:<48s} {res[name]:6d}   ({per / GiB:.2f} GiB per sample){mine}")
+    return res
 
 
 def reward_dry_run(args, train: list[str], ns) -> dict:

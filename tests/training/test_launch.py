@@ -73,3 +73,20 @@ def test_reward_launch_with_more_than_one_rank_is_refused(capsys, tmp_path):
         cap = capsys.readouterr()
         assert rc == 2 and "--nproc-per-node 1" in cap.err and "#SBATCH" not in cap.out, cap
     assert not (tmp_path / "r").exists()
+
+
+def test_dry_run_largest_batch_per_gpu(capsys, tmp_path):
+    """--gpu-memory-gib: the largest batch per GPU from the same estimate, per activation-checkpointing setting;
+    checkpointing more lets more samples fit, and a GPU too small for one sample says 0."""
+    def largest(gib):
+        assert main(["train", "launch", "--nproc-per-node", "8", "--dry-run", "--gpu-memory-gib", str(gib), "--",
+                     "world", "--preset", "stage1", "--out", str(tmp_path)]) == 0
+        out = capsys.readouterr().out
+        rows = dict(re.findall(r"^\s{4}(no AC|selective AC, every 2 blocks|AC on every block)\s+(\d+)", out, re.M))
+        assert "(this config)" in out.split("AC on every block")[-1]          # stage1 checkpoints every block
+        return {k: int(v) for k, v in rows.items()}
+    h200 = largest(141)
+    assert len(h200) == 3 and h200["no AC"] <= h200["selective AC, every 2 blocks"] < h200["AC on every block"]
+    assert h200["AC on every block"] >= 2            # the preset's own 2 per GPU fits
+    assert largest(20)["AC on every block"] < h200["AC on every block"]
+    assert set(largest(2).values()) == {0}
