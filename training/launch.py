@@ -243,6 +243,9 @@ def main_launch(args: argparse.Namespace) -> int:
     train = _train_args(args)
     if args.nnodes < 1 or args.nproc_per_node < 1:
         raise SystemExit("resim train launch: --nnodes and --nproc-per-node must be >= 1")
+    if args.gpu_memory_gib is not None and (not args.dry_run or args.gpu_memory_gib <= 0):
+        raise SystemExit("resim train launch: --gpu-memory-gib is a positive GPU memory in GiB for --dry-run "
+                         f"(got {args.gpu_memory_gib:g}{'' if args.dry_run else ' without --dry-run'})")
     world = args.nnodes * args.nproc_per_node
     if train and train[0] == "reward" and world > 1 and not args.dry_run:
         # Video2Reward trains on one process (no sharding, no data split): N ranks would be N whole trainings

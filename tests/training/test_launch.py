@@ -90,3 +90,5 @@ def test_dry_run_largest_batch_per_gpu(capsys, tmp_path):
     assert h200["AC on every block"] >= 2            # the preset's own 2 per GPU fits
     assert largest(20)["AC on every block"] < h200["AC on every block"]
     assert set(largest(2).values()) == {0}
+    with pytest.raises(SystemExit, match="--gpu-memory-gib .* without --dry-run"):
+        main(["train", "launch", "--gpu-memory-gib", "80", "--", "world", "--preset", "tiny", "--out", str(tmp_path)])
