@@ -174,10 +174,14 @@ VAE_PRESETS["synth-adv"]["trainer"].update(steps=1568, ema_decay=0.998, checkpoi
 # regression); --set model.teacher=RUN (default: the shipped synthetic world model)
 DISTILL_PRESETS: dict[str, dict] = {
     # the shipped synthetic world model -> 4 steps without CFG, on clips of its own data pipeline; the first epoch
-    # rolls every clip out with the teacher (50 guided steps), later ones reuse those trajectories
+    # rolls every clip out with the teacher (50 guided steps), later ones reuse those trajectories. The teacher is
+    # guided at 15 -> 1, twice ReSim's 7.5: the regression passes on only part of the guidance's effect, and from
+    # the harder-guided teacher the student keeps the 7.5-guided teacher's command-following (docs/distill.md:
+    # within 2.4 points on two fresh fork worlds, from two training sets; distilled from 7.5, 11.6-13 points short)
     "synth": {
         "model_name": "distill", "preset": "synth",
-        "model": {"teacher": "synth-world", "student_steps": 4, "teacher_steps": 50, "guidance": "resim"},
+        "model": {"teacher": "synth-world", "student_steps": 4, "teacher_steps": 50, "guidance": "resim",
+                  "guidance_scale": 15.0},
         "data": {"batch_size_per_gpu": 8, "num_workers": 1},
         "optim": {"lr": 1e-4, "warmup_steps": 50, "schedule": "cosine", "min_lr_ratio": 0.1, "grad_clip_norm": 1.0},
         "trainer": {"steps": 2000, "checkpoint_every_steps": 250, "precision": "fp32", "ema_decay": 0.999,
