@@ -235,7 +235,10 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
     assert set(fl["mirror_check_deg"]) == set(fl["mean_yaw_deg"]) - {"recorded through the VAE"}
     assert all("recorded_through_vae_flow" in c for c in rep["clips"])
     assert "no counterfactual clips" in rep["branches"]["skipped"]      # the road world has no forks
-    assert "recorded_through_vae" in capsys.readouterr().out
+    cap = capsys.readouterr()
+    assert "recorded_through_vae" in cap.out
+    # a line per prompt's rollouts while it works (a 50-step run on a CPU is silent for minutes otherwise)
+    assert "prompt 1/4 (Turning left)" in cap.err and "prompt 4/4 (null prompt)" in cap.err
     with pytest.raises(SystemExit, match="--counterfactual-only: no two clips .* share a history"):
         main(["eval", "commands", *_common(root, ds, root / "commands-cf"), "--all-clips", "--counterfactual-only"])
 

@@ -629,7 +629,8 @@ def _cmd_commands(args) -> int:
           f"{clips[0].latents.shape[0]} latent frames, {runner.cfg.num_steps} DDIM steps ...", file=sys.stderr)
     t0 = time.perf_counter()
     rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons,
-                        trajectory_branches=args.trajectory_branches)
+                        trajectory_branches=args.trajectory_branches,
+                        log=lambda m: print(f"[resim eval commands] {m}", file=sys.stderr, flush=True))
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     recorded = [c.command for c in clips]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
