@@ -430,7 +430,8 @@ def _runner(args):
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
                            max_tokens=model.cfg.max_text_seq_length)
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,
-                           batch_size=args.batch_size, schedule=schedule)
+                           batch_size=args.batch_size, schedule=schedule,
+                           log=lambda m: print(f"[resim eval] {m}", file=sys.stderr, flush=True))
     meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
             "rollout": {k: v for k, v in rc.items() if k != "guidance"},
             "guidance": guidance, "guidance_scale_start": args.guidance_scale,
@@ -629,8 +630,7 @@ def _cmd_commands(args) -> int:
           f"{clips[0].latents.shape[0]} latent frames, {runner.cfg.num_steps} DDIM steps ...", file=sys.stderr)
     t0 = time.perf_counter()
     rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons,
-                        trajectory_branches=args.trajectory_branches,
-                        log=lambda m: print(f"[resim eval commands] {m}", file=sys.stderr, flush=True))
+                        trajectory_branches=args.trajectory_branches)
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     recorded = [c.command for c in clips]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),

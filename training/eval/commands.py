@@ -28,8 +28,7 @@ The rollouts are done by :class:`training.eval.worldeval.WorldRollouts`, so they
 """
 from __future__ import annotations
 
-import time
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -102,12 +101,10 @@ def fidelity_per_horizon(gen: np.ndarray, ref: np.ndarray, num_history_frames: i
 
 
 def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any, *, idm: Any = None,
-                  horizons_s: Sequence[float] = (0.5, 1.0, 2.0, 4.0), trajectory_branches: bool = False,
-                  log: Callable[[str], None] | None = None) -> dict:
+                  horizons_s: Sequence[float] = (0.5, 1.0, 2.0, 4.0), trajectory_branches: bool = False) -> dict:
     """The protocol above on ``clips`` (one geometry); returns the report (``_videos`` holds the rollouts).
     ``trajectory_branches``: also roll the forks out under their siblings' trajectories (report key
-    ``trajectory_branches``). ``log``: called with a progress line after each prompt's rollouts (a 50-step
-    evaluation of 60 clips takes a quarter of an hour on a CPU)."""
+    ``trajectory_branches``)."""
     if not clips:
         raise ValueError("no clips to evaluate")
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
@@ -115,17 +112,10 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     videos: dict[str, np.ndarray] = {}
     futures: dict[str, np.ndarray] = {}
     h = runner.history_latents(clips[0])
-    t0 = time.perf_counter()
-    prompts = (*COMMANDS, None)
-    for i, c in enumerate(prompts, 1):
+    for c in (*COMMANDS, None):
         lat = runner.generate_latents(clips, [None] * n, [c] * n)
         futures[c or NULL] = lat[:, h:].numpy()
         videos[c or NULL] = runner.decode(clips, lat)
-        if log is not None:
-            el = time.perf_counter() - t0
-            log(f"prompt {i}/{len(prompts)} ({c or 'null prompt'}): {n} rollouts decoded, {el:.0f} s so far"
-                + (f", ~{el / i * (len(prompts) - i):.0f} s of rollouts left" if i < len(prompts) else
-                   "; labeling and scoring"))
     gt = np.stack([c.frames for c in clips])
     if gt.shape[2:4] != videos[COMMANDS[0]].shape[2:4]:
         raise ValueError(f"recorded frames {gt.shape[2:4]} and decoded rollouts {videos[COMMANDS[0]].shape[2:4]} "

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -123,12 +124,17 @@ class WorldRollouts:
     """
 
     def __init__(self, model: Any, vae: Any, rollout_cfg: Any, text_for: Callable[[str | None], torch.Tensor],
-                 device: str = "cpu", seed: int = 0, batch_size: int = 4, schedule: Any = None):
-        """``schedule``: the run's noise schedule (``run_objective(checkpoint).schedule``)."""
+                 device: str = "cpu", seed: int = 0, batch_size: int = 4, schedule: Any = None,
+                 log: Callable[[str], None] | None = None, log_every_s: float = 60.0):
+        """``schedule``: the run's noise schedule (``run_objective(checkpoint).schedule``). ``log``: called with a
+        progress line (rollouts so far, seconds) after a batch, at most every ``log_every_s`` seconds: a 50-step
+        evaluation on a CPU otherwise says nothing for a quarter of an hour."""
         self.model, self.vae, self.cfg, self.text_for = model, vae, rollout_cfg, text_for
         self.schedule = schedule
         self.device, self.seed, self.batch_size = device, seed, batch_size
         self.rollouts = 0
+        self.log, self.log_every_s = log, log_every_s
+        self._t0 = self._last_log = time.perf_counter()
 
     def history_latents(self, clip: EvalClip) -> int:
         return 1 + (clip.num_history_frames - 1) // 4
@@ -184,6 +190,11 @@ class WorldRollouts:
         res = rollout(self.model, hist, cond, t_lat - h if num_future_latents is None else num_future_latents,
                       self.cfg, seed=seed, schedule=self.schedule)
         self.rollouts += len(clips)
+        now = time.perf_counter()
+        if self.log is not None and now - self._last_log >= self.log_every_s:
+            self._last_log = now
+            self.log(f"{self.rollouts} rollouts so far, {now - self._t0:.0f} s "
+                     f"({(now - self._t0) / self.rollouts:.1f} s each)")
         return res.latents.cpu()
 
     def decode_recorded(self, clips: Sequence[EvalClip]) -> np.ndarray:
