@@ -4,12 +4,13 @@ Elementwise kernels (norms, casts, copies, AdaLN modulation and gating) are boun
 read, not by FLOPs; on a GPU they took half a training step's kernel time (docs/benchmarks.md, "GPU"). Their
 cost can be counted on any device: ``Traffic`` is a ``TorchDispatchMode`` that sees every aten op of a forward
 and backward run under it and adds up the bytes of its outputs, split into matmul/attention and the rest;
-``saved_activation_bytes`` adds up what autograd keeps for the backward. Used by bench/block_elementwise.py
-and the block's tests.
+``SavedActivations`` adds up what autograd keeps for the backward. Used by bench/block_elementwise.py and the
+block's tests (tests/models/test_block_traffic.py).
 
+    saved = SavedActivations(model.parameters())
     with Traffic() as t, torch.autograd.graph.saved_tensors_hooks(*saved.hooks()):
         loss(model(x)).backward()
-    t.bytes["other"], t.ops["other"]
+    t.bytes["other"], t.ops["other"], saved.bytes
 """
 from __future__ import annotations
 
