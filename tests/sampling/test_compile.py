@@ -89,5 +89,8 @@ def test_compiled_rollout_equals_eager(world, needs_inductor):
 def test_compile_needs_blocks():
     with pytest.raises(TypeError, match="no transformer_blocks"):
         compile_blocks(torch.nn.Linear(2, 2))
+    m = torch.nn.Module()
+    m.transformer_blocks = torch.nn.ModuleList([torch.nn.Linear(2, 2)])
     with pytest.raises(ValueError, match="compile mode"):
-        compile_blocks(torch.nn.Linear(2, 2), mode="fast")
+        compile_blocks(m, mode="fast")
+    assert not is_compiled(m)                       # refused before anything was compiled

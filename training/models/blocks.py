@@ -52,7 +52,7 @@ class LayerNormZero(nn.Module):
         dtype = compute_dtype(video)
         # one linear over [frames | text] embeddings: its weight gradient (6D x D_t) is then computed once, not
         # once per call and summed
-        temb = temb_frames if temb_text is None else torch.cat([temb_frames, temb_text[:, None]], dim=1)
+        temb = temb_frames if text is None else torch.cat([temb_frames, temb_text[:, None]], dim=1)
         mod = self.linear(self.silu(temb))                                     # (B, T [+ 1], 6D)
         shift, scale, gate = mod[:, :t].chunk(6, dim=-1)[:3]                   # (B, T, D) each
         v = self.norm(video).view(b, t, tn // t, d) * (1 + scale[:, :, None]) + shift[:, :, None]

@@ -67,8 +67,6 @@ def compile_modules(modules: Any, *, mode: str = "default", dynamic: bool | None
 
 def compile_blocks(model: Any, *, mode: str = "default", dynamic: bool | None = None) -> int:
     """:func:`compile_modules` on ``model.transformer_blocks`` (a world model's)."""
-    if mode not in COMPILE_MODES:
-        raise ValueError(f"compile mode {mode!r}: expected one of {', '.join(COMPILE_MODES)}")
     blocks = getattr(model, "transformer_blocks", None)
     if blocks is None or len(blocks) == 0:
         raise TypeError(f"{type(model).__name__} has no transformer_blocks to compile")
