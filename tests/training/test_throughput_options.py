@@ -9,6 +9,7 @@ import torch
 from resim.config import ConfigError, from_dict
 from training.config import RunConfig, TrainerConfig
 from training.registry import build
+from training.traffic import SavedActivations
 from training.trainer import Trainer, adamw_kernel
 from training.vae import TrainableVAE
 
@@ -74,16 +75,11 @@ def _saved_bytes_and_grads(every):
     if every:
         model.set_activation_checkpointing(True, every_blocks=every)
     batch = _data(1, b=2)[0]
-    kept = []
-
-    def pack(t):
-        kept.append(t.numel() * t.element_size())
-        return t
-
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+    saved = SavedActivations(model.parameters())
+    with torch.autograd.graph.saved_tensors_hooks(*saved.hooks()):
         loss, _ = model.loss(_seeded(batch))
     loss.backward()
-    return sum(kept), loss.item(), {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    return saved.bytes, loss.item(), {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
 
 
 def _seeded(batch):
