@@ -137,6 +137,18 @@ WORLD_PRESETS["synth-fork-traj"] = copy.deepcopy(WORLD_PRESETS["synth-fork"])
 WORLD_PRESETS["synth-fork-traj"].update(preset="synth-fork-traj")
 WORLD_PRESETS["synth-fork-traj"]["model"]["objective"].update(text_drop_prob=0.5, trajectory_drop_prob=0.5)
 
+# an experiment after stage 6 (docs/models/synth-world.md, "Stage 8"): the plan nearly always given. In closed loop
+# (docs/closed_loop.md) the world model is driven by a plan alone (null prompt, trajectory guidance), and under the
+# true loop's own plans its video moves the car 5-8 m from where the true world does: "synth-fork-traj" gave the
+# trajectory on a quarter of the clips. Here it is kept on 90 % of the clips that carry one (10 % dropped: the
+# unconditional branch of the guidance), hazardous explorers included, so the plan decides on most steps.
+# The command is still dropped half the time; OpenDV-layout clips (no trajectory) keep training it alone.
+# --set model.init_weights=configs/models/synth-world/model.safetensors
+WORLD_PRESETS["synth-fork-plan"] = copy.deepcopy(WORLD_PRESETS["synth-fork-traj"])
+WORLD_PRESETS["synth-fork-plan"].update(preset="synth-fork-plan")
+WORLD_PRESETS["synth-fork-plan"]["model"]["objective"].update(trajectory_drop_prob=0.1)
+WORLD_PRESETS["synth-fork-plan"]["trainer"]["steps"] = 1500
+
 VAE_PRESETS: dict[str, dict] = {
     # the synthetic world's VAE (configs/models/synth-vae, docs/models/synth-vae.md): 64x96 clips of
     # configs/pipeline/synthetic.yaml, 17-frame crops; wider at the low-resolution levels, where width is cheap
