@@ -12,11 +12,11 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, and stages
-# 5-6, the trajectory taught on them too, always run.
-# Without STAGE_1B: about 6 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
-# and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; the IDM and Trajectory Difference
-# at the end: ~20 min).
+# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, stages
+# 5-6, the trajectory taught on them too, and stage 8b, the plan given on nearly every clip, always run.
+# Without STAGE_1B: about 6.5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
+# and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min;
+# the IDM and Trajectory Difference at the end: ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -110,6 +110,15 @@ fork_world forks72 72 216
 fork_stage world5 synth-fork-traj forks72 "stage 5 (forks; the trajectory and the command each half the time)"
 # 2d. Stage 6: the same objective, 2,000 more steps on the larger seed-71 fork world (4c's)
 fork_stage world6 synth-fork-traj forks71 "stage 6 (stage 5's objective on the seed-71 forks)"
+# 2e. Stage 8b: the plan given on 90 % of the clips, on a CARLA-layout world (seed 77, 216 episodes) where half the
+# episodes are forks and half ordinary expert / hazardous-explorer drives, so every clip carries a trajectory
+if [ ! -f "$W/forks77/stats.json" ]; then
+  step "pipeline: CARLA-layout forks and explorer drives (seed 77)"
+  $R pipeline run configs/pipeline/synthetic.yaml --out "$W/forks77" --set sources.synthetic.root="$W/world_forks77" \
+     --set sources.synthetic.episodes=216 --set sources.synthetic.seed=77 --set sources.synthetic.fork_fraction=0.5 \
+     --set sources.synthetic.preset=demo --set 'sources.synthetic.layouts=[carla]' --set encode.vae="$VAE"
+fi
+fork_stage world8b synth-fork-plan forks77 "stage 8b (the plan on 90 % of the clips)"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then

@@ -1,6 +1,6 @@
 """The synthetic world's named world-model presets resolve to valid configs, and the shipped model's recipe is
-the one its card names: `resim train world --preset synth-fork-traj` gives the objective, learning rate and step
-count that configs/models/synth-world (stage 5, docs/models/synth-world.md) was trained with."""
+the one its card names: `resim train world --preset synth-fork-plan` gives the objective, learning rate and step
+count that configs/models/synth-world (stage 8b, docs/models/synth-world.md) was trained with."""
 import pytest
 import yaml
 
@@ -18,10 +18,10 @@ def test_synth_world_presets_resolve_to_valid_objectives(preset):
     assert objective.noise_mode == "resim_cond_aug"
 
 
-def test_synth_fork_traj_reproduces_the_shipped_world_models_recipe():
+def test_synth_fork_plan_reproduces_the_shipped_world_models_recipe():
     shipped = yaml.safe_load((shipped_dir(SYNTH_WORLD) / "config.yaml").read_text())
-    assert shipped["preset"] == "synth-fork-traj"
-    cfg = resolve_config("world", "synth-fork-traj")
+    assert shipped["preset"] == "synth-fork-plan"
+    cfg = resolve_config("world", "synth-fork-plan")
     assert cfg.model["objective"] == shipped["model"]["objective"]
     assert (cfg.optim.lr, cfg.trainer.steps, cfg.data.batch_size_per_gpu) == (
         shipped["optim"]["lr"], shipped["trainer"]["steps"], shipped["data"]["batch_size_per_gpu"])
@@ -30,6 +30,10 @@ def test_synth_fork_traj_reproduces_the_shipped_world_models_recipe():
     assert fork.trajectory_drop_prob == 1.0 and fork.action_drop_prob == 1.0 and 0 < fork.text_drop_prob < 0.5
     # stage 5: the trajectory and the command each half the time, independently, so a quarter of the CARLA-layout
     # fork clips have only the trajectory to tell the branches apart; never per-frame actions (ReSim's encoder only)
-    traj = from_dict(ObjectiveConfig, cfg.model["objective"])
+    traj = from_dict(ObjectiveConfig, resolve_config("world", "synth-fork-traj").model["objective"])
     assert traj.trajectory_drop_prob == traj.text_drop_prob == 0.5 and traj.action_drop_prob == 1.0
     assert traj.trajectory_keep_sources == () and traj.cond_aug_max_t == fork.cond_aug_max_t
+    # stage 8b (shipped): the plan kept on 90 % of the clips that carry one, the command still half the time
+    plan = from_dict(ObjectiveConfig, cfg.model["objective"])
+    assert plan.trajectory_drop_prob == 0.1 and plan.text_drop_prob == 0.5 and plan.action_drop_prob == 1.0
+    assert plan.trajectory_keep_sources == () and plan.cond_aug_max_t == fork.cond_aug_max_t
