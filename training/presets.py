@@ -140,8 +140,9 @@ WORLD_PRESETS["synth-fork-traj"]["model"]["objective"].update(text_drop_prob=0.5
 # stage 8b of the shipped synthetic world model (docs/models/synth-world.md, "Stages 8 and 8b"): the plan nearly
 # always given. In closed loop (docs/closed_loop.md) the world model is driven by a plan alone (null prompt,
 # trajectory guidance), and under the true loop's own plans stage 6's video moved the car 5-8 m from where the true
-# world does: "synth-fork-traj" gave the trajectory on a quarter of the clips. Here it is kept on 90 % of the clips that carry one (10 % dropped: the
-# unconditional branch of the guidance), hazardous explorers included, so the plan decides on most steps.
+# world does: "synth-fork-traj" gave the trajectory on a quarter of the clips. Here it is kept on 90 % of the clips
+# that carry one (10 % dropped: the unconditional branch of the guidance), hazardous explorers included, so the
+# plan decides on most steps.
 # The command is still dropped half the time. What mattered was the share of clips with a plan: on a world that is
 # half OpenDV layout (no trajectory) the plan reached 40 % of the clips and the closed loop did not change (stage 8);
 # on a CARLA-layout world (every clip has one; 8b) it reached 90 % and the model follows the plan.
