@@ -185,6 +185,17 @@ VAE_PRESETS["synth-adv"]["data"]["batch_size_per_gpu"] = 16
 VAE_PRESETS["synth-adv"]["optim"].update(lr=2e-4, warmup_steps=50, schedule="constant")
 VAE_PRESETS["synth-adv"]["trainer"].update(steps=1568, ema_decay=0.998, checkpoint_every_steps=100)
 
+# stage 1c (docs/models/synth-vae.md, "Stage 1c"): stage 1b's decoder alone, fine-tuned with MSE (the objective
+# the PSNR target measures) at a decaying learning rate. The encoder is frozen, so the latents, and the world
+# model trained on them, stay exactly as they were: the decoder can be replaced without retraining synth-world.
+# --set model.init_weights=STAGE_1B_FOLDER/diffusion_pytorch_model.safetensors
+VAE_PRESETS["synth-dec"] = copy.deepcopy(VAE_PRESETS["synth"])
+VAE_PRESETS["synth-dec"].update(preset="synth-dec")
+VAE_PRESETS["synth-dec"]["model"].update(freeze_encoder=True)
+VAE_PRESETS["synth-dec"]["data"]["batch_size_per_gpu"] = 4
+VAE_PRESETS["synth-dec"]["optim"].update(lr=1e-4, warmup_steps=50, schedule="cosine", min_lr_ratio=0.1)
+VAE_PRESETS["synth-dec"]["trainer"].update(steps=3000, ema_decay=0.998, checkpoint_every_steps=250)
+
 # guidance + step distillation of a world model into a few-step student (training/distill.py: CausVid's ODE
 # regression); --set model.teacher=RUN (default: the shipped synthetic world model)
 DISTILL_PRESETS: dict[str, dict] = {

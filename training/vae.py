@@ -69,6 +69,10 @@ class VaeTrainConfig:
     # PSNR fell 28.9 -> 23.6 dB in 230 steps (docs/models/synth-vae.md)
     discriminator_loss_scale: float = 0.02
     init_weights: Optional[Path] = None   # a run's final/model.safetensors to start from
+    # train the decoder only (needs init_weights from a VAE folder): the encoder and so the latents stay exactly
+    # those a world model was trained on, so a better decoder can replace the shipped one without re-encoding
+    # the world model's data or retraining it; the export keeps the folder's scaling_factor for the same reason
+    freeze_encoder: bool = False
 
     def __post_init__(self):
         # 4 levels: 8x spatial compression, as CogVideoX. 3 levels (4x) for the synthetic world's 64x96 clips:
@@ -92,6 +96,8 @@ class VaeTrainConfig:
             raise ConfigError("model.l1_weight, model.gradient_weight and model.adversarial_weight must be >= 0")
         if not self.discriminator_loss_scale > 0:
             raise ConfigError(f"model.discriminator_loss_scale must be > 0, got {self.discriminator_loss_scale}")
+        if self.freeze_encoder and self.init_weights is None:
+            raise ConfigError("model.freeze_encoder needs model.init_weights: a trained VAE whose encoder to keep")
         if self.discriminator_width < 8 or self.discriminator_width % 8:
             raise ConfigError(f"model.discriminator_width must be a multiple of 8, got {self.discriminator_width}")
 
@@ -149,7 +155,8 @@ class TrainableVAE(AutoencoderKLCogVideoX):
             left = int(torch.randint(0, w - cw + 1, ()).item())
             clip = clip[..., top:top + ch, left:left + cw]
         x = frames_to_input(clip)
-        post = self.encode(x).latent_dist
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.train_cfg.freeze_encoder):
+            post = self.encode(x).latent_dist
         z = post.mean + post.std * torch.randn_like(post.mean)
         rec = self.decode(z).sample
         mse = F.mse_loss(rec, x)
@@ -209,6 +216,8 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
             raise ConfigError(f"model.init_weights={cfg.init_weights} does not fit this VAE: "
                               f"{len(missing)} missing weights (e.g. {missing[:2]}), "
                               f"{len(unexpected)} unexpected (e.g. {unexpected[:2]})")
+    if cfg.freeze_encoder:
+        model.encoder.requires_grad_(False)
     return model
 
 
@@ -231,6 +240,15 @@ def latent_std(vae: AutoencoderKLCogVideoX, batches: Iterable, max_batches: int 
     return float(torch.cat(vals).std())
 
 
+def init_scaling_factor(init_weights: str | Path) -> float:
+    """The ``scaling_factor`` of the VAE folder that ``init_weights`` lies in (its ``config.json``)."""
+    config = Path(init_weights).parent / "config.json"
+    if not config.is_file():
+        raise ConfigError(f"model.freeze_encoder keeps the latents of model.init_weights={init_weights}, but there "
+                          f"is no {config} to read their scaling_factor from: start from a VAE folder's weights")
+    return float(json.loads(config.read_text())["scaling_factor"])
+
+
 def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = None) -> Path:
     """``RUN/final/model.safetensors`` → a diffusers folder (default ``RUN/final/vae``) with the measured
     ``scaling_factor``; loads with ``AutoencoderKLCogVideoX.from_pretrained`` / ``media.encoders.VideoVAE``."""
@@ -243,8 +261,14 @@ def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = 
                                    else "model.safetensors")
     vae.load_state_dict(vae_weights(load_file(str(weights))))
     vae.eval()
-    std = latent_std(vae, batches)
-    vae.register_to_config(scaling_factor=round(1.0 / std, 6))
+    if cfg.freeze_encoder:
+        # the latents are the init's: keep the scaling factor the world model's latents were scaled by
+        scale = init_scaling_factor(cfg.init_weights)
+        std = 1.0 / scale
+    else:
+        std = latent_std(vae, batches)
+        scale = round(1.0 / std, 6)
+    vae.register_to_config(scaling_factor=scale)
     vae.save_pretrained(out, safe_serialization=True)
     (out / "export.json").write_text(json.dumps({"weights": str(weights.name), "latent_std": std,
                                                  "scaling_factor": 1.0 / std}, indent=2) + "\n")

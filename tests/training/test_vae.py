@@ -189,3 +189,26 @@ def test_adversarial_run_exports_a_plain_diffusers_vae_and_restarts_from_it(tmp_
     VideoVAE(run / "final" / "vae", device="cpu")
     again = tmp_path / "again"
     assert main([*common, "--out", str(again), "--steps", "1", "--set", f"model.init_weights={exported}"]) == 0
+
+
+def test_decoder_only_fine_tune_keeps_the_encoder_and_its_scaling_factor(tmp_path):
+    """``model.freeze_encoder``: only the decoder's weights move, and the exported folder keeps the init folder's
+    scaling factor, so the latents a world model was trained on stay exactly what they were."""
+    ds = write_world_dataset(tmp_path / "ds", num_samples=2, per_shard=2)
+    common = ["train", "vae", "--preset", "tiny", "--shards", str(ds), *ARGS]
+    assert main([*common, "--out", str(tmp_path / "base"), "--steps", "2"]) == 0
+    init = tmp_path / "base" / "final" / "vae"
+    dec = tmp_path / "dec"
+    assert main([*common, "--out", str(dec), "--steps", "3", "--set", "optim.lr=0.01",
+                 "--set", f"model.init_weights={init / 'diffusion_pytorch_model.safetensors'}",
+                 "--set", "model.freeze_encoder=true"]) == 0
+    before = load_file(str(init / "diffusion_pytorch_model.safetensors"))
+    after = load_file(str(dec / "final" / "vae" / "diffusion_pytorch_model.safetensors"))
+    assert before.keys() == after.keys()
+    moved = {k.split(".")[0] for k in before if not torch.equal(before[k], after[k])}
+    assert moved == {"decoder"}
+    scale = [json.loads((d / "config.json").read_text())["scaling_factor"] for d in (init, dec / "final" / "vae")]
+    assert scale[0] == scale[1]
+    with pytest.raises(ConfigError, match="freeze_encoder needs model.init_weights"):
+        build_vae({"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2,
+                   "freeze_encoder": True})
