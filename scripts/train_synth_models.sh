@@ -12,11 +12,12 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stage 4 (4a-4c), the command taught on counterfactual forks, stages
-# 5-6, the trajectory taught on them too, and stage 8b, the plan given on nearly every clip, always run.
-# Without STAGE_1B: about 6.5 hours on 2 cores (stage 4c and its 432-episode fork world: about 1 hour of it; stage 5
-# and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min;
-# the IDM and Trajectory Difference at the end: ~20 min).
+# hours on a CPU (~8 s per step on 2 cores). Stage 1c, the VAE's decoder alone, stage 4 (4a-4c), the command taught
+# on counterfactual forks, stages 5-6, the trajectory taught on them too, and stage 8b, the plan given on nearly
+# every clip, always run.
+# Without STAGE_1B: about 7.5 hours on 2 cores (stages 1c and 1c': ~90 min; stage 4c and its 432-episode fork world: about
+# 1 hour; stage 5 and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; stage 8b and its
+# world: ~30 min; the IDM and Trajectory Difference at the end: ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -47,6 +48,21 @@ if [ "${STAGE_1B:-0}" = 1 ]; then
   fi
   VAE="$W/vae2/final/vae"
 fi
+# 1c. The decoder alone, fine-tuned with MSE (preset synth-dec), then with the gradient L1 too (1c'). The encoder
+# is frozen, so every latent below is the same as with $VAE_ENC; the decoder turns the world model's rollouts into
+# video
+VAE_ENC="$VAE"
+if [ ! -f "$W/vae3/final/vae/config.json" ]; then
+  step "train vae, stage 1c (the decoder alone; the encoder and its latents unchanged)"
+  $R train vae --preset synth-dec --shards "$W/vae_data" --out "$W/vae3" --set trainer.progress_bar=false \
+     --set model.init_weights="$VAE_ENC/diffusion_pytorch_model.safetensors" $( [ -d "$W/vae3/checkpoints" ] && echo --resume )
+fi
+if [ ! -f "$W/vae4/final/vae/config.json" ]; then
+  step "train vae, stage 1c' (the decoder alone, + the spatial-gradient L1)"
+  $R train vae --preset synth-dec-detail --shards "$W/vae_data" --out "$W/vae4" --set trainer.progress_bar=false \
+     --set model.init_weights="$W/vae3/final/vae/diffusion_pytorch_model.safetensors" $( [ -d "$W/vae4/checkpoints" ] && echo --resume )
+fi
+VAE="$W/vae4/final/vae"
 
 # 2. World model: clips of 72 episodes (seed 7) encoded by that VAE -> train world --preset synth
 if [ ! -f "$W/wm_data/stats.json" ]; then

@@ -195,6 +195,14 @@ VAE_PRESETS["synth-dec"]["model"].update(freeze_encoder=True)
 VAE_PRESETS["synth-dec"]["data"]["batch_size_per_gpu"] = 4
 VAE_PRESETS["synth-dec"]["optim"].update(lr=1e-4, warmup_steps=50, schedule="cosine", min_lr_ratio=0.1)
 VAE_PRESETS["synth-dec"]["trainer"].update(steps=3000, ema_decay=0.998, checkpoint_every_steps=250)
+# stage 1c' (shipped): "synth-dec"'s decoder + 500 steps with the spatial-gradient L1 as well. MSE alone returned the
+# mean where the latent leaves the detail open and cost the flow labeler 3 of 48 fresh clips; the gradient term
+# gives the edges back (docs/models/synth-vae.md, "Stage 1c"). --set model.init_weights=SYNTH_DEC_FOLDER/...
+VAE_PRESETS["synth-dec-detail"] = copy.deepcopy(VAE_PRESETS["synth-dec"])
+VAE_PRESETS["synth-dec-detail"].update(preset="synth-dec-detail")
+VAE_PRESETS["synth-dec-detail"]["model"].update(gradient_weight=1.0)
+VAE_PRESETS["synth-dec-detail"]["optim"].update(lr=5e-5, warmup_steps=20, schedule="constant")
+VAE_PRESETS["synth-dec-detail"]["trainer"].update(steps=500)
 
 # guidance + step distillation of a world model into a few-step student (training/distill.py: CausVid's ODE
 # regression); --set model.teacher=RUN (default: the shipped synthetic world model)
