@@ -12,12 +12,12 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stage 1c, the VAE's decoder alone, stage 4 (4a-4c), the command taught
-# on counterfactual forks, stages 5-6, the trajectory taught on them too, and stage 8b, the plan given on nearly
-# every clip, always run.
-# Without STAGE_1B: about 7.5 hours on 2 cores (stages 1c and 1c': ~90 min; stage 4c and its 432-episode fork world: about
-# 1 hour; stage 5 and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; stage 8b and its
-# world: ~30 min; the IDM and Trajectory Difference at the end: ~20 min).
+# hours on a CPU (~8 s per step on 2 cores). Stages 1c and 1c', the VAE's decoder alone, stage 4 (4a-4c), the
+# command taught on counterfactual forks, stages 5-6, the trajectory taught on them too, and stage 8b, the plan
+# given on nearly every clip, always run.
+# Without STAGE_1B: about 7.5 hours on 2 cores (stages 1c and 1c': ~90 min; stage 4c and its 432-episode fork
+# world: about 1 hour; stage 5 and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; stage
+# 8b and its world: ~30 min; the IDM and Trajectory Difference at the end: ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}

@@ -217,6 +217,7 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
                               f"{len(missing)} missing weights (e.g. {missing[:2]}), "
                               f"{len(unexpected)} unexpected (e.g. {unexpected[:2]})")
     if cfg.freeze_encoder:
+        init_scaling_factor(cfg.init_weights)    # the export needs it: fail now, not after training
         model.encoder.requires_grad_(False)
     return model
 

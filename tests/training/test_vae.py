@@ -212,3 +212,7 @@ def test_decoder_only_fine_tune_keeps_the_encoder_and_its_scaling_factor(tmp_pat
     with pytest.raises(ConfigError, match="freeze_encoder needs model.init_weights"):
         build_vae({"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2,
                    "freeze_encoder": True})
+    run_weights = tmp_path / "base" / "final" / "model.safetensors"    # no VAE folder: no scaling factor to keep
+    with pytest.raises(ConfigError, match="no .*config.json to read their scaling_factor"):
+        build_vae({"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "freeze_encoder": True,
+                   "init_weights": str(run_weights)})
