@@ -191,7 +191,7 @@ VAE_PRESETS["synth-adv"]["trainer"].update(steps=1568, ema_decay=0.998, checkpoi
 # --set model.init_weights=STAGE_1B_FOLDER/diffusion_pytorch_model.safetensors
 VAE_PRESETS["synth-dec"] = copy.deepcopy(VAE_PRESETS["synth"])
 VAE_PRESETS["synth-dec"].update(preset="synth-dec")
-VAE_PRESETS["synth-dec"]["model"].update(freeze_encoder=True)
+VAE_PRESETS["synth-dec"]["model"].update(trainable="decoder")
 VAE_PRESETS["synth-dec"]["data"]["batch_size_per_gpu"] = 4
 VAE_PRESETS["synth-dec"]["optim"].update(lr=1e-4, warmup_steps=50, schedule="cosine", min_lr_ratio=0.1)
 VAE_PRESETS["synth-dec"]["trainer"].update(steps=3000, ema_decay=0.998, checkpoint_every_steps=250)

@@ -18,14 +18,15 @@ Each step crops ``clip_frames`` (1 + 8k) consecutive frames of every clip: 17 fr
 
 After training, :func:`export_vae` writes ``final/vae/`` (``save_pretrained``: config.json +
 diffusion_pytorch_model.safetensors) with ``scaling_factor`` = 1 / std of the training latents, the
-convention of Stable Diffusion and CogVideoX: the world model then sees latents of unit variance.
+convention of Stable Diffusion and CogVideoX: the world model then sees latents of unit variance. A decoder-only
+run (``model.trainable: decoder``) keeps its init folder's scaling factor instead: its latents are the init's.
 """
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Optional
+from typing import Any, Iterable, Literal, Optional
 
 import torch
 import torch.nn.functional as F
@@ -69,10 +70,11 @@ class VaeTrainConfig:
     # PSNR fell 28.9 -> 23.6 dB in 230 steps (docs/models/synth-vae.md)
     discriminator_loss_scale: float = 0.02
     init_weights: Optional[Path] = None   # a run's final/model.safetensors to start from
-    # train the decoder only (needs init_weights from a VAE folder): the encoder and so the latents stay exactly
-    # those a world model was trained on, so a better decoder can replace the shipped one without re-encoding
-    # the world model's data or retraining it; the export keeps the folder's scaling_factor for the same reason
-    freeze_encoder: bool = False
+    # which weights train (as the world model's model.trainable). "decoder" needs init_weights from a VAE folder:
+    # the encoder and so the latents stay exactly those a world model was trained on, so a better decoder can
+    # replace the shipped one without re-encoding the world model's data or retraining it; the export keeps the
+    # folder's scaling_factor for the same reason
+    trainable: Literal["all", "decoder"] = "all"
 
     def __post_init__(self):
         # 4 levels: 8x spatial compression, as CogVideoX. 3 levels (4x) for the synthetic world's 64x96 clips:
@@ -96,8 +98,8 @@ class VaeTrainConfig:
             raise ConfigError("model.l1_weight, model.gradient_weight and model.adversarial_weight must be >= 0")
         if not self.discriminator_loss_scale > 0:
             raise ConfigError(f"model.discriminator_loss_scale must be > 0, got {self.discriminator_loss_scale}")
-        if self.freeze_encoder and self.init_weights is None:
-            raise ConfigError("model.freeze_encoder needs model.init_weights: a trained VAE whose encoder to keep")
+        if self.trainable == "decoder" and self.init_weights is None:
+            raise ConfigError("model.trainable=decoder needs model.init_weights: a trained VAE whose encoder to keep")
         if self.discriminator_width < 8 or self.discriminator_width % 8:
             raise ConfigError(f"model.discriminator_width must be a multiple of 8, got {self.discriminator_width}")
 
@@ -155,7 +157,7 @@ class TrainableVAE(AutoencoderKLCogVideoX):
             left = int(torch.randint(0, w - cw + 1, ()).item())
             clip = clip[..., top:top + ch, left:left + cw]
         x = frames_to_input(clip)
-        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.train_cfg.freeze_encoder):
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.train_cfg.trainable == "all"):
             post = self.encode(x).latent_dist
         z = post.mean + post.std * torch.randn_like(post.mean)
         rec = self.decode(z).sample
@@ -216,7 +218,7 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
             raise ConfigError(f"model.init_weights={cfg.init_weights} does not fit this VAE: "
                               f"{len(missing)} missing weights (e.g. {missing[:2]}), "
                               f"{len(unexpected)} unexpected (e.g. {unexpected[:2]})")
-    if cfg.freeze_encoder:
+    if cfg.trainable == "decoder":
         init_scaling_factor(cfg.init_weights)    # the export needs it: fail now, not after training
         model.encoder.requires_grad_(False)
     return model
@@ -245,8 +247,8 @@ def init_scaling_factor(init_weights: str | Path) -> float:
     """The ``scaling_factor`` of the VAE folder that ``init_weights`` lies in (its ``config.json``)."""
     config = Path(init_weights).parent / "config.json"
     if not config.is_file():
-        raise ConfigError(f"model.freeze_encoder keeps the latents of model.init_weights={init_weights}, but there "
-                          f"is no {config} to read their scaling_factor from: start from a VAE folder's weights")
+        raise ConfigError(f"model.trainable=decoder keeps the latents of model.init_weights={init_weights}, but "
+                          f"there is no {config} to read their scaling_factor from: start from a VAE folder's weights")
     return float(json.loads(config.read_text())["scaling_factor"])
 
 
@@ -262,15 +264,15 @@ def export_vae(run_dir: str | Path, batches: Iterable, out: str | Path | None = 
                                    else "model.safetensors")
     vae.load_state_dict(vae_weights(load_file(str(weights))))
     vae.eval()
-    if cfg.freeze_encoder:
+    if cfg.trainable == "decoder":
         # the latents are the init's: keep the scaling factor the world model's latents were scaled by
-        scale = init_scaling_factor(cfg.init_weights)
-        std = 1.0 / scale
+        std, scale = None, init_scaling_factor(cfg.init_weights)
     else:
         std = latent_std(vae, batches)
         scale = round(1.0 / std, 6)
     vae.register_to_config(scaling_factor=scale)
     vae.save_pretrained(out, safe_serialization=True)
-    (out / "export.json").write_text(json.dumps({"weights": str(weights.name), "latent_std": std,
-                                                 "scaling_factor": 1.0 / std}, indent=2) + "\n")
+    meta = {"weights": str(weights.name), "scaling_factor": scale,
+            **({"latent_std": std} if std is not None else {"scaling_factor_of": str(cfg.init_weights)})}
+    (out / "export.json").write_text(json.dumps(meta, indent=2) + "\n")
     return out

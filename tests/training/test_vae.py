@@ -192,7 +192,7 @@ def test_adversarial_run_exports_a_plain_diffusers_vae_and_restarts_from_it(tmp_
 
 
 def test_decoder_only_fine_tune_keeps_the_encoder_and_its_scaling_factor(tmp_path):
-    """``model.freeze_encoder``: only the decoder's weights move, and the exported folder keeps the init folder's
+    """``model.trainable=decoder``: only the decoder's weights move, and the exported folder keeps the init folder's
     scaling factor, so the latents a world model was trained on stay exactly what they were."""
     ds = write_world_dataset(tmp_path / "ds", num_samples=2, per_shard=2)
     common = ["train", "vae", "--preset", "tiny", "--shards", str(ds), *ARGS]
@@ -201,7 +201,7 @@ def test_decoder_only_fine_tune_keeps_the_encoder_and_its_scaling_factor(tmp_pat
     dec = tmp_path / "dec"
     assert main([*common, "--out", str(dec), "--steps", "3", "--set", "optim.lr=0.01",
                  "--set", f"model.init_weights={init / 'diffusion_pytorch_model.safetensors'}",
-                 "--set", "model.freeze_encoder=true"]) == 0
+                 "--set", "model.trainable=decoder"]) == 0
     before = load_file(str(init / "diffusion_pytorch_model.safetensors"))
     after = load_file(str(dec / "final" / "vae" / "diffusion_pytorch_model.safetensors"))
     assert before.keys() == after.keys()
@@ -209,10 +209,10 @@ def test_decoder_only_fine_tune_keeps_the_encoder_and_its_scaling_factor(tmp_pat
     assert moved == {"decoder"}
     scale = [json.loads((d / "config.json").read_text())["scaling_factor"] for d in (init, dec / "final" / "vae")]
     assert scale[0] == scale[1]
-    with pytest.raises(ConfigError, match="freeze_encoder needs model.init_weights"):
+    with pytest.raises(ConfigError, match="trainable=decoder needs model.init_weights"):
         build_vae({"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2,
-                   "freeze_encoder": True})
+                   "trainable": "decoder"})
     run_weights = tmp_path / "base" / "final" / "model.safetensors"    # no VAE folder: no scaling factor to keep
     with pytest.raises(ConfigError, match="no .*config.json to read their scaling_factor"):
-        build_vae({"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "freeze_encoder": True,
+        build_vae({"block_out_channels": [8, 8, 8, 8], "norm_num_groups": 2, "trainable": "decoder",
                    "init_weights": str(run_weights)})
