@@ -86,7 +86,7 @@ def test_world_model_rollouts_look_like_the_heldout_future():
 
 @pytest.mark.xfail(strict=True, reason="the shipped synth-world turns the commanded way too weakly for the flow "
                                        "labeler (docs/models/synth-world.md, 'Stages 8 and 8b': seed-1004 left / "
-                                       "forward / right headings +7.0 / +4.3 / +3.2 deg through the stage-1c' "
+                                       "forward / right headings +2.7 / +1.5 / -2.4 deg through the stage-1d "
                                        "decoder, +9.0 / +5.6 / +2.4 through 1b's); strict: an XPASS means a "
                                        "new model turns clearly, so this mark and the card must be updated")
 def test_world_model_turns_where_it_is_told():
