@@ -339,6 +339,55 @@ def test_control_floor_through_the_vae_reads_the_decoded_recorded_latents():
     assert rep["pairs"][0]["end_m"]["expert_read"] == [3.0, 0.0]
 
 
+def test_second_bound_tells_a_model_that_follows_its_trajectory_from_one_that_ignores_it():
+    """The second Trajectory Difference bound compares the expert rollouts with the trajectory they were given and
+    with one they were not (another episode's): a model that draws the given path exactly reads 0, one that draws
+    the same video whatever it is given reads ~1."""
+    import torch
+
+    from training.eval.idm import idm_preset
+    from training.eval.worldeval import WorldRollouts, control_eval
+
+    class MeanIDM(torch.nn.Module):
+        cfg = idm_preset("tiny", future_frames=12, num_frames=7)
+
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+
+        def window(self, v, nh):
+            return v[:, nh - 1:].float()
+
+        def forward(self, v):                                          # x of every waypoint: mean pixel / 10
+            out = torch.zeros(len(v), 8, 3)
+            out[:, :, 0] = v.mean(dim=(1, 2, 3, 4))[:, None] / 10
+            return out
+
+    class Follows(WorldRollouts):
+        def generate(self, clips, trajs, commands):
+            return np.stack([np.full((21, 32, 48, 3), int(10 * t[0, 0]), np.uint8) for t in trajs])
+
+        def decode_recorded(self, clips):
+            return self.generate(clips, [c.trajectory for c in clips], None)
+
+    class Ignores(Follows):
+        def generate(self, clips, trajs, commands):
+            return np.full((len(clips), 21, 32, 48, 3), 55, np.uint8)   # x read: 5.5 m whatever is given
+
+    clips = [_eval_clip(0, "a"), _eval_clip(1, "b")]
+    for c, x in zip(clips, (3.0, 8.0)):
+        c.trajectory[:, 0] = x
+        c.frames[:] = int(10 * x)
+    good = control_eval(Follows(None, None, None, None), MeanIDM(), clips)
+    assert good["expert"]["trajectory_difference_m"] == pytest.approx(0.0)
+    assert good["expert_vs_not_given"]["trajectory_difference_m"] == pytest.approx(5.0)
+    assert good["bounds"]["expert_over_not_given"] == pytest.approx(0.0) and good["bounds"]["expert_over_not_given_met"]
+    bad = control_eval(Ignores(None, None, None, None), MeanIDM(), clips)
+    assert bad["expert"]["trajectory_difference_m"] == pytest.approx(2.5)
+    assert bad["bounds"]["expert_over_not_given"] == pytest.approx(1.0)
+    assert not bad["bounds"]["expert_over_not_given_met"] and not bad["bounds"]["expert_over_idm_floor_met"]
+
+
 def test_end_point_slopes_tell_followed_from_ignored():
     from training.eval.worldeval import end_point_slopes
 

@@ -536,6 +536,17 @@ def _slope(v: float | None) -> str:
 # control.json's Trajectory Difference rows: the two rollouts, then the IDM's floors on the recorded video and on
 # the recorded latents decoded through the VAE (what a perfect world model would score through this VAE)
 CONTROL_ROWS = ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae")
+# the controls of the second bound: the expert rollouts and the recorded video, each read against another
+# episode's trajectory, one they were not given (training/eval/worldeval.py, trajectory_bounds)
+NOT_GIVEN_ROWS = ("expert_vs_not_given", "recorded_video_vs_not_given")
+
+
+def _bounds_line(b: dict) -> str:
+    ok = lambda m: "met" if m else "not met"  # noqa: E731
+    return (f"bounds: expert / IDM floor {b['expert_over_idm_floor']:.2f} (<= 1.5: {ok(b['expert_over_idm_floor_met'])}); "
+            f"expert / same rollouts vs a trajectory not given {b['expert_over_not_given']:.2f} "
+            f"(< 0.5: {ok(b['expert_over_not_given_met'])}; the recorded video reads "
+            f"{b['recorded_video_over_not_given']:.2f})")
 
 
 def _cmd_control(args) -> int:
@@ -572,7 +583,10 @@ def _cmd_control(args) -> int:
         f"{k}: {v['accuracy']:.3f} (n={v['n']})" for k, v in ca.items() if v["accuracy"] is not None)
     text = "\n".join([format_protocol(rep["protocol"]), "Trajectory Difference (lower = more controllable):",
                       _traj_table({k: rep[k] for k in CONTROL_ROWS}),
+                      "against a trajectory they were not given (another episode's):",
+                      _traj_table({k: rep[k] for k in NOT_GIVEN_ROWS}),
                       f"  non-expert trajectory vs recorded: {rep['non_expert_vs_recorded_trajectory_m']:.3f} m",
+                      _bounds_line(rep["bounds"]),
                       "how far the read end point moves with the given one (slope; 1: followed, 0: ignored):",
                       *(f"  {k:32s} forward {_slope(v['forward_slope'])}  lateral {_slope(v['lateral_slope'])}  "
                         f"(n={v['n']})" for k, v in rep["followed"].items()),

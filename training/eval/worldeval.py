@@ -298,6 +298,22 @@ def check_idm_window(idm: Any, clips: Sequence[EvalClip], what: str = "IDM") -> 
                              f"{idm.cfg.frame_step}) does not fit clip {c.key}: {e}") from None
 
 
+def trajectory_bounds(rep: dict) -> dict:
+    """ReSim-style controllability bounds on a :func:`control_eval` report: the expert Trajectory Difference (1) at
+    most 1.5x the IDM's own error on the recorded video, and (2) below half the distance of the same rollouts to a
+    trajectory they were not given (another episode's). A model that ignored its trajectory would read (2) near 1."""
+    td = lambda k: rep[k]["trajectory_difference_m"]  # noqa: E731
+
+    def ratio(a: float, b: float) -> float:     # 0 / 0: nothing to tell apart, read as met
+        return a / b if b > 0 else (0.0 if a == 0 else float("inf"))
+
+    r1 = ratio(td("expert"), td("idm_on_recorded_video"))
+    r2 = ratio(td("expert"), td("expert_vs_not_given"))
+    return {"expert_over_idm_floor": r1, "expert_over_idm_floor_max": 1.5, "expert_over_idm_floor_met": bool(r1 <= 1.5),
+            "expert_over_not_given": r2, "expert_over_not_given_max": 0.5, "expert_over_not_given_met": bool(r2 < 0.5),
+            "recorded_video_over_not_given": ratio(td("idm_on_recorded_video"), td("recorded_video_vs_not_given"))}
+
+
 def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], seed: int = 0) -> dict:
     clips = [c for c in clips if c.trajectory is not None]
     if not clips:
@@ -323,6 +339,11 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
         "non_expert": _l2(pred_n, np.stack(non_t)),
         "idm_on_recorded_video": _l2(pred_gt, np.stack(expert_t)),
         "idm_on_recorded_through_vae": _l2(pred_vae, np.stack(expert_t)),
+        # the expert rollouts against a trajectory they were not given (the other episode's): what the expert row
+        # would read if the rollouts ignored the trajectory they were given. The recorded video's own reading of it
+        # is the same control for a model that is exactly right
+        "expert_vs_not_given": _l2(pred_e, np.stack(non_t)),
+        "recorded_video_vs_not_given": _l2(pred_gt, np.stack(non_t)),
         "non_expert_vs_recorded_trajectory_m": _l2(np.stack(non_t), np.stack(expert_t))["trajectory_difference_m"],
         "followed": {"rollouts": end_point_slopes(np.concatenate([pred_e, pred_n]),
                                                   np.concatenate([np.stack(expert_t), np.stack(non_t)])),
@@ -334,6 +355,7 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
                              "recorded_read": _end(pred_gt[i])}}
                   for i, (c, j) in enumerate(zip(clips, others))],
     }
+    rep["bounds"] = trajectory_bounds(rep)
     labeler, reason = flow_labeler_status()
     if labeler is None:
         rep["command_accuracy"] = f"not available: {reason}"
