@@ -81,11 +81,21 @@ def _eval_section(out: Path) -> list[str]:
                      "(expert) and another episode's (non-expert); the IDM reads the trajectory off the generated "
                      "video. <code>idm_on_recorded_video</code> (the IDM on the real frames) is the floor; "
                      "<code>idm_on_recorded_through_vae</code> (on the recorded latents decoded through the VAE) is "
-                     "what a world model that predicted the recorded future exactly would score.</p>")
+                     "what a world model that predicted the recorded future exactly would score. "
+                     "<code>expert_vs_not_given</code>: the expert rollouts read against the other episode's "
+                     "trajectory, which they were not given (a model that ignores its trajectory reads the expert "
+                     "row near this one).</p>")
         parts.append(_table(["", "L2 mean (m)", "L2 at 4 s (m)", "clips"],
                             [[k, _f(r[k]["trajectory_difference_m"]), _f(r[k]["trajectory_difference_final_m"]),
                               r[k]["n"]] for k in ("expert", "non_expert", "idm_on_recorded_video",
-                                                   "idm_on_recorded_through_vae") if k in r]))
+                                                   "idm_on_recorded_through_vae", "expert_vs_not_given",
+                                                   "recorded_video_vs_not_given") if k in r]))
+        if "bounds" in r:
+            b = r["bounds"]
+            parts.append(f"<p>Bounds: expert / IDM floor {_f(b['expert_over_idm_floor'], '.2f')} (target &le; 1.5); "
+                         f"expert / the same rollouts against a trajectory not given "
+                         f"{_f(b['expert_over_not_given'], '.2f')} (target &lt; 0.5; the recorded video itself reads "
+                         f"{_f(b['recorded_video_over_not_given'], '.2f')} with this IDM).</p>")
         ca = r["command_accuracy"]
         acc = (html.escape(ca) if isinstance(ca, str) else ", ".join(
             f"{html.escape(k)}: {_f(v['accuracy'], '.2f')} (n={v['n']})" for k, v in ca.items()))

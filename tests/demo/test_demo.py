@@ -58,11 +58,13 @@ def _check_evaluation(out: Path, page: str) -> None:
     ctl = json.loads((ev / "control/control.json").read_text())
     assert ctl["protocol"]["clips"] == 2 and ctl["protocol"]["episodes"] == 2
     assert ctl["protocol"]["heldout_from"].endswith("eval/idm")
-    for k in ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae"):
+    for k in ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae", "expert_vs_not_given",
+              "recorded_video_vs_not_given"):
         assert _finite(ctl[k]["trajectory_difference_m"]) and _finite(ctl[k]["trajectory_difference_final_m"])
         assert ctl[k]["n"] == 2
     assert _finite(ctl["non_expert_vs_recorded_trajectory_m"]) and ctl["non_expert_vs_recorded_trajectory_m"] > 0
     assert all(p["clip"] != p["non_expert_from"] for p in ctl["pairs"])
+    assert "Bounds: expert / IDM floor" in page and "expert_vs_not_given" in page
     ca = ctl["command_accuracy"]
     assert isinstance(ca, str) or all(v["n"] == 2 and 0 <= v["accuracy"] <= 1 for v in ca.values())
     wm = ctl["protocol"]["world_model"]

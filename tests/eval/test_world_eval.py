@@ -296,29 +296,29 @@ def test_command_loss_command(world, capsys):
     assert "command read by the model's own loss" in capsys.readouterr().out
 
 
+class _MeanIDM(torch.nn.Module):
+    """Reads x of every waypoint as the mean pixel of the window / 10: a function of the video alone."""
+
+    def __init__(self):
+        from training.eval.idm import idm_preset
+
+        super().__init__()
+        self.cfg = idm_preset("tiny", future_frames=12, num_frames=7)
+        self.w = torch.nn.Parameter(torch.zeros(1))
+
+    def window(self, v, nh):
+        return v[:, nh - 1:].float()
+
+    def forward(self, v):
+        out = torch.zeros(len(v), 8, 3)
+        out[:, :, 0] = v.mean(dim=(1, 2, 3, 4))[:, None] / 10
+        return out
+
+
 def test_control_floor_through_the_vae_reads_the_decoded_recorded_latents():
     """``idm_on_recorded_through_vae`` is the IDM on the clips' own latents decoded as a rollout is (not on the
     recorded frames, which give ``idm_on_recorded_video``): a VAE that smears the motion shows in it."""
-    import torch
-
-    from training.eval.idm import idm_preset
     from training.eval.worldeval import WorldRollouts, control_eval
-
-    class MeanIDM(torch.nn.Module):
-        """Reads x of every waypoint as the mean pixel of the window / 10: a function of the video alone."""
-        cfg = idm_preset("tiny", future_frames=12, num_frames=7)
-
-        def __init__(self):
-            super().__init__()
-            self.w = torch.nn.Parameter(torch.zeros(1))
-
-        def window(self, v, nh):
-            return v[:, nh - 1:].float()
-
-        def forward(self, v):
-            out = torch.zeros(len(v), 8, 3)
-            out[:, :, 0] = v.mean(dim=(1, 2, 3, 4))[:, None] / 10
-            return out
 
     class Fake(WorldRollouts):
         def generate(self, clips, trajs, commands):
@@ -330,7 +330,7 @@ def test_control_floor_through_the_vae_reads_the_decoded_recorded_latents():
     clips = [_eval_clip(0, "a"), _eval_clip(1, "b")]
     for c in clips:
         c.frames[:] = 20                                                  # x read: 2 m
-    rep = control_eval(Fake(None, None, None, None), MeanIDM(), clips)
+    rep = control_eval(Fake(None, None, None, None), _MeanIDM(), clips)
     assert rep["idm_on_recorded_video"]["trajectory_difference_m"] == pytest.approx(2.0)
     assert rep["idm_on_recorded_through_vae"]["trajectory_difference_m"] == pytest.approx(5.0)
     assert rep["expert"]["trajectory_difference_m"] == pytest.approx(3.0)
@@ -343,25 +343,7 @@ def test_second_bound_tells_a_model_that_follows_its_trajectory_from_one_that_ig
     """The second Trajectory Difference bound compares the expert rollouts with the trajectory they were given and
     with one they were not (another episode's): a model that draws the given path exactly reads 0, one that draws
     the same video whatever it is given reads ~1."""
-    import torch
-
-    from training.eval.idm import idm_preset
     from training.eval.worldeval import WorldRollouts, control_eval
-
-    class MeanIDM(torch.nn.Module):
-        cfg = idm_preset("tiny", future_frames=12, num_frames=7)
-
-        def __init__(self):
-            super().__init__()
-            self.w = torch.nn.Parameter(torch.zeros(1))
-
-        def window(self, v, nh):
-            return v[:, nh - 1:].float()
-
-        def forward(self, v):                                          # x of every waypoint: mean pixel / 10
-            out = torch.zeros(len(v), 8, 3)
-            out[:, :, 0] = v.mean(dim=(1, 2, 3, 4))[:, None] / 10
-            return out
 
     class Follows(WorldRollouts):
         def generate(self, clips, trajs, commands):
@@ -378,11 +360,11 @@ def test_second_bound_tells_a_model_that_follows_its_trajectory_from_one_that_ig
     for c, x in zip(clips, (3.0, 8.0)):
         c.trajectory[:, 0] = x
         c.frames[:] = int(10 * x)
-    good = control_eval(Follows(None, None, None, None), MeanIDM(), clips)
+    good = control_eval(Follows(None, None, None, None), _MeanIDM(), clips)
     assert good["expert"]["trajectory_difference_m"] == pytest.approx(0.0)
     assert good["expert_vs_not_given"]["trajectory_difference_m"] == pytest.approx(5.0)
     assert good["bounds"]["expert_over_not_given"] == pytest.approx(0.0) and good["bounds"]["expert_over_not_given_met"]
-    bad = control_eval(Ignores(None, None, None, None), MeanIDM(), clips)
+    bad = control_eval(Ignores(None, None, None, None), _MeanIDM(), clips)
     assert bad["expert"]["trajectory_difference_m"] == pytest.approx(2.5)
     assert bad["bounds"]["expert_over_not_given"] == pytest.approx(1.0)
     assert not bad["bounds"]["expert_over_not_given_met"] and not bad["bounds"]["expert_over_idm_floor_met"]
