@@ -15,9 +15,10 @@
 # hours on a CPU (~8 s per step on 2 cores). Stages 1c, 1c' and 1d, the VAE's decoder alone, stage 4 (4a-4c), the
 # command taught on counterfactual forks, stages 5-6, the trajectory taught on them too, and stage 8b, the plan
 # given on nearly every clip, always run.
-# Without STAGE_1B: about 8.5 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world; stage 4c and its 432-episode fork
-# world: about 1 hour; stage 5 and its 216-episode fork world: about 1 hour on a slow day; stage 6: ~45 min; stage
-# 8b and its world: ~30 min; the IDM and Trajectory Difference at the end: ~20 min).
+# Without STAGE_1B: about 8.5 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world;
+# stage 4c and its 432-episode fork world: about 1 hour; stage 5 and its 216-episode fork world: about 1 hour on
+# a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min; the IDM and Trajectory Difference at the end:
+# ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}

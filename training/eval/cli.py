@@ -69,7 +69,9 @@ example:
 
 --idm is a `resim eval idm` run; its held-out episodes are evaluated (--heldout-from another run, or
 --all-clips). Writes OUT/control.json (Trajectory Difference for expert / non-expert trajectories, the IDM on
-the recorded video as the floor, command accuracy, the protocol) and OUT/control.png (bar chart).
+the recorded video as the floor, the expert rollouts and the recorded video against another episode's trajectory,
+one they were not given, and the two bounds: expert <= 1.5 x floor, expert < 0.5 x against the one not given;
+command accuracy, the protocol) and OUT/control.png (bar chart).
 """
 
 COMMANDS_EPILOG = """\

@@ -299,9 +299,11 @@ def check_idm_window(idm: Any, clips: Sequence[EvalClip], what: str = "IDM") -> 
 
 
 def trajectory_bounds(rep: dict) -> dict:
-    """ReSim-style controllability bounds on a :func:`control_eval` report: the expert Trajectory Difference (1) at
-    most 1.5x the IDM's own error on the recorded video, and (2) below half the distance of the same rollouts to a
-    trajectory they were not given (another episode's). A model that ignored its trajectory would read (2) near 1."""
+    """The synthetic world's trajectory targets (docs/models/synth-world.md) on a :func:`control_eval` report: the
+    expert Trajectory Difference (1) at most 1.5x the IDM's own error on the recorded video, and (2) below half the
+    distance of the same rollouts to a trajectory they were not given (another episode's). A model that ignored its
+    trajectory would read (2) near 1; ``recorded_video_over_not_given`` is (2) for the recorded video itself, what a
+    model that predicted the recorded future exactly would read through this IDM."""
     td = lambda k: rep[k]["trajectory_difference_m"]  # noqa: E731
 
     def ratio(a: float, b: float) -> float:     # 0 / 0: nothing to tell apart, read as met
@@ -339,9 +341,9 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
         "non_expert": _l2(pred_n, np.stack(non_t)),
         "idm_on_recorded_video": _l2(pred_gt, np.stack(expert_t)),
         "idm_on_recorded_through_vae": _l2(pred_vae, np.stack(expert_t)),
-        # the expert rollouts against a trajectory they were not given (the other episode's): what the expert row
-        # would read if the rollouts ignored the trajectory they were given. The recorded video's own reading of it
-        # is the same control for a model that is exactly right
+        # the expert rollouts against a trajectory they were not given (the other episode's): a model that ignored
+        # its trajectory would read the expert row about this far. The recorded video against it: the same control
+        # for a model that is exactly right
         "expert_vs_not_given": _l2(pred_e, np.stack(non_t)),
         "recorded_video_vs_not_given": _l2(pred_gt, np.stack(non_t)),
         "non_expert_vs_recorded_trajectory_m": _l2(np.stack(non_t), np.stack(expert_t))["trajectory_difference_m"],
