@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -32,13 +34,16 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import save_file
 
+from media.encoders import VideoVAE
 from resim.config import ConfigError, check_positive, to_dict
+from resim.models import shipped_model
 from shards.reader import iter_samples
 from training import smallfit
 from training.config import OptimConfig, RunConfig
 from training.eval.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
 from training.eval.report import plot_bars, write_json
 from training.exported import ExportNotFoundError, load_exported
+from training.sampling.outputs import decode_latents
 from training.smallfit import frames_to_tensor
 
 
@@ -57,6 +62,14 @@ class IDMTrainConfig:
     # augmentation: mirror clips left-right (video flipped along W; trajectory y -> -y, yaw -> -yaw). Ego motion
     # is mirror-symmetric, so a mirrored clip is another valid clip (doubles the distinct training clips).
     hflip_prob: float = 0.5
+    # augmentation: the clip as the VAE gives it back. With a VAE (folder or shipped name, e.g. "synth-vae"), each
+    # clip's shard latents (latent.npy, what the world model was trained on) are decoded once, and an epoch shows a
+    # clip's decoded frames instead of its recorded ones with probability ``decoded_prob``. The trajectory is the
+    # recorded one either way. Why: Trajectory Difference reads *decoded* video (the world model's rollouts); an
+    # IDM that has only seen recorded frames reads the decoder's blur and artefacts as motion (ReSim's IDM-based
+    # metric assumes the IDM reads generated and real video alike).
+    decoded_vae: str | None = None
+    decoded_prob: float = 0.5
     # early stopping: this share of the *training* episodes (never the held-out ones) is set aside; the weights
     # of the epoch with the lowest validation ADE are kept. 0 disables it; skipped (and said so) when the
     # training split has fewer than `min_episodes_for_validation` episodes.
@@ -80,6 +93,10 @@ class IDMTrainConfig:
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if not 0.0 <= self.hflip_prob <= 1.0:
             raise ConfigError(f"hflip_prob must be in [0, 1], got {self.hflip_prob}")
+        if not 0.0 <= self.decoded_prob <= 1.0:
+            raise ConfigError(f"decoded_prob must be in [0, 1], got {self.decoded_prob}")
+        if self.decoded_vae is not None and not shipped_model(self.decoded_vae).is_dir():
+            raise ConfigError(f"decoded_vae={self.decoded_vae!r}: no such folder or shipped model (configs/models/NAME)")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ConfigError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.min_heldout_episodes < 1:
@@ -98,6 +115,8 @@ class TrajClip:
     num_history_frames: int
     fps_hz: float
     waypoint_dt_s: float = 0.5
+    latents: np.ndarray | None = None   # (T_lat, C, h, w) float16, the shard's latent.npy (kept only to decode)
+    decoded: np.ndarray | None = None   # like ``frames``: the latents decoded by the VAE (``attach_decoded``)
 
 
 def resize_frames(frames: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
@@ -109,8 +128,10 @@ def resize_frames(frames: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
     return x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
 
 
-def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list[TrajClip], dict]:
-    """Clips with a trajectory from every committed shard of ``root``; returns (clips, counts)."""
+def clips_from_dataset(root: str | Path, size_hw: tuple[int, int],
+                       keep_latents: bool = False) -> tuple[list[TrajClip], dict]:
+    """Clips with a trajectory from every committed shard of ``root``; returns (clips, counts). ``keep_latents``:
+    keep each clip's ``latent.npy`` (for :func:`attach_decoded`)."""
     if not Path(root).is_dir():
         raise FileNotFoundError(f"dataset folder {root} does not exist")
     clips, counts = [], {"samples": 0, "without_trajectory": 0}
@@ -122,19 +143,50 @@ def clips_from_dataset(root: str | Path, size_hw: tuple[int, int]) -> tuple[list
             continue
         clips.append(TrajClip(key=s["__key__"], item_id=meta["item_id"], frames=resize_frames(s["frames"], size_hw),
                               trajectory=np.asarray(s["traj.npy"], np.float32),
-                              num_history_frames=int(meta["num_history_frames"]), fps_hz=float(meta["fps_hz"])))
+                              num_history_frames=int(meta["num_history_frames"]), fps_hz=float(meta["fps_hz"]),
+                              latents=s.get("latent.npy") if keep_latents else None))
     return clips, counts
 
 
-def collate(clips: Sequence[TrajClip], cfg: IDMConfig, flip: Sequence[bool] | None = None) -> dict:
+def attach_decoded(clips: Sequence[TrajClip], vae: str, size_hw: tuple[int, int], batch_size: int = 8,
+                   log=None) -> None:
+    """Set each clip's ``decoded`` frames: its shard latents decoded by ``vae`` (one VAE call per window, as
+    ``resim eval`` decodes a rollout of one round: ``decode_latents``), resized to ``size_hw``; the latents are
+    then dropped. ~0.5 s per 49-frame clip at 64 x 96 on a 2-core CPU."""
+    missing = [c.key for c in clips if c.latents is None]
+    if missing:
+        raise IDMDataError(f"--decoded-vae needs latents (latent.npy) in the shards; clip {missing[0]} has none "
+                           f"({len(missing)} of {len(clips)} clips): encode the dataset with a VAE")
+    model = VideoVAE(shipped_model(vae), device="cpu")
+    t0 = time.perf_counter()
+    for i in range(0, len(clips), batch_size):
+        part = clips[i:i + batch_size]
+        shapes = {c.latents.shape for c in part}
+        groups = [[c for c in part if c.latents.shape == sh] for sh in shapes]
+        for g in groups:
+            video = decode_latents(model, np.stack([c.latents.astype(np.float32) for c in g]), batch_size=len(g))
+            for c, v in zip(g, video):
+                if len(v) != len(c.frames):
+                    raise IDMDataError(f"clip {c.key}: its latents decode to {len(v)} frames, its video has "
+                                       f"{len(c.frames)}")
+                c.decoded, c.latents = resize_frames(v, size_hw), None
+        if log is not None and (i // batch_size) % 25 == 24:
+            log(f"decoded {i + len(part)} of {len(clips)} clips through {vae}, {time.perf_counter() - t0:.0f} s")
+
+
+def collate(clips: Sequence[TrajClip], cfg: IDMConfig, flip: Sequence[bool] | None = None,
+            decoded: Sequence[bool] | None = None) -> dict:
     """``{"video": (B, T, 3, h, w) float [0, 1] (the model's window), "trajectory": (B, N, 3), "keys"}``.
 
     ``flip[i]``: mirror clip i left-right (frames along W; trajectory y and yaw negated: the mirrored world's
-    ego motion, x forward / y left / yaw left +)."""
+    ego motion, x forward / y left / yaw left +). ``decoded[i]``: clip i's frames as the VAE decodes them."""
     vids, trajs = [], []
     for i, c in enumerate(clips):
         idx = cfg.frame_indices(c.num_history_frames, len(c.frames))
-        f, t = c.frames[idx], c.trajectory
+        use_dec = decoded is not None and decoded[i]
+        if use_dec and c.decoded is None:   # our bug: attach_decoded runs before any batch
+            raise AssertionError(f"clip {c.key}: decoded frames asked for but never attached")
+        f, t = (c.decoded if use_dec else c.frames)[idx], c.trajectory
         if flip is not None and flip[i]:
             f, t = f[:, :, ::-1], t * np.array([1.0, -1.0, -1.0], np.float32)
         vids.append(frames_to_tensor(f))
@@ -144,9 +196,12 @@ def collate(clips: Sequence[TrajClip], cfg: IDMConfig, flip: Sequence[bool] | No
             "keys": [c.key for c in clips]}
 
 
-def predict(model: InverseDynamicsModel, clips: Sequence[TrajClip], batch_size: int = 32) -> np.ndarray:
-    """(N, num_waypoints, 3) predicted trajectories, in the order of ``clips``."""
-    return smallfit.predict(model, clips, lambda cs: collate(cs, model.cfg), lambda m, b: m(b["video"]), batch_size,
+def predict(model: InverseDynamicsModel, clips: Sequence[TrajClip], batch_size: int = 32,
+            decoded: bool = False) -> np.ndarray:
+    """(N, num_waypoints, 3) predicted trajectories, in the order of ``clips`` (``decoded``: on their decoded
+    frames)."""
+    return smallfit.predict(model, clips, lambda cs: collate(cs, model.cfg, decoded=[decoded] * len(cs)),
+                            lambda m, b: m(b["video"]), batch_size,
                             empty_shape=(model.cfg.num_waypoints, 3))
 
 
@@ -185,10 +240,12 @@ def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False) -> RunC
 
 class BestOnValidation:
     """Early stopping without touching the trainer: after every epoch, the validation ADE; a copy of the
-    weights of the best epoch so far (the model is small), restored at the end by :meth:`restore`."""
+    weights of the best epoch so far (the model is small), restored at the end by :meth:`restore`. With decoded
+    frames (``decoded_vae``) the ADE is the mean of the recorded and the decoded frames' (the IDM is for both)."""
 
     def __init__(self, model: InverseDynamicsModel, val: Sequence[TrajClip]):
         self.model, self.val = model, list(val)
+        self.both = all(c.decoded is not None for c in self.val)
         self.gt = np.stack([c.trajectory for c in self.val])
         self.history: list[dict] = []
         self.best: tuple[float, int, dict] | None = None
@@ -196,6 +253,8 @@ class BestOnValidation:
     def __call__(self, epoch: int) -> None:
         was_training = self.model.training
         ade = trajectory_errors(predict(self.model, self.val), self.gt)["ade_m"]
+        if self.both:
+            ade = (ade + trajectory_errors(predict(self.model, self.val, decoded=True), self.gt)["ade_m"]) / 2
         self.model.train(was_training)
         self.history.append({"epoch": epoch, "val_ade_m": ade})
         if self.best is None or ade < self.best[0]:
@@ -214,9 +273,18 @@ def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainCo
     ``seed * 1000 + e``, the same RNG mirroring each clip with probability ``hflip_prob``); with ``val`` clips,
     keep the weights of the best validation epoch (and re-export them to ``run_dir/final``)."""
     stopper = BestOnValidation(model, val) if len(val) else None
+    use_dec = tcfg.decoded_vae is not None and tcfg.decoded_prob > 0
+
+    def draws(rng: np.random.Generator, n: int) -> np.ndarray:
+        # (n, 2): mirror, decoded. The mirror flags come first from the RNG, so a run without decoded frames
+        # draws exactly what it drew before they existed
+        flip = rng.random(n) < tcfg.hflip_prob
+        dec = rng.random(n) < tcfg.decoded_prob if use_dec else np.zeros(n, bool)
+        return np.stack([flip, dec], axis=1)
+
     data = smallfit.EpochBatches(clips, tcfg.batch_size_per_gpu, tcfg.seed,
-                                 lambda cs, flip: collate(cs, model.cfg, flip),
-                                 augment=lambda rng, n: rng.random(n) < tcfg.hflip_prob, on_epoch_end=stopper)
+                                 lambda cs, d: collate(cs, model.cfg, d[:, 0], d[:, 1]),
+                                 augment=draws, on_epoch_end=stopper)
     out = smallfit.fit(model, data, tcfg.epochs, lambda steps: run_config(tcfg, steps, progress), run_dir)
     if stopper is not None:
         stopper(tcfg.epochs)           # the last epoch (the trainer stops without asking for another batch)
@@ -270,7 +338,7 @@ def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[Tra
     mcfg = tcfg.model_cfg()
     counts: dict = {}
     if clips is None:
-        clips, counts = clips_from_dataset(root, mcfg.input_hw)
+        clips, counts = clips_from_dataset(root, mcfg.input_hw, keep_latents=tcfg.decoded_vae is not None)
     usable, skipped = smallfit.usable(clips, lambda c: mcfg.frame_indices(c.num_history_frames, len(c.frames)),
                                       ValueError)
     if not usable:
@@ -286,6 +354,9 @@ def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[Tra
                                                 min_heldout=tcfg.min_heldout_episodes)
     except ValueError as e:   # the split's only error: fewer than 2 episodes
         raise IDMDataError(f"{root}: {e}") from None
+    if tcfg.decoded_vae is not None:   # held-out clips too: the report reads the IDM on both kinds of frames
+        attach_decoded(usable, tcfg.decoded_vae, mcfg.input_hw,
+                       log=lambda m: print(f"[idm] {m}", file=sys.stderr, flush=True))
     return IDMData(train, held, skipped, counts)
 
 
@@ -331,7 +402,9 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
                      "train_items": sorted({c.item_id for c in train}), "split": "by episode (item_id), seeded hash",
                      "split_seed": tcfg.split_seed, "min_heldout_episodes": tcfg.min_heldout_episodes,
                      "validation": validation, "clips_fit": len(fit_clips), "clips_validation": len(val),
-                     "augmentation": f"left-right mirror with p={tcfg.hflip_prob} (y, yaw negated)",
+                     "augmentation": f"left-right mirror with p={tcfg.hflip_prob} (y, yaw negated)" + (
+                         f"; the shard latents decoded by {tcfg.decoded_vae} with p={tcfg.decoded_prob}"
+                         if tcfg.decoded_vae is not None else ""),
                      "skipped": skipped, **counts,
                      "constant_velocity": "straight ahead at |waypoint_1| / 0.5 s (oracle initial speed)",
                      "ade": "mean L2 over the 8 waypoints (x, y), metres; fde: L2 at 4.0 s",
@@ -339,6 +412,8 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
         "training": {k: fitted[k] for k in ("steps", "seconds", "early_stopping") if k in fitted},
         "checkpoint": str(out / "final"),
     }
+    if tcfg.decoded_vae is not None:   # the same held-out clips, their latents decoded by the VAE
+        res["heldout"]["idm_through_vae"] = trajectory_errors(predict(model, held, decoded=True), gt_h)
     if val:  # the split early stopping chose on: optimistic by construction, reported for completeness
         gt_v = np.stack([c.trajectory for c in val])
         res["validation"] = {"model": trajectory_errors(predict(model, val), gt_v),
@@ -356,6 +431,8 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
                                                         "batch_size_per_gpu": tcfg.batch_size_per_gpu,
                                                         "seed": tcfg.seed, "split_seed": tcfg.split_seed,
                                                         "hflip_prob": tcfg.hflip_prob,
+                                                        "decoded_vae": tcfg.decoded_vae,
+                                                        "decoded_prob": tcfg.decoded_prob,
                                                         "val_fraction": tcfg.val_fraction,
                                                         "min_heldout_episodes": tcfg.min_heldout_episodes},
                                                        indent=1))
