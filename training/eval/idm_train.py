@@ -267,24 +267,25 @@ class BestOnValidation:
                 "val_ade_per_epoch": self.history}
 
 
+def augment_draws(tcfg: IDMTrainConfig, rng: np.random.Generator, n: int) -> np.ndarray:
+    """An epoch's per-clip augmentation, ``(n, 2)`` bool: mirror, decoded frames. The mirror flags are drawn
+    first, so a run without decoded frames draws exactly what it drew before they existed (exact resume of
+    older runs, the same batches)."""
+    flip = rng.random(n) < tcfg.hflip_prob
+    use_dec = tcfg.decoded_vae is not None and tcfg.decoded_prob > 0
+    dec = rng.random(n) < tcfg.decoded_prob if use_dec else np.zeros(n, bool)
+    return np.stack([flip, dec], axis=1)
+
+
 def fit(model: InverseDynamicsModel, clips: Sequence[TrajClip], tcfg: IDMTrainConfig, run_dir: str | Path,
         progress: bool = False, val: Sequence[TrajClip] = ()) -> dict:
     """Train through the common Trainer (``training.smallfit.fit``: epoch ``e`` shuffled with seed
     ``seed * 1000 + e``, the same RNG mirroring each clip with probability ``hflip_prob``); with ``val`` clips,
     keep the weights of the best validation epoch (and re-export them to ``run_dir/final``)."""
     stopper = BestOnValidation(model, val) if len(val) else None
-    use_dec = tcfg.decoded_vae is not None and tcfg.decoded_prob > 0
-
-    def draws(rng: np.random.Generator, n: int) -> np.ndarray:
-        # (n, 2): mirror, decoded. The mirror flags come first from the RNG, so a run without decoded frames
-        # draws exactly what it drew before they existed
-        flip = rng.random(n) < tcfg.hflip_prob
-        dec = rng.random(n) < tcfg.decoded_prob if use_dec else np.zeros(n, bool)
-        return np.stack([flip, dec], axis=1)
-
     data = smallfit.EpochBatches(clips, tcfg.batch_size_per_gpu, tcfg.seed,
                                  lambda cs, d: collate(cs, model.cfg, d[:, 0], d[:, 1]),
-                                 augment=draws, on_epoch_end=stopper)
+                                 augment=lambda rng, n: augment_draws(tcfg, rng, n), on_epoch_end=stopper)
     out = smallfit.fit(model, data, tcfg.epochs, lambda steps: run_config(tcfg, steps, progress), run_dir)
     if stopper is not None:
         stopper(tcfg.epochs)           # the last epoch (the trainer stops without asking for another batch)
