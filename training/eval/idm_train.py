@@ -337,8 +337,10 @@ class IDMData:
 
 
 def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[TrajClip] | None = None) -> IDMData:
-    """Read (unless ``clips`` are given) and check the clips, split by episode. ``FileNotFoundError`` when
-    ``root`` does not exist, :class:`IDMDataError` naming the reason when no split can be made."""
+    """Read (unless ``clips`` are given) and check the clips, split by episode, and with ``decoded_vae`` decode
+    every usable clip's latents (:func:`attach_decoded`; the slow part, after every check has passed).
+    ``FileNotFoundError`` when ``root`` does not exist, :class:`IDMDataError` naming the reason when no split can
+    be made or a clip has no latents to decode."""
     mcfg = tcfg.model_cfg()
     counts: dict = {}
     if clips is None:
