@@ -1,0 +1,327 @@
+"""How far did a generated future drive? Read it off the synthetic world itself, not off an IDM.
+
+    python scripts/render_match.py --world runs/v6/world1008 --shards runs/v6/ctl1008 --limit 24 \
+        --idm synth-idm --idm runs/v5/idm77d --out runs/v6/rm1008          # ~10 min on 2 CPU cores
+
+Trajectory Difference reads the path a rollout drove with an inverse dynamics model (IDM). IDMs that agree
+within 1 m on every real video (recorded or decoded through the VAE) disagree by 14 m on rollouts
+(docs/models/synth-world.md), and nothing said which was right: a check needs generated video whose motion is
+known. In the synthetic world the scene is known exactly, so the motion of any video of it can be read by
+re-rendering. For each clip (a CARLA-layout episode of a ``resim synth`` world, which this script rebuilds
+from its seed) the future is rendered along the recorded path with the distance driven scaled by ``k``
+(``k = 0``: standing still; ``1``: the recorded drive; ``2``: twice as far), each candidate is encoded by the
+VAE that encoded the shards, and a rollout's future latents are matched to the candidates, latent frame by
+latent frame. The ``k`` with the least squared error (refined by a parabola through its neighbours) gives the
+distance driven by that frame's time. It reads speed along the recorded path only: a rollout that leaves the
+path (another trajectory given) is not read, so only rollouts given the recorded (expert) trajectory are.
+
+Checks that the reader reads: the recorded latents themselves (k = 1 by construction: this checks that the
+world is rebuilt exactly), and the recorded latents decoded and encoded again by the VAE (the smoothing a
+rollout goes through; no candidate is exact any more).
+
+Then per clip: the distance read this way at 4 s, the given trajectory's, and each ``--idm``'s reading of the
+same decoded rollout and of the recorded video. Writes OUT/render_match.json and OUT/render_match.png.
+
+A probe script, not a product command: it imports the synthetic world's generator (``pipelines``), which
+``training`` must not.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from media.encoders import VideoVAE
+from media.frames import cover_crop
+from pipelines.sources.synth.generate import SynthConfig, _simulate_episode, plan_episodes
+from pipelines.stages.encode import key_seed
+from resim.config import from_dict
+from synthworld.render import Camera, Renderer
+from training.eval.idm_train import load_idm
+from training.eval.worldeval import WorldRollouts, _idm_on, eval_clips_from_dataset
+from training.sampling.guidance import guidance_preset
+from training.sampling.load import PromptSource, encoded_with, load_world_model, run_objective
+from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
+from shards.reader import iter_samples
+
+REPO = Path(__file__).resolve().parents[1]
+
+K_GRID = np.round(np.arange(0.0, 2.41, 0.1), 2)      # distance scale of the candidate futures
+
+
+def log(msg: str) -> None:
+    print(f"[render_match] {time.strftime('%H:%M:%S')} {msg}", file=sys.stderr, flush=True)
+
+
+class WorldRebuild:
+    """The episodes of a ``resim synth`` world, rebuilt from its seed: world, renderer, 20-Hz poses."""
+
+    def __init__(self, root: Path):
+        cfg_d = json.loads((root / "synth_config.json").read_text())
+        self.seed, n = int(cfg_d.pop("seed")), int(cfg_d.pop("episodes"))
+        self.cfg = from_dict(SynthConfig, cfg_d)
+        gt = json.loads((root / "ground_truth.json").read_text())
+        self.by_item = {e["layout"]["item_id"]: e for e in gt["episodes"]}
+        self.plans = plan_episodes(n, self.cfg)
+        self.cam = Camera(self.cfg.height_px, self.cfg.width_px, self.cfg.hfov_deg)
+        self._cache: dict = {}
+
+    def episode(self, item_id: str):
+        if item_id not in self._cache:
+            e = self.by_item[item_id]
+            rng, world, tr, _, _ = _simulate_episode(self.plans[e["index"]], self.seed, self.cfg)
+            if not np.allclose(tr.poses[:, 0], e["x_m"]) or not np.allclose(tr.poses[:, 1], e["y_m"]):
+                raise RuntimeError(f"{item_id}: the rebuilt drive differs from ground_truth.json")
+            self._cache = {item_id: (Renderer(world, self.cam, rng), tr)}   # one at a time: maps are large
+        return self._cache[item_id]
+
+
+def path_poses(poses: np.ndarray, t_s: np.ndarray, t0_s: float, times_s: np.ndarray, k: float) -> np.ndarray:
+    """Poses (len(times_s), 3) along the recorded path, where the distance driven since ``t0_s`` is ``k`` times the
+    recorded one at each time. Past the episode's end the path goes on straight."""
+    seg = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    yaw = np.unwrap(poses[:, 2])
+    s0 = np.interp(t0_s, t_s, s)
+    target = s0 + k * (np.interp(times_s, t_s, s) - s0)
+    out = np.stack([np.interp(target, s, poses[:, 0]), np.interp(target, s, poses[:, 1]),
+                    np.interp(target, s, yaw)], axis=1)
+    over = target > s[-1]
+    if over.any():
+        d = target[over] - s[-1]
+        out[over, 0] = poses[-1, 0] + d * np.cos(yaw[-1])
+        out[over, 1] = poses[-1, 1] + d * np.sin(yaw[-1])
+        out[over, 2] = yaw[-1]
+    return out
+
+
+def ego_end(poses: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The last pose's (x forward, y left) in the frame of ``ref`` (x, y, yaw)."""
+    dx, dy = poses[-1, 0] - ref[0], poses[-1, 1] - ref[1]
+    c, s = np.cos(ref[2]), np.sin(ref[2])
+    return np.array([c * dx + s * dy, -s * dx + c * dy])
+
+
+def candidates(wr: WorldRebuild, clip, vae: VideoVAE, hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Latents ``(len(K_GRID), T_lat, C, h, w)`` of the clip's future rendered at each distance scale, and the
+    end point (x, y) at 4 s of each candidate, in the ego frame of the last history frame."""
+    renderer, tr = wr.episode(clip.item_id)
+    t_s = np.asarray(tr.t_s)
+    n = clip.frames.shape[0]
+    times = clip_start(clip) + np.arange(n) / clip.fps_hz
+    t_hist = times[clip.num_history_frames - 1]
+    videos, ends = [], []
+    for k in K_GRID:
+        poses = path_poses(tr.poses, t_s, t_hist, times, float(k))
+        frames = [jpeg(cover_crop(renderer.render(p, t), hw), wr.cfg.jpeg_quality) for p, t in zip(poses, times)]
+        videos.append(np.stack(frames))
+        ends.append(ego_end(poses, poses[clip.num_history_frames - 1]))
+    lat = np.concatenate([vae.encode(np.stack(videos[i:i + 5]), [key_seed(clip.key)] * len(videos[i:i + 5]))
+                          for i in range(0, len(videos), 5)])
+    return lat, np.stack(ends)
+
+
+def clip_start(clip) -> float:
+    return clip.start_s
+
+
+def jpeg(img: np.ndarray, quality: int) -> np.ndarray:
+    """The CARLA layout stores JPEGs: the same round trip as the clips the shards were made from. (The pipeline
+    resizes the full frame; resizing first differs from it by interpolation only.)"""
+    ok, buf = cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+
+
+def read_scale(future: np.ndarray, cand: np.ndarray, h_lat: int) -> tuple[float, float, np.ndarray]:
+    """The distance scale ``k`` whose candidate matches ``future`` best over the whole future (least squared error
+    summed over the future latent frames; parabolic refinement between grid points), the error curve's contrast
+    (worst / best MSE: ~1 when no candidate fits better than another), and the best ``k`` per latent frame.
+    ``future``: (T_lat, C, h, w); ``cand``: (K, T_lat, C, h, w)."""
+    mse = ((cand[:, h_lat:] - future[None, h_lat:]) ** 2).mean(axis=(2, 3, 4))      # (K, F)
+    per_frame = np.array([_argmin_refined(mse[:, j]) for j in range(mse.shape[1])])
+    m = mse.mean(axis=1)
+    return _argmin_refined(m), float(m.max() / max(m.min(), 1e-12)), per_frame
+
+
+def _argmin_refined(m: np.ndarray) -> float:
+    i = int(np.argmin(m))
+    k = float(K_GRID[i])
+    if 0 < i < len(m) - 1:
+        den = m[i - 1] - 2 * m[i] + m[i + 1]
+        if den > 0:
+            k += float(np.clip(0.5 * (m[i - 1] - m[i + 1]) / den, -0.5, 0.5)) * float(K_GRID[1] - K_GRID[0])
+    return k
+
+
+def scaled_trajectory(wr: WorldRebuild, clip, k: float) -> np.ndarray:
+    """The clip's trajectory (8, 3) with the distance driven scaled by ``k`` along the recorded path (ego frame of
+    the last history frame, waypoints every 0.5 s, as ``labeling.trajectory``)."""
+    _, tr = wr.episode(clip.item_id)
+    t_hist = clip.start_s + (clip.num_history_frames - 1) / clip.fps_hz
+    times = t_hist + np.arange(0, 9) * 0.5
+    p = path_poses(tr.poses, np.asarray(tr.t_s), t_hist, times, k)
+    c, s = np.cos(p[0, 2]), np.sin(p[0, 2])
+    dx, dy = p[1:, 0] - p[0, 0], p[1:, 1] - p[0, 1]
+    yaw = np.arctan2(np.sin(p[1:, 2] - p[0, 2]), np.cos(p[1:, 2] - p[0, 2]))
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, yaw], axis=1).astype(np.float32)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--world", required=True, help="the resim synth world the shards were made from")
+    ap.add_argument("--shards", required=True, help="its CARLA-layout clips (resim pipeline run)")
+    ap.add_argument("--checkpoint", default="synth-world")
+    ap.add_argument("--idm", action="append", default=[], help="IDM run(s) to read the same videos (repeatable)")
+    ap.add_argument("--limit", type=int, default=24)
+    ap.add_argument("--steps", type=int, default=25)
+    ap.add_argument("--seed", type=int, default=0, help="rollout seed (resim eval control's default: 0)")
+    ap.add_argument("--given-scales", default="0.5,1.0,1.5",
+                    help="the recorded trajectory's distance scaled by each of these is given to the world model")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scales = [float(x) for x in args.given_scales.split(",")]
+
+    clips = eval_clips_from_dataset(args.shards, limit=args.limit)
+    metas = _metas(args.shards, [c.key for c in clips])
+    for c, m in zip(clips, metas):
+        c.start_s = float(m["start_s"])
+    hazard = [bool(m.get("hazard")) for m in metas]
+    wr = WorldRebuild(Path(args.world))
+    vae = VideoVAE(encoded_with(args.checkpoint, args.shards), device="cpu")
+    h_lat = 1 + (clips[0].num_history_frames - 1) // 4
+    nh = clips[0].num_history_frames
+    hw = clips[0].frames.shape[1:3]
+    log(f"{len(clips)} clips of {len({c.item_id for c in clips})} episodes ({sum(hazard)} of hazardous explorers); "
+        f"{len(K_GRID)} candidates each; given scales {scales}")
+    given = {k: [scaled_trajectory(wr, c, k) for c in clips] for k in scales}
+    dev = max(float(np.abs(g - c.trajectory).max()) for g, c in zip(given.get(1.0, []), clips)) if 1.0 in given else 0.0
+    log(f"the rebuilt trajectory at scale 1 vs the shards': max |difference| {dev:.3f}")
+
+    model, _ = load_world_model(args.checkpoint, "cpu", torch.float32)
+    schedule = run_objective(args.checkpoint).schedule
+    rc = {**ROLLOUT_PRESETS["resim"], "num_steps": args.steps, "guidance": guidance_preset("resim")}
+    prompts = PromptSource(Path(args.shards), str(REPO / "configs/models/placeholder-t5-tiny"), device="cpu",
+                           max_tokens=model.cfg.max_text_seq_length)
+    runner = WorldRollouts(model, vae, from_dict(RolloutConfig, rc), lambda c: prompts(c), seed=args.seed,
+                           schedule=schedule, log=log)
+    t0 = time.perf_counter()
+    gen = {k: runner.generate_latents(clips, given[k], [c.command for c in clips]).numpy() for k in scales}
+    log(f"rollouts: {time.perf_counter() - t0:.0f} s")
+    rec = np.stack([c.latents for c in clips])
+    dec = runner.decode_recorded(clips)
+    reenc = vae.encode(dec, [key_seed(c.key) for c in clips])   # the recorded latents through the VAE once more
+
+    rows = []
+    t0 = time.perf_counter()
+    for i, c in enumerate(clips):
+        cand, ends = candidates(wr, c, vae, hw)
+        d_k = np.hypot(*ends.T)                     # each candidate's end-point distance at 4 s
+        row = {"clip": c.key, "item_id": c.item_id, "hazard": hazard[i],
+               "recorded_dist_m": float(np.hypot(*c.trajectory[-1, :2]))}
+        reads = [("recorded", rec[i]), ("recorded_reencoded", reenc[i])] + [(f"given_{k:g}", gen[k][i]) for k in scales]
+        for name, lat in reads:
+            k, contrast, per_frame = read_scale(lat, cand, h_lat)
+            row[name] = {"k": round(k, 3), "contrast": round(contrast, 2), "k_per_latent_frame": per_frame.round(2).tolist(),
+                         "dist_m": float(np.interp(k, K_GRID, d_k))}
+        rows.append(row)
+        log(f"clip {i + 1}/{len(clips)} {c.key[:44]}{' (explorer)' if hazard[i] else ''}: k read "
+            + "  ".join(f"{n} {row[n]['k']:.2f} (x{row[n]['contrast']:.1f})" for n, _ in reads)
+            + f"  ({time.perf_counter() - t0:.0f} s)")
+
+    idm_reads = {}
+    vids = {"recorded_video": np.stack([c.frames for c in clips]), "recorded_through_vae": dec,
+            **{f"given_{k:g}": runner.decode(clips, torch.from_numpy(gen[k])) for k in scales}} if args.idm else {}
+    for path in args.idm:
+        idm = load_idm(path, "cpu")[0]
+        idm_reads[path] = {n: np.hypot(*_idm_on(idm, v, nh)[:, -1, :2].T).round(3).tolist() for n, v in vids.items()}
+    rep = {"world": args.world, "shards": args.shards, "checkpoint": args.checkpoint, "steps": args.steps,
+           "seed": args.seed, "given_scales": scales, "k_grid": K_GRID.tolist(), "clips": rows,
+           "idm_dist_at_4s_m": idm_reads, "summary": summarise(rows, scales, idm_reads)}
+    (out / "render_match.json").write_text(json.dumps(rep, indent=1))
+    print(json.dumps(rep["summary"], indent=1))
+    plot(rows, scales, idm_reads, out / "render_match.png")
+    return 0
+
+
+def _metas(root, keys):
+    m = {s["__key__"]: s["meta.json"] for s in iter_samples(root, attach_prompts=False)}
+    return [m[k] for k in keys]
+
+
+def _slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per clip (rows): least-squares slope of y on x."""
+    xc = x - x.mean(axis=1, keepdims=True)
+    return (xc * (y - y.mean(axis=1, keepdims=True))).sum(1) / (xc ** 2).sum(1)
+
+
+def _ci(v: np.ndarray, n_boot: int = 2000) -> list[float]:
+    rng = np.random.default_rng(0)
+    b = [np.median(v[rng.integers(0, len(v), len(v))]) for _ in range(n_boot)]
+    return [float(np.percentile(b, 2.5)), float(np.percentile(b, 97.5))]
+
+
+def summarise(rows: list, scales: list[float], idm_reads: dict) -> dict:
+    s: dict = {"n": len(rows), "explorer_clips": sum(r["hazard"] for r in rows)}
+    s["reader_on_known_answers"] = {
+        n: {"k_median": float(np.median([r[n]["k"] for r in rows])),
+            "share_within_0.1_of_1": float(np.mean([abs(r[n]["k"] - 1) <= 0.1 for r in rows])),
+            "contrast_median": float(np.median([r[n]["contrast"] for r in rows]))}
+        for n in ("recorded", "recorded_reencoded")}
+    for subset, keep in (("all", lambda r: True), ("expert_drivers", lambda r: not r["hazard"])):
+        rr = [r for r in rows if keep(r)]
+        if len(rr) < 2:
+            continue
+        x = np.array([[r["recorded_dist_m"] * k for k in scales] for r in rr])
+        y = np.array([[r[f"given_{k:g}"]["dist_m"] for k in scales] for r in rr])
+        sl = _slopes(x, y)
+        d: dict = {"n": len(rr), "given_dist_m_mean": x.mean(0).round(2).tolist(),
+                   "render_read_dist_m_mean": y.mean(0).round(2).tolist(),
+                   "render_read_k_median": [float(np.median([r[f"given_{k:g}"]["k"] for r in rr])) for k in scales],
+                   "contrast_median": [float(np.median([r[f"given_{k:g}"]["contrast"] for r in rr])) for k in scales],
+                   "within_clip_slope_median": float(np.median(sl)), "within_clip_slope_ci95": _ci(sl)}
+        idx = [rows.index(r) for r in rr]
+        for path, reads in idm_reads.items():
+            yi = np.array([[reads[f"given_{k:g}"][j] for k in scales] for j in idx])
+            sli = _slopes(x, yi)
+            d[f"idm {path}"] = {"read_dist_m_mean": yi.mean(0).round(2).tolist(),
+                                "within_clip_slope_median": float(np.median(sli)), "within_clip_slope_ci95": _ci(sli),
+                                "recorded_video_dist_m_mean": float(np.mean([reads["recorded_video"][j] for j in idx]))}
+        s[subset] = d
+    return s
+
+
+def plot(rows: list, scales: list[float], idm_reads: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 1 + len(idm_reads), figsize=(4.2 * (1 + len(idm_reads)), 4), squeeze=False)
+    readers = [("re-rendering the world", lambda r, k, j: r[f"given_{k:g}"]["dist_m"])] + \
+        [(f"IDM {Path(p).name}", lambda r, k, j, p=p: idm_reads[p][f"given_{k:g}"][j]) for p in idm_reads]
+    for ax, (name, read) in zip(axes[0], readers):
+        for j, r in enumerate(rows):
+            xs = [r["recorded_dist_m"] * k for k in scales]
+            ax.plot(xs, [read(r, k, j) for k in scales], "-o", ms=3, lw=0.8,
+                    color="tab:red" if r["hazard"] else "tab:blue", alpha=0.7)
+        lim = [0, max(r["recorded_dist_m"] for r in rows) * max(scales) * 1.1]
+        ax.plot(lim, lim, "k:", lw=1)
+        ax.set_xlabel("distance given at 4 s (m)")
+        ax.set_ylabel("distance the rollout drove, read (m)")
+        ax.set_title(f"read by {name}", fontsize=9)
+    axes[0][0].text(0.02, 0.97, "blue: expert clips, red: explorers\none line per clip", transform=axes[0][0].transAxes,
+                    va="top", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
