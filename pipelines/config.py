@@ -158,11 +158,16 @@ class SyntheticSource:
     # share of the episodes made as counterfactual triples: one history, then left / straight / right at a
     # junction (docs/sources.md, "Counterfactual forks"); 0 = none
     fork_fraction: float = 0.0
+    # share made as pace-fork triples: one history, then the expert at 0.5 / 1 / 1.5 times its speed, CARLA layout
+    # (docs/sources.md, "Pace forks"); 0 = none
+    pace_fork_fraction: float = 0.0
 
     def __post_init__(self):
         check_positive("episodes", self.episodes)
         if not 0 <= self.fork_fraction <= 1:
             raise ConfigError(f"fork_fraction must be in [0, 1], got {self.fork_fraction}")
+        if not 0 <= self.pace_fork_fraction <= 1 or self.fork_fraction + self.pace_fork_fraction > 1:
+            raise ConfigError(f"pace_fork_fraction must be in [0, 1 - fork_fraction], got {self.pace_fork_fraction}")
         bad = [x for x in list(self.layouts) + list(self.clip) if x not in ("opendv", "navsim", "carla")]
         if bad:
             raise ConfigError(f"layouts: unknown layout {bad[0]!r} (known: opendv, navsim, carla)")

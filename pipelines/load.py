@@ -59,7 +59,7 @@ def check_synthetic_world(cfg: PipelineConfig) -> None:
     if s.root is None:
         return
     try:
-        made_with = preset(s.preset, fork_fraction=s.fork_fraction)
+        made_with = preset(s.preset, fork_fraction=s.fork_fraction, pace_fork_fraction=s.pace_fork_fraction)
     except ConfigError as e:
         raise ConfigError(f"sources.synthetic.preset: {e}") from None
     root = Path(s.root)
@@ -83,7 +83,7 @@ def check_synthetic_world(cfg: PipelineConfig) -> None:
     if diff:
         raise ConfigError(
             f"sources.synthetic: the world in {root} was not made with this config's "
-            "episodes/seed/preset/fork_fraction ("
+            "episodes/seed/preset/fork_fraction/pace_fork_fraction ("
             + ", ".join(f"{k}: {have.get(k)!r} on disk, {want[k]!r} by the config" for k in diff)
-            + "); set sources.synthetic.episodes/seed/preset/fork_fraction to the world's values, or point "
-              "sources.synthetic.root at a new folder (the world is generated there)")
+            + "); set sources.synthetic.episodes/seed/preset/fork_fraction/pace_fork_fraction to the world's values, "
+              "or point sources.synthetic.root at a new folder (the world is generated there)")

@@ -189,7 +189,8 @@ def ensure_synthetic(cfg: PipelineConfig) -> None:
 
     log.info("generating a synthetic world (%d episodes, seed %d, preset %s) in %s", s.episodes, s.seed,
              s.preset, root)
-    generate(root, s.episodes, s.seed, preset(s.preset, fork_fraction=s.fork_fraction),
+    generate(root, s.episodes, s.seed,
+             preset(s.preset, fork_fraction=s.fork_fraction, pace_fork_fraction=s.pace_fork_fraction),
              overwrite=root.exists() and not any(root.iterdir()), progress=cfg.ray.progress_bars)
 
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .pace import speed_factor
 from .world import LANE_OFFSET_M, World
 
 K_MAX = 0.2            # 1/m, about a 5 m turning radius
@@ -173,7 +174,7 @@ def expert_command(ego: Ego, j: int) -> tuple[float, float]:
     ego-lane centre; speed limited by the curvature ahead and by a lead car."""
     world = ego.world
     k = _pure_pursuit(world, ego.tracker.lane, j, ego.x, ego.y, ego.yaw, ego.v)
-    v_des = _curve_speed(world, j, world.nominal_speed_mps)
+    v_des = _curve_speed(world, j, world.nominal_speed_mps) * speed_factor(world, ego.t_s)   # pace forks: pace.py
     lead_gap = _lead_gap(world, ego.x, ego.y, ego.yaw, ego.t_s)
     if lead_gap is not None:
         v_des = min(v_des, max(0.0, (lead_gap - 8.0) * 0.5))

@@ -165,6 +165,7 @@ class World:
     # fork (fork.py) sets the sharpest of its branches, so every branch slows for the junction alike
     speed_curvature: np.ndarray | None = None
     fork: dict | None = None      # a fork's branch, where it splits (route_s_m) and the junction's centre
+    pace: dict | None = None      # a pace fork's branch, speed factor and split time (pace.py)
 
     def lane_path(self) -> np.ndarray:
         return self.route.offset(LANE_OFFSET_M)

@@ -54,7 +54,8 @@ def data_config_hash(cfg) -> str:
 # left out of the hash at that default, so those datasets keep their hash (a rerun resumes them, and every
 # sample's meta.config_hash stays what it was); any other value is hashed like every field.
 NEW_FIELD_DEFAULTS = {"max_held_frames": 0,   # ClipConfig, wherever a clip geometry is configured
-                      "fork_fraction": 0.0}    # sources.synthetic: no counterfactual forks
+                      "fork_fraction": 0.0,    # sources.synthetic: no counterfactual forks
+                      "pace_fork_fraction": 0.0}   # sources.synthetic: no pace forks
 
 
 def _without_new_defaults(d):

@@ -172,6 +172,12 @@ def test_fork_fraction_at_its_default_leaves_the_data_hash_as_it_was(tmp_path):
         {k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")}))
     assert data_config_hash(cfg) == before
     assert data_config_hash(_load("sources.synthetic.fork_fraction=0.5")) != before
+    del d["sources"]["synthetic"]["pace_fork_fraction"]   # nor pace forks
+    assert data_config_hash(cfg) == config_hash(_without_new_defaults(
+        {k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")}))
+    assert data_config_hash(_load("sources.synthetic.pace_fork_fraction=0.5")) != before
+    with pytest.raises(ConfigError, match="pace_fork_fraction"):
+        _load("sources.synthetic.fork_fraction=0.6", "sources.synthetic.pace_fork_fraction=0.6")
 
 
 # ------------------------------------------------------------------------------- paths made absolute

@@ -8,6 +8,10 @@ With ``fork_fraction`` > 0 the last episodes come in counterfactual triples (for
 expert drive, identical until a four-way junction where they turn left, go straight and turn right; a
 triple's three episodes are written to the same part, and ``ground_truth.json`` names each one's
 ``fork`` (group, branch, where it splits).
+With ``pace_fork_fraction`` > 0, after those, triples of *pace forks* (synthworld/pace.py): one world and one
+expert drive, identical until a split time after which the expert cruises at 0.5, 1 or 1.5 times its speed;
+always in the CARLA layout (the one with trajectories at 10 Hz: speed is told only by the trajectory), named in
+``ground_truth.json`` as ``pace`` (group, branch, factor, split time).
 Each part is written in its real layout (see writers.py), and
 ``ground_truth.json`` holds, per episode, the exact simulation-rate poses,
 heading and speed, the outcome, and how each reader's frame k maps to a
@@ -30,6 +34,7 @@ from resim.config import ConfigError, from_dict, to_dict
 
 from synthworld.drivers import EXPLORER_PATTERNS, Trace, simulate
 from synthworld.fork import FORK_BRANCHES, build_fork_world
+from synthworld.pace import PACE_BRANCHES, pace_fork
 from .ground_truth import command_share
 from synthworld.render import Camera, Renderer
 from synthworld.score import Score, score_trace
@@ -54,6 +59,7 @@ class SynthConfig:
     jpeg_quality: int = 90
     navsim_split: str = "synth"
     fork_fraction: float = 0.0        # share of the episodes made as counterfactual triples (whole triples)
+    pace_fork_fraction: float = 0.0   # share made as pace-fork triples (pace.py; whole triples, CARLA layout)
 
     def __post_init__(self):
         if self.height_px < 16 or self.width_px < 16:
@@ -68,6 +74,9 @@ class SynthConfig:
             raise ConfigError("carla_hazard_fraction must be in [0, 1]")
         if not 0 <= self.fork_fraction <= 1:
             raise ConfigError(f"fork_fraction must be in [0, 1], got {self.fork_fraction}")
+        if not 0 <= self.pace_fork_fraction <= 1 or self.fork_fraction + self.pace_fork_fraction > 1:
+            raise ConfigError(f"pace_fork_fraction must be in [0, 1 - fork_fraction], got {self.pace_fork_fraction} "
+                              f"(fork_fraction {self.fork_fraction})")
         if self.episode_s < 2:
             raise ConfigError("episode_s must be >= 2")
         if not 0 < self.nominal_speed_mps[0] <= self.nominal_speed_mps[1]:
@@ -95,14 +104,18 @@ class EpisodePlan:
     name: str
     fork_group: int | None = None     # counterfactual triple this episode belongs to (fork.py)
     fork_branch: str | None = None    # left / straight / right
+    pace_group: int | None = None     # pace-fork triple (pace.py)
+    pace_branch: str | None = None    # slower / same / faster
 
 
 def plan_episodes(n: int, cfg: SynthConfig) -> list[EpisodePlan]:
     """Episode i's part and driver. Ordinary episodes first (their plans do not depend on ``fork_fraction``),
-    then the fork triples, each triple in one part (parts in turn), expert-driven."""
+    then the fork triples, each triple in one part (parts in turn), expert-driven, then the pace-fork triples
+    (CARLA layout, expert-driven)."""
     n_forks = int(n * cfg.fork_fraction) // 3
+    n_pace = int(n * cfg.pace_fork_fraction) // 3
     plans, k_carla, k_expl = [], 0, 0
-    for i in range(n - 3 * n_forks):
+    for i in range(n - 3 * n_forks - 3 * n_pace):
         part = PARTS[i % 3]
         driver, pattern = "expert", None
         if part == "carla":
@@ -116,6 +129,10 @@ def plan_episodes(n: int, cfg: SynthConfig) -> list[EpisodePlan]:
         for b in FORK_BRANCHES:
             i = len(plans)
             plans.append(EpisodePlan(i, PARTS[g % len(PARTS)], "expert", None, f"synth_{i:04d}", g, b))
+    for g in range(n_pace):
+        for b in PACE_BRANCHES:
+            i = len(plans)
+            plans.append(EpisodePlan(i, "carla", "expert", None, f"synth_{i:04d}", pace_group=g, pace_branch=b))
     return plans
 
 
@@ -137,6 +154,14 @@ def _simulate_episode(plan: EpisodePlan, seed: int, cfg: SynthConfig):
         # a stream of its own per triple (the entropy [seed, group, 3] is no ordinary episode's [seed, index])
         rng = np.random.default_rng([seed, plan.fork_group, len(FORK_BRANCHES)])
         world = build_fork_world(rng, cfg.episode_s, float(rng.uniform(*cfg.nominal_speed_mps)), plan.fork_branch)
+        trace = simulate(world, cfg.episode_s, cfg.sim_hz, rng, "expert")
+        return rng, world, trace, None, score_trace(trace, cfg.sim_hz, None)
+    if plan.pace_group is not None:
+        # a stream of its own per triple ([seed, group, 3, 1]: no junction fork's, no ordinary episode's)
+        rng = np.random.default_rng([seed, plan.pace_group, len(PACE_BRANCHES), 1])
+        world = build_road(rng, cfg.episode_s, float(rng.uniform(*cfg.nominal_speed_mps)),
+                           first_turn_sign=1 if plan.pace_group % 2 == 0 else -1)
+        world = pace_fork(world, rng, cfg.episode_s, plan.pace_branch)
         trace = simulate(world, cfg.episode_s, cfg.sim_hz, rng, "expert")
         return rng, world, trace, None, score_trace(trace, cfg.sim_hz, None)
     rng = np.random.default_rng([seed, plan.index])
@@ -212,7 +237,8 @@ def generate(out: str | Path, episodes: int, seed: int, cfg: SynthConfig | None 
     summary = {"out": str(out), "episodes": episodes, "parts": {p: sum(e["layout"]["reader"] == p for e in gt_eps)
                                                                  for p in PARTS},
                "hazardous": sum(e["driver"] == "explorer" for e in gt_eps),
-               "fork_triples": len({e["fork"]["group"] for e in gt_eps if e["fork"]}), "command_share": share}
+               "fork_triples": len({e["fork"]["group"] for e in gt_eps if e["fork"]}),
+               "pace_triples": len({e["pace"]["group"] for e in gt_eps if e.get("pace")}), "command_share": share}
     return summary
 
 
@@ -286,6 +312,7 @@ def _gt_entry(plan: EpisodePlan, pattern, tr: Trace, score: Score, layout: dict,
         "fork": None if plan.fork_group is None else {
             "group": plan.fork_group, **world.fork,
             "reach_t_s": float(tr.t_s[min(len(tr.t_s) - 1, int(np.searchsorted(tr.route_s_m, world.fork["route_s_m"])))])},
+        "pace": None if plan.pace_group is None else {"group": plan.pace_group, **world.pace},
         "t_s": tr.t_s.tolist(), "x_m": tr.poses[:, 0].tolist(), "y_m": tr.poses[:, 1].tolist(),
         "yaw_rad": tr.poses[:, 2].tolist(), "speed_mps": tr.speed_mps.tolist(),
         "outcome": {"hazard": plan.driver == "explorer", "infraction_score": score.score_penalty,
