@@ -53,6 +53,8 @@ from shards.reader import iter_samples
 REPO = Path(__file__).resolve().parents[1]
 
 K_GRID = np.round(np.arange(0.0, 2.41, 0.1), 2)      # distance scale of the candidate futures
+# latent rows (of 8 at 64 px): the horizon is at 0.42 of the height (synthworld.render.Camera), latent row ~3.4
+REGIONS = {"upper": slice(0, 4), "lower": slice(4, None)}
 
 
 def log(msg: str) -> None:
@@ -138,12 +140,13 @@ def jpeg(img: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
 
 
-def read_scale(future: np.ndarray, cand: np.ndarray, h_lat: int) -> tuple[float, float, np.ndarray]:
+def read_scale(future: np.ndarray, cand: np.ndarray, h_lat: int, rows: slice = slice(None)) -> tuple[float, float, np.ndarray]:
     """The distance scale ``k`` whose candidate matches ``future`` best over the whole future (least squared error
     summed over the future latent frames; parabolic refinement between grid points), the error curve's contrast
     (worst / best MSE: ~1 when no candidate fits better than another), and the best ``k`` per latent frame.
-    ``future``: (T_lat, C, h, w); ``cand``: (K, T_lat, C, h, w)."""
-    mse = ((cand[:, h_lat:] - future[None, h_lat:]) ** 2).mean(axis=(2, 3, 4))      # (K, F)
+    ``future``: (T_lat, C, h, w); ``cand``: (K, T_lat, C, h, w); ``rows``: the latent rows compared (all by default).
+    """
+    mse = ((cand[:, h_lat:, :, rows] - future[None, h_lat:, :, rows]) ** 2).mean(axis=(2, 3, 4))      # (K, F)
     per_frame = np.array([_argmin_refined(mse[:, j]) for j in range(mse.shape[1])])
     m = mse.mean(axis=1)
     return _argmin_refined(m), float(m.max() / max(m.min(), 1e-12)), per_frame
@@ -232,6 +235,12 @@ def main() -> int:
             k, contrast, per_frame = read_scale(lat, cand, h_lat)
             row[name] = {"k": round(k, 3), "contrast": round(contrast, 2), "k_per_latent_frame": per_frame.round(2).tolist(),
                          "dist_m": float(np.interp(k, K_GRID, d_k))}
+            # the same read on the upper latent rows alone (sky, horizon, far scenery) and on the lower (road, near
+            # scenery): a generated video need not be consistent, e.g. its road texture may flow at one speed while
+            # its scenery comes closer at another; an IDM may read one of them, this reader both
+            for region, rs in REGIONS.items():
+                kr = read_scale(lat, cand, h_lat, rs)[0]
+                row[name][f"dist_m_{region}"] = float(np.interp(kr, K_GRID, d_k))
         rows.append(row)
         log(f"clip {i + 1}/{len(clips)} {c.key[:44]}{' (explorer)' if hazard[i] else ''}: k read "
             + "  ".join(f"{n} {row[n]['k']:.2f} (x{row[n]['contrast']:.1f})" for n, _ in reads)
@@ -283,11 +292,18 @@ def summarise(rows: list, scales: list[float], idm_reads: dict) -> dict:
         x = np.array([[r["recorded_dist_m"] * k for k in scales] for r in rr])
         y = np.array([[r[f"given_{k:g}"]["dist_m"] for k in scales] for r in rr])
         sl = _slopes(x, y)
+        regions = {}
+        for region in REGIONS:
+            yr = np.array([[r[f"given_{k:g}"][f"dist_m_{region}"] for k in scales] for r in rr])
+            slr = _slopes(x, yr)
+            regions[region] = {"render_read_dist_m_mean": yr.mean(0).round(2).tolist(),
+                               "within_clip_slope_median": float(np.median(slr)), "within_clip_slope_ci95": _ci(slr)}
         d: dict = {"n": len(rr), "given_dist_m_mean": x.mean(0).round(2).tolist(),
                    "render_read_dist_m_mean": y.mean(0).round(2).tolist(),
                    "render_read_k_median": [float(np.median([r[f"given_{k:g}"]["k"] for r in rr])) for k in scales],
                    "contrast_median": [float(np.median([r[f"given_{k:g}"]["contrast"] for r in rr])) for k in scales],
-                   "within_clip_slope_median": float(np.median(sl)), "within_clip_slope_ci95": _ci(sl)}
+                   "within_clip_slope_median": float(np.median(sl)), "within_clip_slope_ci95": _ci(sl),
+                   "by_region (exploratory)": regions}
         idx = [rows.index(r) for r in rr]
         for path, reads in idm_reads.items():
             yi = np.array([[reads[f"given_{k:g}"][j] for k in scales] for j in idx])
