@@ -13,12 +13,12 @@
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
 # hours on a CPU (~8 s per step on 2 cores). Stages 1c, 1c' and 1d, the VAE's decoder alone, stage 4 (4a-4c), the
-# command taught on counterfactual forks, stages 5-6, the trajectory taught on them too, and stage 8b, the plan
-# given on nearly every clip, always run.
-# Without STAGE_1B: about 8.5 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world;
+# command taught on counterfactual forks, stages 5-6, the trajectory taught on them too, stage 8b, the plan
+# given on nearly every clip, and stage 9, its speed taught on pace forks, always run.
+# Without STAGE_1B: about 9 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world;
 # stage 4c and its 432-episode fork world: about 1 hour; stage 5 and its 216-episode fork world: about 1 hour on
-# a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min; the IDM and Trajectory Difference at the end:
-# ~20 min).
+# a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min; stage 9 and its world: ~30 min; the IDM and
+# Trajectory Difference at the end: ~20 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}
@@ -150,6 +150,16 @@ if [ ! -f "$W/forks77/stats.json" ]; then
      --set sources.synthetic.preset=demo --set 'sources.synthetic.layouts=[carla]' --set encode.vae="$VAE"
 fi
 fork_stage world8b synth-fork-plan forks77 "stage 8b (the plan on 90 % of the clips)"
+# 2f. Stage 9: the same objective on a CARLA-layout world (seed 79, 216 episodes) with pace forks (one history, then
+# the expert at 0.5 / 1 / 1.5 times its speed: only the trajectory tells them apart), junction forks and ordinary drives
+if [ ! -f "$W/pace79/stats.json" ]; then
+  step "pipeline: pace forks, junction forks and ordinary drives (seed 79)"
+  $R pipeline run configs/pipeline/synthetic.yaml --out "$W/pace79" --set sources.synthetic.root="$W/world_pace79" \
+     --set sources.synthetic.episodes=216 --set sources.synthetic.seed=79 --set sources.synthetic.fork_fraction=0.333 \
+     --set sources.synthetic.pace_fork_fraction=0.334 --set sources.synthetic.preset=demo \
+     --set 'sources.synthetic.layouts=[carla]' --set encode.vae="$VAE"
+fi
+fork_stage world9 synth-fork-plan pace79 "stage 9 (pace forks: the trajectory's speed decides the future)"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then

@@ -147,6 +147,8 @@ WORLD_PRESETS["synth-fork-traj"]["model"]["objective"].update(text_drop_prob=0.5
 # half OpenDV layout (no trajectory) the plan reached 40 % of the clips and the closed loop did not change (stage 8);
 # on a CARLA-layout world (every clip has one; 8b) it reached 90 % and the model follows the plan.
 # --set model.init_weights=RUN_STAGE6/final/ema.safetensors
+# Stage 9 (shipped) is this preset again, from 8b's weights, on a world with pace forks (synthworld/pace.py), where
+# only the trajectory's speed tells the futures apart.
 WORLD_PRESETS["synth-fork-plan"] = copy.deepcopy(WORLD_PRESETS["synth-fork-traj"])
 WORLD_PRESETS["synth-fork-plan"].update(preset="synth-fork-plan")
 WORLD_PRESETS["synth-fork-plan"]["model"]["objective"].update(trajectory_drop_prob=0.1)

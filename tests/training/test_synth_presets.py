@@ -1,6 +1,6 @@
 """The synthetic world's named world-model presets resolve to valid configs, and the shipped model's recipe is
 the one its card names: `resim train world --preset synth-fork-plan` gives the objective, learning rate and step
-count that configs/models/synth-world (stage 8b, docs/models/synth-world.md) was trained with."""
+count that configs/models/synth-world (stage 9, with stage 8b's recipe; docs/models/synth-world.md) was trained with."""
 import pytest
 import yaml
 
@@ -33,7 +33,7 @@ def test_synth_fork_plan_reproduces_the_shipped_world_models_recipe():
     traj = from_dict(ObjectiveConfig, resolve_config("world", "synth-fork-traj").model["objective"])
     assert traj.trajectory_drop_prob == traj.text_drop_prob == 0.5 and traj.action_drop_prob == 1.0
     assert traj.trajectory_keep_sources == () and traj.cond_aug_max_t == fork.cond_aug_max_t
-    # stage 8b (shipped): the plan kept on 90 % of the clips that carry one, the command still half the time
+    # stages 8b and 9 (shipped): the plan kept on 90 % of the clips that carry one, the command still half the time
     plan = from_dict(ObjectiveConfig, cfg.model["objective"])
     assert plan.trajectory_drop_prob == 0.1 and plan.text_drop_prob == 0.5 and plan.action_drop_prob == 1.0
     assert plan.trajectory_keep_sources == () and plan.cond_aug_max_t == fork.cond_aug_max_t
