@@ -8,19 +8,10 @@ from labeling.commands import command_from_trajectory
 from labeling.config import LabelerConfig
 from labeling.trajectory import trajectory_from_poses
 from synthworld.fork import FORK_BRANCHES, build_fork_world
-from pipelines.sources.synth.generate import _simulate_episode, generate, plan_episodes, preset
-from synthworld.render import Camera, Renderer
+from pipelines.sources.synth.generate import generate, plan_episodes, preset, render_planned
 from resim.config import ConfigError
 
 HISTORY_FRAMES = 9    # ReSim's clip at 10 Hz: 9 history + 40 future frames
-
-
-def _drive(plan, seed, cfg):
-    """(poses (N, 3) at 10 Hz, frames (N, H, W, 3) uint8) of one planned episode."""
-    rng, world, tr, _, _ = _simulate_episode(plan, seed, cfg)
-    ren = Renderer(world, Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg), rng)
-    steps = range(0, len(tr.t_s), int(cfg.sim_hz // 10))
-    return tr.poses[list(steps)], np.stack([ren.render(tr.poses[s], tr.t_s[s]) for s in steps])
 
 
 @pytest.mark.parametrize("seed", [3, 11])
@@ -28,7 +19,7 @@ def test_branches_share_the_history_frame_for_frame_then_go_left_straight_right(
     cfg = preset("demo", height_px=32, width_px=56, fork_fraction=1.0)
     plans = plan_episodes(3, cfg)
     assert [p.fork_branch for p in plans] == list(FORK_BRANCHES) and {p.fork_group for p in plans} == {0}
-    drives = {p.fork_branch: _drive(p, seed, cfg) for p in plans}
+    drives = {p.fork_branch: render_planned(p, seed, cfg)[::-1] for p in plans}
     n = min(len(f) for _, f in drives.values())
     same = [all(np.array_equal(drives["left"][1][k], drives[b][1][k]) for b in FORK_BRANCHES) for k in range(n)]
     split = same.index(False)          # the first frame where any two branches differ

@@ -5,21 +5,12 @@ import numpy as np
 import pytest
 
 from labeling.trajectory import trajectory_from_poses
-from pipelines.sources.synth.generate import _simulate_episode, generate, plan_episodes, preset
+from pipelines.sources.synth.generate import generate, plan_episodes, preset, render_planned
 from resim.config import ConfigError
 from synthworld.pace import PACE_BRANCHES, pace_fork
-from synthworld.render import Camera, Renderer
 from synthworld.world import build_road
 
 HISTORY_FRAMES = 9
-
-
-def _drive(plan, seed, cfg):
-    """(poses (N, 3) at 10 Hz, frames (N, H, W, 3) uint8) of one planned episode."""
-    rng, world, tr, _, _ = _simulate_episode(plan, seed, cfg)
-    ren = Renderer(world, Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg), rng)
-    steps = range(0, len(tr.t_s), int(cfg.sim_hz // 10))
-    return tr.poses[list(steps)], np.stack([ren.render(tr.poses[s], tr.t_s[s]) for s in steps])
 
 
 @pytest.mark.parametrize("seed", [3, 11])
@@ -28,7 +19,7 @@ def test_branches_share_the_history_frame_for_frame_then_drive_slower_same_faste
     plans = plan_episodes(3, cfg)
     assert [p.pace_branch for p in plans] == list(PACE_BRANCHES) and {p.pace_group for p in plans} == {0}
     assert {p.part for p in plans} == {"carla"}
-    drives = {p.pace_branch: _drive(p, seed, cfg) for p in plans}
+    drives = {p.pace_branch: render_planned(p, seed, cfg)[::-1] for p in plans}
     n = min(len(f) for _, f in drives.values())
     same = [all(np.array_equal(drives["same"][1][k], drives[b][1][k]) for b in PACE_BRANCHES) for k in range(n)]
     split = same.index(False)

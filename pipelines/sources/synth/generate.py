@@ -249,10 +249,15 @@ def render_episode(index: int, seed: int, cfg: SynthConfig, fps_hz: float = 10.0
 
     Returns frames (N, H, W, 3) uint8 RGB and poses (N, 3) float64 [x m, y m, yaw rad unwrapped, left +] in the
     world frame, both at ``fps_hz`` (which must divide ``cfg.sim_hz``)."""
+    return render_planned(EpisodePlan(index, "carla", "expert", None, f"synth_{index:04d}"), seed, cfg, fps_hz)
+
+
+def render_planned(plan: EpisodePlan, seed: int, cfg: SynthConfig,
+                   fps_hz: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`render_episode` for any planned episode (``plan_episodes``: a fork's branch, a pace fork's), in memory."""
     step = cfg.sim_hz / fps_hz
     if not fps_hz > 0 or abs(step - round(step)) > 1e-9:
         raise ConfigError(f"fps_hz {fps_hz} must divide the simulation rate {cfg.sim_hz}")
-    plan = EpisodePlan(index, "carla", "expert", None, f"synth_{index:04d}")
     rng, world, tr, _, _ = _simulate_episode(plan, seed, cfg)
     renderer = Renderer(world, Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg), rng)
     steps = list(range(0, len(tr.t_s), int(round(step))))
