@@ -112,7 +112,8 @@ def test_the_default_leaves_the_data_hash_as_it_was(tmp_path):
     d = to_dict(absolute_paths(cfg))
     for c in (d["clip"], d["sources"]["carla"]["clip"], *d["sources"]["synthetic"]["clip"].values()):
         del c["max_held_frames"]                      # the config as it was before the field existed
-    del d["sources"]["synthetic"]["fork_fraction"]    # (a later field, at its default: left out alike)
+    del d["sources"]["synthetic"]["fork_fraction"]    # (later fields, at their defaults: left out alike)
+    del d["sources"]["synthetic"]["pace_fork_fraction"]
     before = config_hash({k: d[k] for k in ("sources", "clip", "labels", "balance", "quality", "encode", "shards")})
     assert data_config_hash(cfg) == before
     assert data_config_hash(make_config(tmp_path / "o", ["sources.carla.clip={stride_frames: 10, max_held_frames: 3}"])) \
