@@ -43,10 +43,10 @@ import torch
 
 from media.encoders import VideoVAE
 from media.frames import cover_crop
-from pipelines.sources.synth.generate import SynthConfig, _simulate_episode, plan_episodes
+from labeling.trajectory import trajectory_from_poses
+from pipelines.sources.synth.generate import SynthConfig, episode_renderer, plan_episodes
 from pipelines.stages.encode import key_seed
 from resim.config import from_dict
-from synthworld.render import Camera, Renderer
 from training.eval.idm_train import load_idm
 from training.eval.worldeval import WorldRollouts, _idm_on, eval_clips_from_dataset
 from training.sampling.guidance import guidance_preset
@@ -75,16 +75,15 @@ class WorldRebuild:
         gt = json.loads((root / "ground_truth.json").read_text())
         self.by_item = {e["layout"]["item_id"]: e for e in gt["episodes"]}
         self.plans = plan_episodes(n, self.cfg)
-        self.cam = Camera(self.cfg.height_px, self.cfg.width_px, self.cfg.hfov_deg)
         self._cache: dict = {}
 
     def episode(self, item_id: str):
         if item_id not in self._cache:
             e = self.by_item[item_id]
-            rng, world, tr, _, _ = _simulate_episode(self.plans[e["index"]], self.seed, self.cfg)
+            renderer, tr = episode_renderer(self.plans[e["index"]], self.seed, self.cfg)
             if not np.allclose(tr.poses[:, 0], e["x_m"]) or not np.allclose(tr.poses[:, 1], e["y_m"]):
                 raise RuntimeError(f"{item_id}: the rebuilt drive differs from ground_truth.json")
-            self._cache = {item_id: (Renderer(world, self.cam, rng), tr)}   # one at a time: maps are large
+            self._cache = {item_id: (renderer, tr)}   # one at a time: maps are large
         return self._cache[item_id]
 
 
@@ -107,13 +106,6 @@ def path_poses(poses: np.ndarray, t_s: np.ndarray, t0_s: float, times_s: np.ndar
     return out
 
 
-def ego_end(poses: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """The last pose's (x forward, y left) in the frame of ``ref`` (x, y, yaw)."""
-    dx, dy = poses[-1, 0] - ref[0], poses[-1, 1] - ref[1]
-    c, s = np.cos(ref[2]), np.sin(ref[2])
-    return np.array([c * dx + s * dy, -s * dx + c * dy])
-
-
 def candidates(wr: WorldRebuild, clip, start_s: float, vae: VideoVAE,
                hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Latents ``(len(K_GRID), T_lat, C, h, w)`` of the clip's future rendered at each distance scale, and the
@@ -129,9 +121,9 @@ def candidates(wr: WorldRebuild, clip, start_s: float, vae: VideoVAE,
         poses = path_poses(tr.poses, t_s, t_hist, times, float(k))
         frames = [jpeg(cover_crop(renderer.render(p, t), hw), wr.cfg.jpeg_quality) for p, t in zip(poses, times)]
         videos.append(np.stack(frames))
-        ends.append(ego_end(poses, poses[clip.num_history_frames - 1]))
-    lat = np.concatenate([vae.encode(np.stack(videos[i:i + 5]), [key_seed(clip.key)] * len(videos[i:i + 5]))
-                          for i in range(0, len(videos), 5)])
+        ends.append(trajectory_from_poses(poses, clip.num_history_frames - 1, clip.fps_hz)[-1, :2])
+    seeds = [key_seed(clip.key)] * len(videos)
+    lat = np.concatenate([vae.encode(np.stack(videos[i:i + 5]), seeds[i:i + 5]) for i in range(0, len(videos), 5)])
     return lat, np.stack(ends)
 
 
@@ -167,16 +159,12 @@ def _argmin_refined(m: np.ndarray) -> float:
 
 
 def scaled_trajectory(wr: WorldRebuild, clip, start_s: float, k: float) -> np.ndarray:
-    """The clip's trajectory (8, 3) with the distance driven scaled by ``k`` along the recorded path (ego frame of
-    the last history frame, waypoints every 0.5 s, as ``labeling.trajectory``)."""
+    """The clip's trajectory (8, 3) with the distance driven scaled by ``k`` along the recorded path (the shards'
+    ``traj.npy`` at ``k = 1``: ``labeling.trajectory`` on the path's poses every 0.5 s)."""
     _, tr = wr.episode(clip.item_id)
     t_hist = start_s + (clip.num_history_frames - 1) / clip.fps_hz
-    times = t_hist + np.arange(0, 9) * 0.5
-    p = path_poses(tr.poses, np.asarray(tr.t_s), t_hist, times, k)
-    c, s = np.cos(p[0, 2]), np.sin(p[0, 2])
-    dx, dy = p[1:, 0] - p[0, 0], p[1:, 1] - p[0, 1]
-    yaw = np.arctan2(np.sin(p[1:, 2] - p[0, 2]), np.cos(p[1:, 2] - p[0, 2]))
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, yaw], axis=1).astype(np.float32)
+    p = path_poses(tr.poses, np.asarray(tr.t_s), t_hist, t_hist + np.arange(0, 9) * 0.5, k)
+    return trajectory_from_poses(p, 0, fps_hz=2.0)
 
 
 def main() -> int:

@@ -258,11 +258,16 @@ def render_planned(plan: EpisodePlan, seed: int, cfg: SynthConfig,
     step = cfg.sim_hz / fps_hz
     if not fps_hz > 0 or abs(step - round(step)) > 1e-9:
         raise ConfigError(f"fps_hz {fps_hz} must divide the simulation rate {cfg.sim_hz}")
-    rng, world, tr, _, _ = _simulate_episode(plan, seed, cfg)
-    renderer = Renderer(world, Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg), rng)
+    renderer, tr = episode_renderer(plan, seed, cfg)
     steps = list(range(0, len(tr.t_s), int(round(step))))
     frames = np.stack([renderer.render(tr.poses[s], tr.t_s[s]) for s in steps])
     return frames, tr.poses[steps].astype(np.float64)
+
+
+def episode_renderer(plan: EpisodePlan, seed: int, cfg: SynthConfig) -> tuple[Renderer, Trace]:
+    """A planned episode as ``resim synth`` made it: its renderer (any pose, any time) and the driven trace."""
+    rng, world, tr, _, _ = _simulate_episode(plan, seed, cfg)
+    return Renderer(world, Camera(cfg.height_px, cfg.width_px, cfg.hfov_deg), rng), tr
 
 
 def _make_episode(job):
