@@ -24,7 +24,10 @@ world is rebuilt exactly), and the recorded latents decoded and encoded again by
 goes through; no candidate is exact any more).
 
 Per clip and scale: the distance read this way at 4 s, the given one, and each ``--idm``'s reading of the same
-decoded rollout and of the recorded video. Writes OUT/render_match.json and OUT/render_match.png.
+decoded rollout and of the recorded video. Each IDM's own known answer: the clip re-rendered at each given scale (a
+true video of the same path at another speed), raw and through the VAE, read against the render's distance; an IDM
+that has learnt the speed an expert drives on such a road instead of reading the motion fails it.
+Writes OUT/render_match.json and OUT/render_match.png.
 
 A probe script, not a product command: it imports the synthetic world's generator (``pipelines``), which
 ``training`` must not.
@@ -107,10 +110,11 @@ def path_poses(poses: np.ndarray, t_s: np.ndarray, t0_s: float, times_s: np.ndar
 
 
 def candidates(wr: WorldRebuild, clip, start_s: float, vae: VideoVAE,
-               hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Latents ``(len(K_GRID), T_lat, C, h, w)`` of the clip's future rendered at each distance scale, and the
-    end point (x, y) at 4 s of each candidate, in the ego frame of the last history frame. ``start_s``: the clip's
-    first frame in the episode (its ``meta.json``)."""
+               hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, list]:
+    """Latents ``(len(K_GRID), T_lat, C, h, w)`` of the clip's future rendered at each distance scale, the
+    end point (x, y) at 4 s of each candidate, in the ego frame of the last history frame, and the rendered videos
+    (``len(K_GRID)`` of ``(T, H, W, 3)`` uint8). ``start_s``: the clip's first frame in the episode (its
+    ``meta.json``)."""
     renderer, tr = wr.episode(clip.item_id)
     t_s = np.asarray(tr.t_s)
     n = clip.frames.shape[0]
@@ -124,7 +128,7 @@ def candidates(wr: WorldRebuild, clip, start_s: float, vae: VideoVAE,
         ends.append(trajectory_from_poses(poses, clip.num_history_frames - 1, clip.fps_hz)[-1, :2])
     seeds = [key_seed(clip.key)] * len(videos)
     lat = np.concatenate([vae.encode(np.stack(videos[i:i + 5]), seeds[i:i + 5]) for i in range(0, len(videos), 5)])
-    return lat, np.stack(ends)
+    return lat, np.stack(ends), videos
 
 
 def jpeg(img: np.ndarray, quality: int) -> np.ndarray:
@@ -215,12 +219,20 @@ def main() -> int:
     reenc = vae.encode(dec, [key_seed(c.key) for c in clips])   # the recorded latents through the VAE once more
 
     rows = []
+    # the renders at the given scales: true videos of the clip driven at another speed, the IDMs' known answer
+    k_at = {k: int(np.argmin(np.abs(K_GRID - k))) for k in scales}
+    renders: dict = {k: {"video": [], "latent": []} for k in scales}
     t0 = time.perf_counter()
     for i, c in enumerate(clips):
-        cand, ends = candidates(wr, c, starts[i], vae, hw)
+        cand, ends, cand_videos = candidates(wr, c, starts[i], vae, hw)
         d_k = np.hypot(*ends.T)                     # each candidate's end-point distance at 4 s
         row = {"clip": c.key, "item_id": c.item_id, "hazard": hazard[i],
-               "recorded_dist_m": float(np.hypot(*c.trajectory[-1, :2]))}
+               "recorded_dist_m": float(np.hypot(*c.trajectory[-1, :2])),
+               "render_dist_m": {f"{k:g}": float(d_k[j]) for k, j in k_at.items()}}
+        if args.idm:
+            for k, j in k_at.items():
+                renders[k]["video"].append(cand_videos[j])
+                renders[k]["latent"].append(cand[j])
         reads = [("recorded", rec[i]), ("recorded_reencoded", reenc[i])] + [(f"given_{k:g}", gen[k][i]) for k in scales]
         for name, lat in reads:
             k, contrast, per_frame = read_scale(lat, cand, h_lat)
@@ -239,7 +251,10 @@ def main() -> int:
 
     idm_reads = {}
     vids = {"recorded_video": np.stack([c.frames for c in clips]), "recorded_through_vae": dec,
-            **{f"given_{k:g}": runner.decode(clips, torch.from_numpy(gen[k])) for k in scales}} if args.idm else {}
+            **{f"given_{k:g}": runner.decode(clips, torch.from_numpy(gen[k])) for k in scales},
+            **{f"render_{k:g}": np.stack(renders[k]["video"]) for k in scales},
+            **{f"render_{k:g}_through_vae": runner.decode(clips, torch.from_numpy(np.stack(renders[k]["latent"])))
+               for k in scales}} if args.idm else {}
     for path in args.idm:
         idm = load_idm(path, "cpu")[0]
         idm_reads[path] = {n: np.hypot(*_idm_on(idm, v, nh)[:, -1, :2].T).round(3).tolist() for n, v in vids.items()}
@@ -302,6 +317,17 @@ def summarise(rows: list, scales: list[float], idm_reads: dict) -> dict:
             d[f"idm {path}"] = {"read_dist_m_mean": yi.mean(0).round(2).tolist(),
                                 "within_clip_slope_median": float(np.median(sli)), "within_clip_slope_ci95": _ci(sli),
                                 "recorded_video_dist_m_mean": float(np.mean([reads["recorded_video"][j] for j in idx]))}
+            # the IDM's known answer: true renders of the clip at the given scales, distance = the render's own
+            xr = np.array([[rows[j]["render_dist_m"][f"{k:g}"] for k in scales] for j in idx])
+            for name in ("render", "render_through_vae"):
+                suffix = "" if name == "render" else "_through_vae"
+                if f"render_{scales[0]:g}{suffix}" not in reads:
+                    continue
+                yr = np.array([[reads[f"render_{k:g}{suffix}"][j] for k in scales] for j in idx])
+                slr = _slopes(xr, yr)
+                d[f"idm {path}"][f"on_{name}"] = {
+                    "render_dist_m_mean": xr.mean(0).round(2).tolist(), "read_dist_m_mean": yr.mean(0).round(2).tolist(),
+                    "within_clip_slope_median": float(np.median(slr)), "within_clip_slope_ci95": _ci(slr)}
         s[subset] = d
     return s
 

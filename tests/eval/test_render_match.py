@@ -70,3 +70,28 @@ def test_read_scale_finds_the_candidate_a_video_was_made_from(rm):
     hist_changed = base + 1.23 * slope
     hist_changed[:3] += 100.0
     assert abs(rm.read_scale(hist_changed, cand, 3)[0] - 1.23) < 0.02
+
+
+def test_summary_tells_an_idm_that_reads_the_motion_from_one_that_reads_the_scene(rm):
+    # the IDMs' known answer: true renders of each clip at the given scales. A reader of the motion reads the
+    # render's own distance (slope 1); a reader of the scene reads the expert's habitual distance whatever the
+    # speed (slope 0) although it reads every recorded video right
+    rng = np.random.default_rng(1)
+    scales = [0.5, 1.0, 1.5]
+    rec = rng.uniform(15, 35, size=8)
+    rows = []
+    for i, d in enumerate(rec):
+        read = {"k": 1.0, "contrast": 5.0, "dist_m": d, "dist_m_upper": d, "dist_m_lower": d}
+        rows.append({"clip": f"c{i}", "item_id": f"e{i}", "hazard": False, "recorded_dist_m": float(d),
+                     "render_dist_m": {f"{k:g}": float(d * k * 0.98) for k in scales},
+                     "recorded": read, "recorded_reencoded": read, **{f"given_{k:g}": read for k in scales}})
+    def reads(f):
+        return {"recorded_video": rec.tolist(), **{f"given_{k:g}": rec.tolist() for k in scales},
+                **{f"render_{k:g}{s}": [f(r, k) for r in rows] for k in scales for s in ("", "_through_vae")}}
+    s = rm.summarise(rows, scales, {"motion": reads(lambda r, k: r["render_dist_m"][f"{k:g}"] + 0.3),
+                                    "scene": reads(lambda r, k: r["recorded_dist_m"] + 0.1 * k)})
+    motion, scene = s["expert_drivers"]["idm motion"], s["expert_drivers"]["idm scene"]
+    for name in ("on_render", "on_render_through_vae"):
+        assert abs(motion[name]["within_clip_slope_median"] - 1.0) < 1e-6
+        assert abs(scene[name]["within_clip_slope_median"]) < 0.05
+    assert np.allclose(motion["on_render"]["render_dist_m_mean"], [np.mean(rec * k * 0.98) for k in scales], atol=0.01)
