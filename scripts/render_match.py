@@ -337,7 +337,10 @@ def plot(rows: list, scales: list[float], idm_reads: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 1 + len(idm_reads), figsize=(4.2 * (1 + len(idm_reads)), 4), squeeze=False)
+    # a second row where the IDMs read the true renders too: the same IDM on true video of each speed (its known answer)
+    on_renders = any(f"render_{scales[0]:g}_through_vae" in r for r in idm_reads.values())
+    nrows = 2 if on_renders else 1
+    fig, axes = plt.subplots(nrows, 1 + len(idm_reads), figsize=(4.2 * (1 + len(idm_reads)), 4 * nrows), squeeze=False)
     readers = [("re-rendering the world", lambda r, k, j: r[f"given_{k:g}"]["dist_m"])] + \
         [(f"IDM {Path(p).name}", lambda r, k, j, p=p: idm_reads[p][f"given_{k:g}"][j]) for p in idm_reads]
     for ax, (name, read) in zip(axes[0], readers):
@@ -352,6 +355,20 @@ def plot(rows: list, scales: list[float], idm_reads: dict, path: Path) -> None:
         ax.set_title(f"read by {name}", fontsize=9)
     axes[0][0].text(0.02, 0.97, "blue: expert clips, red: explorers\none line per clip", transform=axes[0][0].transAxes,
                     va="top", fontsize=7)
+    if on_renders:
+        axes[1][0].axis("off")
+        axes[1][0].text(0.05, 0.6, "below: each IDM on the true renders of\nthe clip at the given scales, through the\n"
+                        "VAE (its known answer: on the diagonal\nif it reads the motion)", fontsize=9, va="top")
+        for ax, p in zip(axes[1][1:], idm_reads):
+            for j, r in enumerate(rows):
+                xs = [r["render_dist_m"][f"{k:g}"] for k in scales]
+                ax.plot(xs, [idm_reads[p][f"render_{k:g}_through_vae"][j] for k in scales], "-o", ms=3, lw=0.8,
+                        color="tab:red" if r["hazard"] else "tab:blue", alpha=0.7)
+            lim = [0, max(max(r["render_dist_m"].values()) for r in rows) * 1.1]
+            ax.plot(lim, lim, "k:", lw=1)
+            ax.set_xlabel("distance of the true render at 4 s (m)")
+            ax.set_ylabel("distance read (m)")
+            ax.set_title(f"IDM {Path(p).name} on the true renders, through the VAE", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
