@@ -172,11 +172,12 @@ $R eval vae --vae "$VAE" --shards "$W/heldout" --out "$W/eval/vae"
 step "eval commands"
 $R eval commands --checkpoint "$WORLD" --shards "$W/heldout" --all-clips --limit 24 --steps 25 \
    --out "$W/eval/commands"
-# Trajectory Difference needs an IDM: trained on the stage-5 fork world's CARLA-layout clips (1,203 with
-# trajectories; the seed-7 shards' 346 were too few: it overfit and lost to constant velocity), never on seed 1000
+# Trajectory Difference needs an IDM (the shipped synth-idm's recipe, docs/models/synth-idm.md): trained on the
+# seed-79 pace forks, where one scene is driven at three speeds, so it reads the motion and not the speed an expert
+# drives on such a road; shown decoded frames too, as it reads generated video through the VAE; never on seed 1000
 if [ ! -f "$W/idm/idm_report.json" ]; then
-  step "eval idm (for Trajectory Difference)"
-  $R eval idm --preset tiny --shards "$W/forks72" --out "$W/idm"
+  step "eval idm (for Trajectory Difference; ~25 min decoding + 5 min of steps)"
+  $R eval idm --preset tiny --shards "$W/pace79" --out "$W/idm" --decoded-vae "$VAE"
 fi
 step "eval control"
 $R eval control --checkpoint "$WORLD" --shards "$W/heldout" --idm "$W/idm" --all-clips --limit 12 --steps 25 \
