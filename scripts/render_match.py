@@ -326,7 +326,8 @@ def summarise(rows: list, scales: list[float], idm_reads: dict) -> dict:
                 yr = np.array([[reads[f"render_{k:g}{suffix}"][j] for k in scales] for j in idx])
                 slr = _slopes(xr, yr)
                 d[f"idm {path}"][f"on_{name}"] = {
-                    "render_dist_m_mean": xr.mean(0).round(2).tolist(), "read_dist_m_mean": yr.mean(0).round(2).tolist(),
+                    "render_dist_m_mean": xr.mean(0).round(2).tolist(),
+                    "read_dist_m_mean": yr.mean(0).round(2).tolist(),
                     "within_clip_slope_median": float(np.median(slr)), "within_clip_slope_ci95": _ci(slr)}
         s[subset] = d
     return s
@@ -357,8 +358,8 @@ def plot(rows: list, scales: list[float], idm_reads: dict, path: Path) -> None:
                     va="top", fontsize=7)
     if on_renders:
         axes[1][0].axis("off")
-        axes[1][0].text(0.05, 0.6, "below: each IDM on the true renders of\nthe clip at the given scales, through the\n"
-                        "VAE (its known answer: on the diagonal\nif it reads the motion)", fontsize=9, va="top")
+        axes[1][0].text(0.05, 0.6, "this row: each IDM on the true renders\nof the clip at the given scales, through\n"
+                        "the VAE (its known answer: on the\ndiagonal if it reads the motion)", fontsize=9, va="top")
         for ax, p in zip(axes[1][1:], idm_reads):
             for j, r in enumerate(rows):
                 xs = [r["render_dist_m"][f"{k:g}"] for k in scales]
