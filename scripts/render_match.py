@@ -319,13 +319,12 @@ def summarise(rows: list, scales: list[float], idm_reads: dict) -> dict:
                                 "recorded_video_dist_m_mean": float(np.mean([reads["recorded_video"][j] for j in idx]))}
             # the IDM's known answer: true renders of the clip at the given scales, distance = the render's own
             xr = np.array([[rows[j]["render_dist_m"][f"{k:g}"] for k in scales] for j in idx])
-            for name in ("render", "render_through_vae"):
-                suffix = "" if name == "render" else "_through_vae"
+            for suffix in ("", "_through_vae"):
                 if f"render_{scales[0]:g}{suffix}" not in reads:
                     continue
                 yr = np.array([[reads[f"render_{k:g}{suffix}"][j] for k in scales] for j in idx])
                 slr = _slopes(xr, yr)
-                d[f"idm {path}"][f"on_{name}"] = {
+                d[f"idm {path}"][f"on_render{suffix}"] = {
                     "render_dist_m_mean": xr.mean(0).round(2).tolist(),
                     "read_dist_m_mean": yr.mean(0).round(2).tolist(),
                     "within_clip_slope_median": float(np.median(slr)), "within_clip_slope_ci95": _ci(slr)}

@@ -15,10 +15,10 @@
 # hours on a CPU (~8 s per step on 2 cores). Stages 1c, 1c' and 1d, the VAE's decoder alone, stage 4 (4a-4c), the
 # command taught on counterfactual forks, stages 5-6, the trajectory taught on them too, stage 8b, the plan
 # given on nearly every clip, and stage 9, its speed taught on pace forks, always run.
-# Without STAGE_1B: about 9 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world;
+# Without STAGE_1B: about 9.5 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world;
 # stage 4c and its 432-episode fork world: about 1 hour; stage 5 and its 216-episode fork world: about 1 hour on
-# a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min; stage 9 and its world: ~30 min; the IDM and
-# Trajectory Difference at the end: ~20 min).
+# a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min; stage 9 and its world: ~30 min; the IDM (~30 min:
+# it decodes its 2,264 clips through the VAE) and Trajectory Difference at the end: ~35 min).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 W=${1:-runs/synth}

@@ -19,9 +19,9 @@ def test_branches_share_the_history_frame_for_frame_then_go_left_straight_right(
     cfg = preset("demo", height_px=32, width_px=56, fork_fraction=1.0)
     plans = plan_episodes(3, cfg)
     assert [p.fork_branch for p in plans] == list(FORK_BRANCHES) and {p.fork_group for p in plans} == {0}
-    drives = {p.fork_branch: render_planned(p, seed, cfg)[::-1] for p in plans}
-    n = min(len(f) for _, f in drives.values())
-    same = [all(np.array_equal(drives["left"][1][k], drives[b][1][k]) for b in FORK_BRANCHES) for k in range(n)]
+    drives = {p.fork_branch: render_planned(p, seed, cfg) for p in plans}   # (frames, poses)
+    n = min(len(f) for f, _ in drives.values())
+    same = [all(np.array_equal(drives["left"][0][k], drives[b][0][k]) for b in FORK_BRANCHES) for k in range(n)]
     split = same.index(False)          # the first frame where any two branches differ
     assert all(same[:split]) and not any(same[split:])  # identical up to the split, different from it on
     assert split > 3 * 10              # well into the episode: there is a shared history to condition on
@@ -29,10 +29,10 @@ def test_branches_share_the_history_frame_for_frame_then_go_left_straight_right(
     # trajectory command (what the pipeline labels CARLA/NAVSIM clips with) reads each branch as driven
     t = split - 1
     assert t - HISTORY_FRAMES + 1 >= 0
-    read = {b: command_from_trajectory(trajectory_from_poses(drives[b][0], t, 10.0), LabelerConfig())[0]
+    read = {b: command_from_trajectory(trajectory_from_poses(drives[b][1], t, 10.0), LabelerConfig())[0]
             for b in FORK_BRANCHES}
     assert read == {"left": "Turning left", "straight": "Moving forward", "right": "Turning right"}
-    for b, (poses, _) in drives.items():
+    for b, (_, poses) in drives.items():
         turned = np.degrees(poses[-1, 2] - poses[t, 2])
         assert {"left": turned > 60, "straight": abs(turned) < 30, "right": turned < -60}[b], (b, turned)
 

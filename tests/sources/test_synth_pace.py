@@ -19,16 +19,16 @@ def test_branches_share_the_history_frame_for_frame_then_drive_slower_same_faste
     plans = plan_episodes(3, cfg)
     assert [p.pace_branch for p in plans] == list(PACE_BRANCHES) and {p.pace_group for p in plans} == {0}
     assert {p.part for p in plans} == {"carla"}
-    drives = {p.pace_branch: render_planned(p, seed, cfg)[::-1] for p in plans}
-    n = min(len(f) for _, f in drives.values())
-    same = [all(np.array_equal(drives["same"][1][k], drives[b][1][k]) for b in PACE_BRANCHES) for k in range(n)]
+    drives = {p.pace_branch: render_planned(p, seed, cfg) for p in plans}   # (frames, poses)
+    n = min(len(f) for f, _ in drives.values())
+    same = [all(np.array_equal(drives["same"][0][k], drives[b][0][k]) for b in PACE_BRANCHES) for k in range(n)]
     split = same.index(False)
     assert all(same[:split]) and not any(same[split:])     # identical up to the split, different from it on
     assert split >= HISTORY_FRAMES
     # a clip whose history ends at the split: the trajectories go the same way, over distances in the order
     # of the speeds (what the world model must read off the trajectory), and by clearly more than the IDM's error
     t = split - 1
-    ends = {b: trajectory_from_poses(drives[b][0], t, 10.0)[-1] for b in PACE_BRANCHES}
+    ends = {b: trajectory_from_poses(drives[b][1], t, 10.0)[-1] for b in PACE_BRANCHES}
     dist = {b: float(np.hypot(*ends[b][:2])) for b in PACE_BRANCHES}
     assert dist["slower"] + 5 < dist["same"] < dist["faster"] - 5, dist
     assert max(abs(float(ends[b][2] - ends["same"][2])) for b in PACE_BRANCHES) < np.radians(30)
