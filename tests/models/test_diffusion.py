@@ -1,9 +1,11 @@
 """training.diffusion: schedule vs diffusers, v closed forms, noise-level modes, dropout, the loss."""
+import dataclasses
 import math
 
 import pytest
 import torch
 
+from resim.config import ConfigError
 from training.diffusion import ObjectiveConfig, training_losses
 from training.diffusion.noise_levels import sample_noise_levels
 from training.diffusion.schedule import add_noise, alphas_cumprod, v_target
@@ -73,6 +75,27 @@ def test_noise_level_modes():
     assert t[:, 2].max() > 900  # the future level spans the whole range
     with pytest.raises(ValueError, match="num_history_frames"):
         sample_noise_levels(ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=6), 2, 6, g)
+
+
+def test_low_level_fraction_draws_the_low_levels_that_often_and_changes_nothing_at_zero():
+    base = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=2, cond_aug_max_t=100)
+    ref, _ = sample_noise_levels(base, 4096, 6, torch.Generator().manual_seed(3))
+    same, _ = sample_noise_levels(dataclasses.replace(base, low_level_fraction=0.0), 4096, 6,
+                                  torch.Generator().manual_seed(3))
+    assert torch.equal(ref, same)   # the default draws the same random numbers as before the option
+    for mode, hist in (("resim_cond_aug", 2), ("uniform", 0), ("diffusion_forcing", 0)):
+        cfg = dataclasses.replace(base, noise_mode=mode, num_history_frames=hist, low_level_fraction=0.5,
+                                  low_level_max_t=150)
+        t, m = sample_noise_levels(cfg, 4096, 6, torch.Generator().manual_seed(1))
+        fut = t[m].float()
+        # half from U{0..150}, half from U{0..999}: P(t <= 150) = 0.5 + 0.5 * 151 / 1000 = 0.5755
+        assert abs(float((fut <= 150).float().mean()) - 0.5755) < 0.03, mode
+        assert fut.max() > 900, mode      # the rest still spans the whole range
+        if mode == "resim_cond_aug":      # the history's t_aug is untouched, the future still shares one level
+            assert (t[:, 2:] == t[:, 2:3]).all() and t[:, 0].max() <= 100
+    for bad in ({"low_level_fraction": 1.5}, {"low_level_fraction": -0.1}, {"low_level_max_t": 1000}):
+        with pytest.raises(ConfigError, match="low_level"):
+            ObjectiveConfig(**bad)
 
 
 class _Spy(torch.nn.Module):

@@ -62,6 +62,12 @@ class ObjectiveConfig:
     # ``num_history_frames`` / ``latent_frame_dt_s`` above, which stay the fallback for batches without it.
     geometry_from_batch: bool = True
     waypoint_dt_s: float = 0.5
+    # where the future's level is drawn: with probability ``low_level_fraction`` from U{0..low_level_max_t} instead
+    # of U{0..N-1}. Under CogVideoX's SNR-shifted schedule the levels above SNR ~3 (t < 100 of 1000) are 10 % of a
+    # uniform draw, yet that is where a small model's one-step prediction loses the fine detail the flow labeler reads
+    # a turn from (docs/models/synth-world.md, "Where the turn is lost"); 0 (default) = the papers' uniform draw.
+    low_level_fraction: float = 0.0
+    low_level_max_t: int = 150
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
 
     def __post_init__(self) -> None:
@@ -75,6 +81,11 @@ class ObjectiveConfig:
         if self.cond_aug_max_t is not None and not 0 <= self.cond_aug_max_t < n:
             raise ConfigError(f"objective.cond_aug_max_t={self.cond_aug_max_t} must be in [0, num_train_timesteps "
                               f"= {n}) (or null: {n - 1})")
+        if not 0.0 <= self.low_level_fraction <= 1.0:
+            raise ConfigError(f"objective.low_level_fraction={self.low_level_fraction} not in [0, 1]")
+        if not 0 <= self.low_level_max_t < n:
+            raise ConfigError(f"objective.low_level_max_t={self.low_level_max_t} must be in [0, num_train_timesteps "
+                              f"= {n})")
         # durations: actions_from_trajectory divides spans of latent_frame_dt_s by waypoint_dt_s; a zero or
         # negative one gives invalid (all-null) or time-reversed actions without an error
         for name in ("latent_frame_dt_s", "waypoint_dt_s"):

@@ -109,6 +109,18 @@ commands` reads decoded rollouts (capped by the VAE, see its recorded_through_va
 OUT/command_loss.json (per level, per command, per clip) and OUT/command_loss.png.
 """
 
+DETAIL_EPILOG = """\
+example (held-out fork clips, where the recorded futures turn):
+  resim eval detail --checkpoint synth-world --shards data/heldout_forks --all-clips --limit 48 --out out/detail
+
+No sampling: each clip's recorded future is noised to each --levels value (one noise draw, history clean) and the
+model predicts it back in one step under the recorded command; history + prediction is decoded as a rollout is and
+read by the flow labeler. "Heading kept" is the slope of the prediction's heading on that of the recorded future
+through the VAE (1: the turn survives one denoising step from that level; 0: it is lost there). A turn lost in one
+step from the true noisy future cannot come back in a rollout: the model's denoising at that level must improve.
+Writes OUT/detail.json (per level, per clip) and OUT/detail.png.
+"""
+
 CLOSED_LOOP_EPILOG = """\
 example (the shipped synthetic-world models: world model, policy and IDM, trained on fork worlds of other seeds):
   resim eval closed-loop --checkpoint synth-world --shards data/forks --policy synth-policy --idm synth-idm \\
@@ -261,6 +273,32 @@ def register(subparsers) -> None:
                     help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     cl.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
     cl.set_defaults(func=_cmd_command_loss)
+
+    dp = sub.add_parser("detail", help="which noise levels lose a turn? the model's one-step prediction read by the "
+                                       "flow labeler (no sampling)",
+                        description="Noise each clip's recorded future to each level, let the model predict it back "
+                                    "in one step under the recorded command, decode, and read the heading with the "
+                                    "flow labeler against the recorded future's through the VAE.",
+                        epilog=DETAIL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    dp.add_argument("--checkpoint", required=True,
+                    help="world-model run folder (or its final/), or a shipped model name (synth-world)")
+    dp.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
+    dp.add_argument("--out", required=True, help="output folder")
+    dp.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
+    dp.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
+    dp.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
+    dp.add_argument("--levels", type=int, nargs="+", default=[0, 49, 99, 199, 499],
+                    help="noise levels of the future, 0..N-1 of the run's schedule (default 0 49 99 199 499: with "
+                         "CogVideoX's schedule SNR 392, 6.4, 2.7, 0.96, 0.11)")
+    dp.add_argument("--batch-size", type=_positive_int, default=4, help="clips per forward pass and VAE call")
+    dp.add_argument("--seed", type=int, default=0, help="seed of the noise draw (default 0)")
+    dp.add_argument("--vae", type=_local_dir, default=None,
+                    help="local CogVideoX VAE folder (default: the one that encoded --shards)")
+    dp.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
+                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
+    dp.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+    dp.set_defaults(func=_cmd_detail, preset="resim", steps=None, no_guidance=True, guidance_scale=None,
+                    guidance_schedule=None, compile="off", compile_mode="default")
 
     d = sub.add_parser("drift", help="long autoregressive rollouts (30 s): frame statistics vs real frames, per second",
                        description="Roll each clip's history out far past the training horizon and measure how the "
@@ -697,6 +735,49 @@ def _cmd_command_loss(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     _finish(out, "command_loss", rep, text,
             lambda p: plot_command_loss(rep, p, title=f"{rep['clips']} clips: the command read by the model's loss"))
+    return 0
+
+
+def _cmd_detail(args) -> int:
+    from training.eval.commands import balanced_clips
+    from training.eval.detail_probe import detail_probe, format_probe, plot_probe
+    from training.eval.report import format_protocol
+    from training.eval.worldeval import flow_labeler_status
+
+    if not _device(args, "detail"):
+        return 2
+    items = _heldout_items(args.heldout_from, args.all_clips)
+    if items is None and not args.all_clips:
+        raise SystemExit("resim eval detail: give --heldout-from (the episodes to evaluate) or --all-clips")
+    limit, args.limit = args.limit, None
+    clips = [c for c in _clips(args, items, need_trajectory=False) if c.command is not None]
+    if limit is not None:
+        clips = balanced_clips(clips, limit)
+    if not clips:
+        raise SystemExit(f"resim eval detail: no clips with a recorded command in {args.shards}")
+    labeler, reason = flow_labeler_status()
+    if labeler is None:
+        raise SystemExit(f"resim eval detail: {reason}")
+    runner, meta = _runner(args)
+    n = runner.schedule.num_train_timesteps if runner.schedule is not None else 1000
+    bad = [lv for lv in args.levels if not 0 <= lv < n]
+    if bad:
+        raise SystemExit(f"resim eval detail: --levels {bad} not in [0, {n}) (the run's schedule)")
+    print(f"[resim eval detail] {len(clips)} clips x {len(args.levels)} levels, one forward each ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    rep = detail_probe(runner, clips, labeler, args.levels, seed=args.seed,
+                       log=lambda m: print(f"[resim eval detail] {m}", file=sys.stderr, flush=True))
+    rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}), "shards": str(args.shards),
+                       "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else args.heldout_from,
+                       "world_model": {k: meta[k] for k in meta if k not in ("rollout", "guidance_scale_start",
+                                                                           "guidance_schedule")},
+                       "conditions": "the recorded command, no guidance, history clean",
+                       "labeler": "labeling.flow.FlowLabeler preset default on the last history frame + the future",
+                       "seconds": round(time.perf_counter() - t0, 2)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _finish(out, "detail", rep, "\n".join([format_protocol(rep["protocol"]), format_probe(rep)]),
+            lambda p: plot_probe(rep, p))
     return 0
 
 
