@@ -93,7 +93,8 @@ def test_low_level_fraction_draws_the_low_levels_that_often_and_changes_nothing_
         assert fut.max() > 900, mode      # the rest still spans the whole range
         if mode == "resim_cond_aug":      # the history's t_aug is untouched, the future still shares one level
             assert (t[:, 2:] == t[:, 2:3]).all() and t[:, 0].max() <= 100
-    for bad in ({"low_level_fraction": 1.5}, {"low_level_fraction": -0.1}, {"low_level_max_t": 1000}):
+    for bad in ({"low_level_fraction": 1.5}, {"low_level_fraction": -0.1},
+                {"low_level_fraction": 0.5, "low_level_max_t": 1000}):
         with pytest.raises(ConfigError, match="low_level"):
             ObjectiveConfig(**bad)
 

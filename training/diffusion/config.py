@@ -83,7 +83,7 @@ class ObjectiveConfig:
                               f"= {n}) (or null: {n - 1})")
         if not 0.0 <= self.low_level_fraction <= 1.0:
             raise ConfigError(f"objective.low_level_fraction={self.low_level_fraction} not in [0, 1]")
-        if not 0 <= self.low_level_max_t < n:
+        if self.low_level_fraction > 0 and not 0 <= self.low_level_max_t < n:   # unused at 0: any schedule's N
             raise ConfigError(f"objective.low_level_max_t={self.low_level_max_t} must be in [0, num_train_timesteps "
                               f"= {n})")
         # durations: actions_from_trajectory divides spans of latent_frame_dt_s by waypoint_dt_s; a zero or
