@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from training.diffusion.schedule import alphas_cumprod
-from training.eval.detail_probe import detail_probe, format_probe, kept_slope, one_step_predictions
+from training.eval.detail_probe import (detail_probe, format_probe, kept_slope, one_step_predictions,
+                                         paired_kept_difference)
 from training.eval.worldeval import EvalClip
 
 AC = alphas_cumprod()
@@ -107,3 +108,17 @@ def test_the_probe_reads_a_kept_turn_as_kept_and_a_mean_prediction_as_lost():
         assert r["labeler_accuracy"] == pytest.approx(2 / 6)    # every future read "forward": the 2 forward clips
     text = format_probe(bad)
     assert "one step from level 99" in text and "heading kept" in text
+
+
+def test_paired_difference_of_two_models_on_the_same_clips():
+    yaws = [30.0, -40.0, 0.0, 25.0, -20.0, 5.0]
+    clips = _clips(yaws)
+    futures = torch.from_numpy(np.stack([c.latents[H:] for c in clips]))
+    good = detail_probe(_runner(Oracle(futures), clips), clips, Labeler(), levels=(0, 99))
+    bad = detail_probe(_runner(Mean(), clips), clips, Labeler(), levels=(99, 499))
+    diff = paired_kept_difference(good, bad)
+    assert [d["level"] for d in diff] == [99]                 # only the levels both have
+    assert diff[0]["difference"] == pytest.approx(1.0, abs=0.05) and diff[0]["ci95"][0] > 0.9
+    other = detail_probe(_runner(Mean(), clips[:5]), clips[:5], Labeler(), levels=(99,))
+    with pytest.raises(ValueError, match="same clips"):
+        paired_kept_difference(good, other)

@@ -297,6 +297,9 @@ def register(subparsers) -> None:
     dp.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
                     help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     dp.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+    dp.add_argument("--against", default=None,
+                    help="another model's detail.json on the same clips (same --shards, --limit, --seed): also report "
+                         "this model's heading kept minus that one's per level, with a paired bootstrap interval")
     dp.set_defaults(func=_cmd_detail, preset="resim", steps=None, no_guidance=True, guidance_scale=None,
                     guidance_schedule=None, compile="off", compile_mode="default")
 
@@ -740,7 +743,7 @@ def _cmd_command_loss(args) -> int:
 
 def _cmd_detail(args) -> int:
     from training.eval.commands import balanced_clips
-    from training.eval.detail_probe import detail_probe, format_probe, plot_probe
+    from training.eval.detail_probe import detail_probe, format_probe, paired_kept_difference, plot_probe
     from training.eval.report import format_protocol
     from training.eval.worldeval import flow_labeler_status
 
@@ -765,8 +768,24 @@ def _cmd_detail(args) -> int:
         raise SystemExit(f"resim eval detail: --levels {bad} not in [0, {n}) (the run's schedule)")
     print(f"[resim eval detail] {len(clips)} clips x {len(args.levels)} levels, one forward each ...", file=sys.stderr)
     t0 = time.perf_counter()
+    other = None
+    if args.against:
+        try:
+            other = json.loads(Path(args.against).read_text())
+        except (OSError, ValueError) as e:
+            raise SystemExit(f"resim eval detail: --against {args.against}: {e}") from None
     rep = detail_probe(runner, clips, labeler, args.levels, seed=args.seed,
                        log=lambda m: print(f"[resim eval detail] {m}", file=sys.stderr, flush=True))
+    text = format_probe(rep)
+    if other is not None:
+        try:
+            rep["against"] = {"report": str(args.against),
+                              "per_level": paired_kept_difference(rep, other, seed=args.seed)}
+        except (ValueError, KeyError) as e:
+            raise SystemExit(f"resim eval detail: --against {args.against}: {e}") from None
+        text += "\n" + "\n".join(f"level {d['level']}: heading kept minus --against's {d['difference']:+.3f} "
+                                   f"[{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] (paired)"
+                                   for d in rep["against"]["per_level"])
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}), "shards": str(args.shards),
                        "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else args.heldout_from,
                        "world_model": {k: meta[k] for k in meta if k not in ("rollout", "guidance_scale_start",
@@ -776,8 +795,9 @@ def _cmd_detail(args) -> int:
                        "seconds": round(time.perf_counter() - t0, 2)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    _finish(out, "detail", rep, "\n".join([format_protocol(rep["protocol"]), format_probe(rep)]),
-            lambda p: plot_probe(rep, p))
+    others = [("--against", other)] if other is not None else []
+    _finish(out, "detail", rep, "\n".join([format_protocol(rep["protocol"]), text]),
+            lambda p: plot_probe(rep, p, others=others))
     return 0
 
 

@@ -126,6 +126,34 @@ def detail_probe(runner: Any, clips: Sequence[EvalClip], labeler: Any, levels: S
     return rep
 
 
+def paired_kept_difference(rep: dict, other: dict, n_boot: int = 2000, seed: int = 0) -> list[dict]:
+    """Heading kept of ``rep`` minus ``other`` per level both have, with a 95 % paired bootstrap interval over
+    clips (the same clips and noise: each resample takes the same clips from both). Raises ``ValueError`` when the
+    two reports were not read on the same clips (their recorded futures through the VAE differ)."""
+    ref, ref_o = np.asarray(rep["recorded_through_vae"]["yaw_deg"]), np.asarray(other["recorded_through_vae"]["yaw_deg"])
+    if ref.shape != ref_o.shape or not np.allclose(ref, ref_o) or rep["commands"] != other["commands"]:
+        raise ValueError("the two detail reports were not read on the same clips")
+    theirs = {r["level"]: np.asarray(r["yaw_deg"]) for r in other["per_level"]}
+    rng = np.random.default_rng(seed)
+    boots = [rng.integers(0, len(ref), len(ref)) for _ in range(n_boot)]
+
+    def slope(y, idx):
+        den = float(np.sum(ref[idx] ** 2))
+        return float(np.sum(y[idx] * ref[idx]) / den) if den > 0 else float("nan")
+
+    out = []
+    for r in rep["per_level"]:
+        if r["level"] not in theirs:
+            continue
+        mine, o = np.asarray(r["yaw_deg"]), theirs[r["level"]]
+        d = np.array([slope(mine, i) - slope(o, i) for i in boots])
+        d = d[np.isfinite(d)]
+        lo, hi = np.percentile(d, [2.5, 97.5]) if d.size else (float("nan"), float("nan"))
+        out.append({"level": r["level"], "difference": slope(mine, np.arange(len(ref))) - slope(o, np.arange(len(ref))),
+                    "ci95": [float(lo), float(hi)]})
+    return out
+
+
 def format_probe(rep: dict) -> str:
     ref, org = rep["recorded_through_vae"], rep["original"]
     lines = [f"{rep['clips']} clips; heading kept = slope of the prediction's heading on the recorded future's "
