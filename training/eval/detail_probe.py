@@ -172,20 +172,21 @@ def _kept(k: dict) -> str:
     return f"{k['slope']:.2f} [{k['ci95'][0]:.2f}, {k['ci95'][1]:.2f}]"
 
 
-def plot_probe(rep: dict, path, title: str = "", others: Sequence[tuple[str, dict]] = ()) -> None:
-    """Heading kept against the level's SNR (log axis), one line per report (``rep`` and ``others``)."""
+def plot_probe(rep: dict, path, title: str = "", others: Sequence[tuple[str, dict]] = (), name: str = "") -> None:
+    """Heading kept against the level's SNR (log axis), one line per report: ``rep`` (labelled ``name``) and each
+    ``(label, report)`` of ``others``."""
     import matplotlib                                   # heavy, and only the CLI draws
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    for name, r in [("", rep), *others]:
+    for label, r in [(name, rep), *others]:
         rows = [x for x in r["per_level"] if np.isfinite(x["snr"])]
         s = [x["snr"] for x in rows]
         k = np.array([x["kept"]["slope"] for x in rows])
         lo = np.array([x["kept"]["ci95"][0] for x in rows])
         hi = np.array([x["kept"]["ci95"][1] for x in rows])
-        line, = ax.semilogx(s, k, "o-", label=name or "one-step prediction")
+        line, = ax.semilogx(s, k, "o-", label=label or "one-step prediction")
         ax.fill_between(s, lo, hi, color=line.get_color(), alpha=0.15)
     ax.axhline(1.0, color="k", lw=0.8, ls="--", label="the recorded future through the VAE")
     ax.axhline(0.0, color="grey", lw=0.8)
