@@ -164,3 +164,14 @@ def test_help_describes_each_command(capsys):
     assert "--allow-placeholder-networks" in q and "resim eval idm --shards DATA --out runs/idm" in q
     i = _help(capsys, ["eval", "idm"])
     assert all(name in i for name in IDM_PRESETS), i                      # was: "tiny, small (default)"
+
+
+def test_detail_checks_its_inputs_before_loading_the_model(ds, tmp_path, capsys):
+    argv = ["eval", "detail", *_world(ds)]
+    with pytest.raises(SystemExit, match="give --heldout-from .* or --all-clips"):
+        main(argv)
+    with pytest.raises(SystemExit, match="--against .*nope.json"):
+        main([*argv, "--all-clips", "--against", str(tmp_path / "nope.json")])
+    with pytest.raises(SystemExit, match="--checkpoint"):           # the model folder does not exist
+        main([*argv, "--all-clips"])
+    _usage_error(capsys, [*argv, "--all-clips", "--limit", "0"], "--limit")

@@ -200,6 +200,20 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     add_compile_args(p)
 
 
+def _probe_args(p: argparse.ArgumentParser) -> None:
+    """The arguments of the commands that read the model without sampling (command-loss, detail)."""
+    p.add_argument("--checkpoint", required=True,
+                   help="world-model run folder (or its final/), or a shipped model name (synth-world)")
+    p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
+    p.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
+    p.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
+    p.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
+                   help="local T5 folder for prompts not in the table (default: tiny placeholder)")
+    p.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("eval", help="evaluate world models: quality, controllability, planning, IDM",
                               description="Evaluate world models. Each command prints its protocol next to "
@@ -258,20 +272,11 @@ def register(subparsers) -> None:
                                     "under left / forward / right and the null prompt, same noise; accuracy of the "
                                     "lowest loss against the recorded command, and the worth of the command.",
                         epilog=COMMAND_LOSS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    cl.add_argument("--checkpoint", required=True,
-                    help="world-model run folder (or its final/), or a shipped model name (synth-world)")
-    cl.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
-    cl.add_argument("--out", required=True, help="output folder")
-    cl.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
-    cl.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
-    cl.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
+    _probe_args(cl)
     cl.add_argument("--levels", type=int, nargs="+", default=[950, 700, 400],
                     help="noise levels of the future, 0..N-1 of the run's schedule (default 950 700 400)")
     cl.add_argument("--batch-size", type=_positive_int, default=8, help="clips per forward pass")
     cl.add_argument("--seed", type=int, default=0, help="seed of the noise draws (default 0)")
-    cl.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
-                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
-    cl.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
     cl.set_defaults(func=_cmd_command_loss)
 
     dp = sub.add_parser("detail", help="which noise levels lose a turn? the model's one-step prediction read by the "
@@ -280,13 +285,7 @@ def register(subparsers) -> None:
                                     "in one step under the recorded command, decode, and read the heading with the "
                                     "flow labeler against the recorded future's through the VAE.",
                         epilog=DETAIL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    dp.add_argument("--checkpoint", required=True,
-                    help="world-model run folder (or its final/), or a shipped model name (synth-world)")
-    dp.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
-    dp.add_argument("--out", required=True, help="output folder")
-    dp.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
-    dp.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
-    dp.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
+    _probe_args(dp)
     dp.add_argument("--levels", type=int, nargs="+", default=[0, 49, 99, 199, 499],
                     help="noise levels of the future, 0..N-1 of the run's schedule (default 0 49 99 199 499: with "
                          "CogVideoX's schedule SNR 392, 6.4, 2.7, 0.96, 0.11)")
@@ -294,9 +293,6 @@ def register(subparsers) -> None:
     dp.add_argument("--seed", type=int, default=0, help="seed of the noise draw (default 0)")
     dp.add_argument("--vae", type=_local_dir, default=None,
                     help="local CogVideoX VAE folder (default: the one that encoded --shards)")
-    dp.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
-                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
-    dp.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
     dp.add_argument("--against", default=None,
                     help="another model's detail.json on the same clips (same --shards, --limit, --seed): also report "
                          "this model's heading kept minus that one's per level, with a paired bootstrap interval")
@@ -752,6 +748,12 @@ def _cmd_detail(args) -> int:
     items = _heldout_items(args.heldout_from, args.all_clips)
     if items is None and not args.all_clips:
         raise SystemExit("resim eval detail: give --heldout-from (the episodes to evaluate) or --all-clips")
+    other = None
+    if args.against:   # read before anything is loaded: a wrong path fails in a second, not after the probe
+        try:
+            other = json.loads(Path(args.against).read_text())
+        except (OSError, ValueError) as e:
+            raise SystemExit(f"resim eval detail: --against {args.against}: {e}") from None
     limit, args.limit = args.limit, None
     clips = [c for c in _clips(args, items, need_trajectory=False) if c.command is not None]
     if limit is not None:
@@ -768,12 +770,6 @@ def _cmd_detail(args) -> int:
         raise SystemExit(f"resim eval detail: --levels {bad} not in [0, {n}) (the run's schedule)")
     print(f"[resim eval detail] {len(clips)} clips x {len(args.levels)} levels, one forward each ...", file=sys.stderr)
     t0 = time.perf_counter()
-    other = None
-    if args.against:
-        try:
-            other = json.loads(Path(args.against).read_text())
-        except (OSError, ValueError) as e:
-            raise SystemExit(f"resim eval detail: --against {args.against}: {e}") from None
     rep = detail_probe(runner, clips, labeler, args.levels, seed=args.seed,
                        log=lambda m: print(f"[resim eval detail] {m}", file=sys.stderr, flush=True))
     text = format_probe(rep)
