@@ -35,6 +35,7 @@ typical flow (held-out = the episodes the IDM did not train on):
   resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
   resim eval commands --checkpoint runs/wm --shards DATA --all-clips --limit 20 --out out/commands
   resim eval drift    --checkpoint runs/wm --shards DATA --all-clips --limit 4 --out out/drift   # 30 s rollouts
+  resim eval detail   --checkpoint runs/wm --shards DATA --all-clips --limit 48 --out out/detail  # where a turn is lost
   resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --allow-placeholder-networks                                 # plumbing check, random-init networks
   resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
