@@ -28,7 +28,7 @@ ALLOWED = {
     "labeling/cli.py": (4, CLI),
     "training/cli.py": (5, CLI),
     "training/launch.py": (3, CLI),
-    "training/eval/cli.py": (35, CLI),
+    "training/eval/cli.py": (39, CLI),
     "training/sampling/cli.py": (20, CLI),
     "training/reward/cli.py": (20, CLI),
     "training/policy/cli.py": (4, CLI),
