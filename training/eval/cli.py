@@ -297,6 +297,8 @@ def register(subparsers) -> None:
     dp.add_argument("--against", default=None,
                     help="another model's detail.json on the same clips (same --shards, --limit, --seed): also report "
                          "this model's heading kept minus that one's per level, with a paired bootstrap interval")
+    # `_runner` loads the model, VAE and prompts as the sampling commands do; detail never samples, so the sampling
+    # options are fixed here rather than offered
     dp.set_defaults(func=_cmd_detail, preset="resim", steps=None, no_guidance=True, guidance_scale=None,
                     guidance_schedule=None, compile="off", compile_mode="default")
 
@@ -486,13 +488,16 @@ def _runner(args):
     return runner, meta
 
 
-def _clips(args, items, need_trajectory: bool = True):
+def _clips(args, items, need_trajectory: bool = True, round_robin_limit: bool = True):
+    """The clips of --shards (held-out ``items``); --limit takes them round-robin over episodes unless
+    ``round_robin_limit`` is False (the caller then applies it, e.g. balanced over commands)."""
     from training.eval.worldeval import eval_clips_from_dataset
 
     from shards.reader import ShardReadError
 
     try:
-        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit, need_trajectory=need_trajectory)
+        clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit if round_robin_limit else None,
+                                        need_trajectory=need_trajectory)
     except (FileNotFoundError, ShardReadError) as e:
         raise SystemExit(f"resim eval: --shards: {e}") from None
     if not clips:
@@ -755,10 +760,9 @@ def _cmd_detail(args) -> int:
             other = json.loads(Path(args.against).read_text())
         except (OSError, ValueError) as e:
             raise SystemExit(f"resim eval detail: --against {args.against}: {e}") from None
-    limit, args.limit = args.limit, None
-    clips = [c for c in _clips(args, items, need_trajectory=False) if c.command is not None]
-    if limit is not None:
-        clips = balanced_clips(clips, limit)
+    clips = [c for c in _clips(args, items, need_trajectory=False, round_robin_limit=False) if c.command is not None]
+    if args.limit is not None:
+        clips = balanced_clips(clips, args.limit)
     if not clips:
         raise SystemExit(f"resim eval detail: no clips with a recorded command in {args.shards}")
     labeler, reason = flow_labeler_status()
