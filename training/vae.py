@@ -7,10 +7,10 @@ reads: the pipeline's ``VideoVAE`` loads a trained synthetic-world VAE with the 
 Objective: reconstruction MSE in [-1, 1] pixels + ``kl_weight`` x the posterior's KL to N(0, I) per latent
 value. CogVideoX trained its VAE with L1 + LPIPS + KL + a GAN loss (Yang et al. 2024, Sec. 2.1); by default we
 keep MSE + KL: our target is reconstruction PSNR, which MSE optimises directly. Optional terms: L1, L1 on the
-spatial gradients, and an adversarial term against a spatio-temporal patch discriminator trained from scratch
-with the VAE (``adversarial_weight``, training/vae_gan.py); LPIPS needs downloaded weights and is left out. The
-small KL weight keeps the latent close to a unit Gaussian scale without limiting detail (as Stable Diffusion's
-1e-6). The discriminator lives in the trained model (``discriminator.*`` in the run's weights) and is dropped
+spatial gradients, a motion term (the error must move with the original's optical flow, training/vae_motion.py),
+and an adversarial term against a spatio-temporal patch discriminator trained from scratch with the VAE
+(``adversarial_weight``, training/vae_gan.py); LPIPS needs downloaded weights and is left out. The small KL
+weight keeps the latent close to a unit Gaussian scale without limiting detail (as Stable Diffusion's 1e-6). The discriminator lives in the trained model (``discriminator.*`` in the run's weights) and is dropped
 from the exported folder.
 
 Each step crops ``clip_frames`` (1 + 8k) consecutive frames of every clip: 17 frames run the encoder's first
@@ -36,6 +36,7 @@ from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict, safe_yaml
 from training.vae_gan import PatchDiscriminator3D, adversarial_losses
+from training.vae_motion import backward_flow, motion_l1
 
 DISCRIMINATOR_PREFIX = "discriminator."   # its weights in a run's state dict; never in an exported VAE
 
@@ -59,6 +60,10 @@ class VaeTrainConfig:
     # the spatial gradients (the edges and texture the optical-flow labeler tracks; MSE alone averages them away)
     l1_weight: float = 0.0
     gradient_weight: float = 0.0
+    # motion term (0 = off): L1 of the reconstruction error's change along the original's optical flow, i.e. the
+    # error must move with the scene (training/vae_motion.py): texture that stays put while the camera turns is what
+    # the flow labeler cannot read through the VAE
+    motion_weight: float = 0.0
     # adversarial term (0 = off): weight of the generator's hinge loss against a 3D patch discriminator
     # (training/vae_gan.py) that is trained in the same step; discriminator_width: its first layer's channels
     adversarial_weight: float = 0.0
@@ -94,8 +99,10 @@ class VaeTrainConfig:
                               f"{f}, got {list(self.crop_hw)}")
         if self.kl_weight < 0 or self.latent_channels < 1 or self.layers_per_block < 1:
             raise ConfigError("model.kl_weight must be >= 0, latent_channels and layers_per_block >= 1")
-        if not (self.l1_weight >= 0 and self.gradient_weight >= 0 and self.adversarial_weight >= 0):
-            raise ConfigError("model.l1_weight, model.gradient_weight and model.adversarial_weight must be >= 0")
+        if not (self.l1_weight >= 0 and self.gradient_weight >= 0 and self.adversarial_weight >= 0
+                and self.motion_weight >= 0):
+            raise ConfigError("model.l1_weight, model.gradient_weight, model.motion_weight and "
+                              "model.adversarial_weight must be >= 0")
         if not self.discriminator_loss_scale > 0:
             raise ConfigError(f"model.discriminator_loss_scale must be > 0, got {self.discriminator_loss_scale}")
         if self.trainable == "decoder" and self.init_weights is None:
@@ -137,8 +144,8 @@ class TrainableVAE(AutoencoderKLCogVideoX):
 
     def loss(self, batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """``batch.frames`` uint8 ``(B, T, 3, H, W)`` (``data.load_frames``) → (MSE + kl_weight * KL [+ l1_weight *
-        L1 + gradient_weight * gradient L1 + adversarial_weight * generator hinge + discriminator_loss_scale *
-        discriminator hinge], logs).
+        L1 + gradient_weight * gradient L1 + motion_weight * motion L1 + adversarial_weight * generator hinge +
+        discriminator_loss_scale * discriminator hinge], logs).
         The two hinge terms reach only their own player's weights (training/vae_gan.py)."""
         frames = batch.frames if not isinstance(batch, dict) else batch["frames"]
         if frames is None:
@@ -175,6 +182,10 @@ class TrainableVAE(AutoencoderKLCogVideoX):
             g = gradient_l1(rec, x)
             loss = loss + c.gradient_weight * g
             logs["gradient_l1"] = g.detach()
+        if c.motion_weight:
+            m = motion_l1(rec, x, backward_flow(clip).to(x.device))
+            loss = loss + c.motion_weight * m
+            logs["motion_l1"] = m.detach()
         if self.discriminator is not None:   # build_vae sets it: a module, or None (no adversarial term)
             g_loss, d_loss = adversarial_losses(self.discriminator, x, rec)
             loss = loss + c.adversarial_weight * g_loss + c.discriminator_loss_scale * d_loss

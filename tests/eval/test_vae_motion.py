@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from resim.cli import main
-from training.eval.vae_eval import format_vae_eval, motion_through
+from training.eval.vae_eval import format_vae_difference, format_vae_eval, motion_through, paired_vae_difference
 from training.eval.worldeval import flow_labeler_status
 
 REPO = Path(__file__).resolve().parents[2]
@@ -54,6 +54,28 @@ def test_a_blur_keeps_the_heading_a_frozen_reconstruction_loses_it(drives):
                                                          "ssim": {"mean": 0.9}, "clips": 5, "motion": lost})
 
 
+def test_paired_difference_of_two_vaes_on_the_same_clips(drives):
+    """--against: the VAE that blurs minus the one that freezes the motion keeps clearly more of the heading, with
+    a paired interval above 0; reports read on other clips are refused."""
+    frames, clips, labeler = drives
+    blurred = [np.stack([cv2.GaussianBlur(f, (0, 0), 1.0) for f in v]) for v in frames]
+    frozen = [np.stack([v[min(i, 12)] for i in range(len(v))]) for v in frames]
+    blur = {"psnr_db": {"per_clip": [30.0, 31.0, 29.0, 30.5, 30.0]}, "motion": motion_through(labeler, frames, blurred, clips)}
+    lost = {"psnr_db": {"per_clip": [31.0, 32.0, 30.0, 31.5, 31.0]}, "motion": motion_through(labeler, frames, frozen, clips)}
+    d = paired_vae_difference(blur, lost)
+    assert d["psnr_db"]["difference"] == pytest.approx(-1.0) and d["psnr_db"]["ci95"] == pytest.approx([-1.0, -1.0])
+    assert d["heading_kept"]["difference"] > 0.6 and d["heading_kept"]["ci95"][0] > 0.3, d
+    assert d["labeler_on_reconstructions"]["difference"] == pytest.approx(0.8)       # 5/5 against 1/5 right
+    assert "heading kept" in format_vae_difference(d, "lost/vae.json")
+    other = {**lost, "psnr_db": {"per_clip": [31.0] * 4}}
+    with pytest.raises(ValueError, match="different clips"):
+        paired_vae_difference(blur, other)
+    mirrored = [v[:, :, ::-1] for v in frames]                                       # the originals read otherwise
+    elsewhere = {**lost, "motion": motion_through(labeler, mirrored, frozen, clips)}
+    with pytest.raises(ValueError, match="same clips"):
+        paired_vae_difference(blur, elsewhere)
+
+
 @pytest.mark.slow
 def test_eval_vae_reports_motion_through_the_shipped_vae(tmp_path, capsys):
     heldout = REPO / "tests" / "data" / "synth-heldout"
@@ -63,3 +85,10 @@ def test_eval_vae_reports_motion_through_the_shipped_vae(tmp_path, capsys):
     m = rep["motion"]
     assert m["clips"] == 2 and m["labeler_on_originals"]["n"] == 2 and 0 <= m["same_label"] <= 1
     assert "motion: flow-labeler accuracy on originals" in capsys.readouterr().out
+    # --against: a missing report fails before the evaluation; the same VAE against itself differs by nothing
+    args = ["eval", "vae", "--vae", "synth-vae", "--shards", str(heldout), "--limit", "2", "--device", "cpu"]
+    assert main([*args, "--out", str(tmp_path / "b"), "--against", str(tmp_path / "missing.json")]) == 2
+    assert main([*args, "--out", str(tmp_path / "b"), "--against", str(tmp_path / "vae.json")]) == 0
+    d = json.loads((tmp_path / "b" / "vae.json").read_text())["against"]
+    assert d["psnr_db"]["difference"] == pytest.approx(0.0, abs=1e-9) and d["clips"] == 2
+    assert "against" in capsys.readouterr().out

@@ -319,14 +319,20 @@ def register(subparsers) -> None:
                                    "clip's future on the originals and on the reconstructions; its accuracy on the "
                                    "reconstructions is the ceiling of any world model's command accuracy (resim "
                                    "eval commands) through this VAE.",
-                       epilog="example:\n  resim eval vae --vae synth-vae --shards data/heldout --out out/vae\n\n"
+                       epilog="examples:\n  resim eval vae --vae synth-vae --shards data/heldout --out out/vae\n"
+                              "  resim eval vae --vae runs/dec/final/vae --shards data/heldout --out out/dec "
+                              "--against out/vae/vae.json\n\n"
                               "--vae: a folder or a shipped model name (configs/models/NAME). Writes OUT/vae.json "
-                              "and OUT/vae.png.", formatter_class=argparse.RawDescriptionHelpFormatter)
+                              "and OUT/vae.png. --against: the difference from another VAE on the same clips "
+                              "(same --shards and --limit), with paired bootstrap intervals.", formatter_class=argparse.RawDescriptionHelpFormatter)
     v.add_argument("--vae", required=True, help="VAE folder or shipped model name (e.g. synth-vae)")
     v.add_argument("--shards", required=True, help="dataset folder with the held-out clips (frames.mp4)")
     v.add_argument("--out", required=True, help="output folder")
     v.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, round-robin over episodes")
     v.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
+    v.add_argument("--against", default=None,
+                   help="another VAE's vae.json read on the same clips: report this VAE minus that one (PSNR, "
+                        "labeler accuracy through the VAE, heading kept) with paired bootstrap intervals")
     v.set_defaults(func=_cmd_vae)
 
     pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE",
@@ -853,11 +859,19 @@ def _cmd_vae(args) -> int:
     from media.encoders import VideoVAE
     from shards.reader import ShardReadError
     from training.eval.report import write_json
-    from training.eval.vae_eval import format_vae_eval, plot_vae_eval, vae_eval
+    from training.eval.vae_eval import (format_vae_difference, format_vae_eval, paired_vae_difference,
+                                        plot_vae_eval, vae_eval)
     from training.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
 
     if not _device(args, "vae"):
         return 2
+    against = None
+    if args.against:   # read before anything is loaded: a wrong path fails in a second, not after the evaluation
+        try:
+            against = json.loads(Path(args.against).read_text())
+        except (OSError, ValueError) as e:
+            print(f"resim eval vae: --against {args.against}: cannot read it as a vae.json ({e})", file=sys.stderr)
+            return 2
     folder = shipped_model(args.vae)
     if not Path(folder).is_dir():
         print(f"resim eval vae: --vae {args.vae}: no such folder or shipped model", file=sys.stderr)
@@ -884,8 +898,19 @@ def _cmd_vae(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     plot_vae_eval(rep, out / "vae.png", clips[0].fps_hz)
     rep.pop("_examples")
+    diff = None
+    if against is not None:
+        try:
+            diff = rep["against"] = {"report": str(args.against), **paired_vae_difference(rep, against)}
+        except ValueError as e:
+            write_json(rep, out / "vae.json")
+            print(f"resim eval vae: --against {args.against}: {e} (wrote {out / 'vae.json'} without the comparison)",
+                  file=sys.stderr)
+            return 2
     write_json(rep, out / "vae.json")
     print(format_vae_eval(rep))
+    if diff is not None:
+        print(format_vae_difference(diff, args.against))
     print(f"wrote {out / 'vae.json'} and {out / 'vae.png'}")
     return 0
 

@@ -33,34 +33,11 @@ import torch
 
 from training.diffusion.schedule import add_noise, alphas_cumprod
 from training.eval.commands import flow_commands
+from training.eval.heading_kept import kept_slope, paired_slope_difference
 from training.eval.worldeval import EvalClip
 from training.sampling.ddim import v_to_x0_eps
 
 DEFAULT_LEVELS = (0, 49, 99, 199, 499)
-
-
-def _slope(pred: np.ndarray, ref: np.ndarray, idx: np.ndarray) -> float:
-    """Least-squares slope through the origin of ``pred[idx]`` on ``ref[idx]``; NaN where those ``ref`` are all 0."""
-    den = float(np.sum(ref[idx] ** 2))
-    return float(np.sum(pred[idx] * ref[idx]) / den) if den > 0 else float("nan")
-
-
-def _interval(boot: np.ndarray) -> list[float]:
-    boot = boot[np.isfinite(boot)]
-    return [float(v) for v in np.percentile(boot, [2.5, 97.5])] if boot.size else [float("nan"), float("nan")]
-
-
-def kept_slope(pred: np.ndarray, ref: np.ndarray, n_boot: int = 2000, seed: int = 0) -> dict:
-    """Slope through the origin of ``pred`` on ``ref`` (headings in degrees, one per clip) with a 95 % bootstrap
-    interval over clips; NaN where the references are all zero (nothing to keep)."""
-    p, r = np.asarray(pred, np.float64), np.asarray(ref, np.float64)
-    if p.shape != r.shape or p.ndim != 1:
-        raise ValueError(f"pred and ref must be 1-D of one length, got {p.shape} and {r.shape}")
-    est = _slope(p, r, np.arange(len(r)))
-    rng = np.random.default_rng(seed)
-    boot = np.array([_slope(p, r, rng.integers(0, len(r), len(r))) for _ in range(n_boot)]) if len(r) > 1 \
-        else np.array([est])
-    return {"slope": est, "ci95": _interval(boot)}
 
 
 @torch.no_grad()
@@ -138,20 +115,9 @@ def paired_kept_difference(rep: dict, other: dict, n_boot: int = 2000, seed: int
     ref, ref_o = np.asarray(rep["recorded_through_vae"]["yaw_deg"]), np.asarray(other["recorded_through_vae"]["yaw_deg"])
     if ref.shape != ref_o.shape or not np.allclose(ref, ref_o) or rep["commands"] != other["commands"]:
         raise ValueError("the two detail reports were not read on the same clips")
-    theirs = {r["level"]: np.asarray(r["yaw_deg"], np.float64) for r in other["per_level"]}
-    ref = ref.astype(np.float64)
-    rng = np.random.default_rng(seed)
-    boots = [rng.integers(0, len(ref), len(ref)) for _ in range(n_boot)]
-    every = np.arange(len(ref))
-    out = []
-    for r in rep["per_level"]:
-        if r["level"] not in theirs:
-            continue
-        mine, o = np.asarray(r["yaw_deg"], np.float64), theirs[r["level"]]
-        d = np.array([_slope(mine, ref, i) - _slope(o, ref, i) for i in boots])
-        out.append({"level": r["level"], "difference": _slope(mine, ref, every) - _slope(o, ref, every),
-                    "ci95": _interval(d)})
-    return out
+    theirs = {r["level"]: r["yaw_deg"] for r in other["per_level"]}
+    return [{"level": r["level"], **paired_slope_difference(r["yaw_deg"], theirs[r["level"]], ref, n_boot, seed)}
+            for r in rep["per_level"] if r["level"] in theirs]
 
 
 def format_probe(rep: dict) -> str:

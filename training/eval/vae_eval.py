@@ -23,7 +23,11 @@ import torch
 
 from training.eval.commands import confusion, flow_commands
 from training.eval.fidelity import psnr, ssim
+from training.eval.heading_kept import paired_mean_difference, paired_slope_difference
 from training.sampling.outputs import decode_latents
+
+
+TURNING_DEG = 10.0   # the heading change (deg) over a clip's future that counts it as turning for the heading kept
 
 
 def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarray:
@@ -42,14 +46,17 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
     recorded = [c.command for c in clips]
     keep = [i for i, c in enumerate(recorded) if c is not None]
     ry, cy = np.asarray(raw_y), np.asarray(rec_y)
-    turning = np.abs(ry) >= 10.0                                        # the heading a turn shows, in deg
+    turning = np.abs(ry) >= TURNING_DEG
     return {"labeler_on_originals": confusion([recorded[i] for i in keep], [raw_c[i] for i in keep]),
             "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [rec_c[i] for i in keep]),
             "same_label": float(np.mean([a == b for a, b in zip(raw_c, rec_c)])),
             "heading_kept": (float(np.sum(cy[turning] * ry[turning]) / np.sum(ry[turning] ** 2))
                              if turning.any() else None),
             "mean_abs_heading_deg": {"originals": float(np.abs(ry).mean()), "reconstructions": float(np.abs(cy).mean())},
-            "clips": len(clips), "turning_clips": int(turning.sum())}
+            "clips": len(clips), "turning_clips": int(turning.sum()),
+            # per clip, for paired comparisons of two VAEs on the same clips (--against)
+            "per_clip": {"recorded": recorded, "originals_command": list(raw_c), "reconstructions_command": list(rec_c),
+                         "originals_yaw_deg": ry.tolist(), "reconstructions_yaw_deg": cy.tolist()}}
 
 
 def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any = None) -> dict:
@@ -73,12 +80,54 @@ def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any =
             all_recs.extend(rec)
     p, s = torch.cat(per_psnr), torch.cat(per_ssim)                  # (N, T)
     rep = {"psnr_db": {"mean": float(p.mean()), "per_clip_min": float(p.mean(1).min()),
-                       "per_frame": p.mean(0).tolist()},
+                       "per_frame": p.mean(0).tolist(), "per_clip": p.mean(1).tolist()},
            "ssim": {"mean": float(s.mean()), "per_frame": s.mean(0).tolist()},
            "clips": len(clips), "frames_per_clip": int(p.shape[1]), "_examples": examples}
     if labeler is not None:
         rep["motion"] = motion_through(labeler, all_frames, all_recs, clips)
     return rep
+
+
+def paired_vae_difference(rep: dict, other: dict, n_boot: int = 2000, seed: int = 0) -> dict:
+    """This VAE's report minus ``other``'s, read on the same clips: PSNR (mean dB per clip), and, with the
+    motion, the labeler's accuracy on the reconstructions and the heading kept on the turning clips, each with a
+    95 % paired bootstrap interval over clips. Raises ``ValueError`` when the reports were not read on the same
+    clips (their originals read differently) or one lacks the per-clip values (a report of an older resim)."""
+    try:
+        mine, theirs = np.asarray(rep["psnr_db"]["per_clip"]), np.asarray(other["psnr_db"]["per_clip"])
+    except KeyError:
+        raise ValueError("a report has no per-clip PSNR: rerun resim eval vae for it") from None
+    if mine.shape != theirs.shape:
+        raise ValueError(f"the two reports were read on different clips ({len(mine)} against {len(theirs)})")
+    out = {"psnr_db": paired_mean_difference(mine, theirs, n_boot, seed), "clips": len(mine)}
+    m, o = rep.get("motion"), other.get("motion")
+    if m and o:
+        a, b = m.get("per_clip"), o.get("per_clip")
+        if a is None or b is None:
+            raise ValueError("a report has no per-clip motion: rerun resim eval vae for it")
+        ref = np.asarray(a["originals_yaw_deg"])
+        if a["recorded"] != b["recorded"] or not np.allclose(ref, b["originals_yaw_deg"]):
+            raise ValueError("the two reports were not read on the same clips (their originals read differently)")
+        keep = [i for i, c in enumerate(a["recorded"]) if c is not None]
+        right = lambda pc: [float(pc["reconstructions_command"][i] == pc["recorded"][i]) for i in keep]
+        turning = np.abs(ref) >= TURNING_DEG
+        out["labeler_on_reconstructions"] = paired_mean_difference(right(a), right(b), n_boot, seed)
+        out["heading_kept"] = paired_slope_difference(np.asarray(a["reconstructions_yaw_deg"])[turning],
+                                                      np.asarray(b["reconstructions_yaw_deg"])[turning], ref[turning],
+                                                      n_boot, seed)
+    return out
+
+
+def format_vae_difference(diff: dict, other: str) -> str:
+    """One line per measure of :func:`paired_vae_difference`."""
+    names = {"psnr_db": ("PSNR", "dB"), "labeler_on_reconstructions": ("labeler accuracy through the VAE", ""),
+             "heading_kept": ("heading kept", "")}
+    lines = [f"against {other} (the same {diff['clips']} clips, paired bootstrap 95 %):"]
+    for k, (name, unit) in names.items():
+        if k in diff:
+            d = diff[k]
+            lines.append(f"  {name:34s} {d['difference']:+.3f}{unit} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}]")
+    return "\n".join(lines)
 
 
 def format_vae_eval(rep: dict) -> str:
