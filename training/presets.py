@@ -205,12 +205,6 @@ VAE_PRESETS["synth-dec-detail"].update(preset="synth-dec-detail")
 VAE_PRESETS["synth-dec-detail"]["model"].update(gradient_weight=1.0)
 VAE_PRESETS["synth-dec-detail"]["optim"].update(lr=5e-5, warmup_steps=20, schedule="constant")
 VAE_PRESETS["synth-dec-detail"]["trainer"].update(steps=500)
-# the decoder taught to move its texture with the scene: "synth-dec-detail" + the motion term (training/vae_motion.py;
-# docs/models/synth-vae.md, "Stage 1e"). --set model.init_weights=configs/models/synth-vae/diffusion_pytorch_model.safetensors
-VAE_PRESETS["synth-dec-motion"] = copy.deepcopy(VAE_PRESETS["synth-dec-detail"])
-VAE_PRESETS["synth-dec-motion"].update(preset="synth-dec-motion")
-VAE_PRESETS["synth-dec-motion"]["model"].update(motion_weight=1.0)
-VAE_PRESETS["synth-dec-motion"]["trainer"].update(steps=1500, checkpoint_every_steps=100)
 
 # guidance + step distillation of a world model into a few-step student (training/distill.py: CausVid's ODE
 # regression); --set model.teacher=RUN (default: the shipped synthetic world model)
