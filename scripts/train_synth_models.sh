@@ -12,10 +12,10 @@
 # The shipped models have two stages more than this script runs by default: the VAE fine-tuned with an
 # adversarial term on a leased GPU (stage 1b; scripts/gpu_synth_round.sh, run V: 440 s on an H200), then the world
 # model adapted to its latents (stage 3). STAGE_1B=1 runs both here too: the VAE's 1,568 steps at batch 16 take
-# hours on a CPU (~8 s per step on 2 cores). Stages 1c, 1c' and 1d, the VAE's decoder alone, stage 4 (4a-4c), the
+# hours on a CPU (~8 s per step on 2 cores). Stages 1c, 1c', 1d and 1e, the VAE's decoder alone, stage 4 (4a-4c), the
 # command taught on counterfactual forks, stages 5-6, the trajectory taught on them too, stage 8b, the plan
 # given on nearly every clip, and stage 9, its speed taught on pace forks, always run.
-# Without STAGE_1B: about 9.5 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world;
+# Without STAGE_1B: about 10 hours on 2 cores (stages 1c, 1c' and 1d: ~2.5 hours with 1d's 360-episode world; 1e ~40 min;
 # stage 4c and its 432-episode fork world: about 1 hour; stage 5 and its 216-episode fork world: about 1 hour on
 # a slow day; stage 6: ~45 min; stage 8b and its world: ~30 min; stage 9 and its world: ~30 min; the IDM (~30 min:
 # it decodes its 2,264 clips through the VAE) and Trajectory Difference at the end: ~35 min).
@@ -160,6 +160,15 @@ if [ ! -f "$W/pace79/stats.json" ]; then
      --set 'sources.synthetic.layouts=[carla]' --set encode.vae="$VAE"
 fi
 fork_stage world9 synth-fork-plan pace79 "stage 9 (pace forks: the trajectory's speed decides the future)"
+# 1e (shipped). The VAE's decoder alone, stage 1d's recipe for 1,000 more steps on the frames of stage 9's world
+# (docs/models/synth-vae.md, "Stage 1e"): the encoder, and so every latent above, stays 1b's
+if [ ! -f "$W/vae6/final/vae/config.json" ]; then
+  step "train vae, stage 1e (the decoder alone on the seed-79 frames)"
+  $R train vae --preset synth-dec-detail --shards "$W/pace79" --out "$W/vae6" --set trainer.progress_bar=false \
+     --set trainer.steps=1000 --set trainer.checkpoint_every_steps=100 \
+     --set model.init_weights="$W/vae5/final/vae/diffusion_pytorch_model.safetensors" $( [ -d "$W/vae6/checkpoints" ] && echo --resume )
+fi
+VAE="$W/vae6/final/vae"
 
 # 3. Held-out evaluation: a world of seed 1000 (neither model saw it)
 if [ ! -f "$W/heldout/stats.json" ]; then
