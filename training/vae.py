@@ -10,8 +10,9 @@ keep MSE + KL: our target is reconstruction PSNR, which MSE optimises directly. 
 spatial gradients, a motion term (the error must move with the original's optical flow, training/vae_motion.py),
 and an adversarial term against a spatio-temporal patch discriminator trained from scratch with the VAE
 (``adversarial_weight``, training/vae_gan.py); LPIPS needs downloaded weights and is left out. The small KL
-weight keeps the latent close to a unit Gaussian scale without limiting detail (as Stable Diffusion's 1e-6). The discriminator lives in the trained model (``discriminator.*`` in the run's weights) and is dropped
-from the exported folder.
+weight keeps the latent close to a unit Gaussian scale without limiting detail (as Stable Diffusion's 1e-6). The
+discriminator lives in the trained model (``discriminator.*`` in the run's weights) and is dropped from the
+exported folder.
 
 Each step crops ``clip_frames`` (1 + 8k) consecutive frames of every clip: 17 frames run the encoder's first
 9-frame chunk and one cached 8-frame chunk, i.e. the same causal-cache path as a 49-frame clip at inference.

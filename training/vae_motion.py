@@ -2,9 +2,9 @@
 
 Why: the world model's command accuracy is read off decoded video by the optical-flow labeler, and through the
 synthetic world's VAE it reads about a third of the originals' turn (docs/models/synth-vae.md). Measured per frame
-pair, the reconstructions' yaw rate is 0.2-0.4 of the originals' at every position in a 4-frame latent group, not
-only across group boundaries: the decoder draws texture that does not follow the camera (it stays where the 8 x 8
-latent cells put it), so the flow has little moving texture to read.
+pair, the reconstructions' yaw rate is 0.2-0.4 of the originals' at every position in a 4-frame latent group, while
+frames 4 apart are shifted as in the originals: inside a group the decoded texture barely moves and then catches
+up, so the frame-to-frame flow has little motion to read.
 
 Pixel losses do not see this. MSE, L1 and the spatial-gradient term score each frame alone; the temporal-difference
 term tried before (``|Δt x̂ − Δt x|``, the same pixel in two frames) asks the reconstruction error to *stay put*,
@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-FLOW_UPSCALE = 2   # flow is estimated on frames upsampled 2x: the ego motion is ~0.5-1 px per frame at 64 x 96
+FLOW_UPSCALE = 2   # flow is estimated on frames upsampled 2x: the ego motion is ~0.5-2 px per frame at 64 x 96
 
 
 def backward_flow(frames: torch.Tensor) -> torch.Tensor:

@@ -87,7 +87,8 @@ def test_eval_vae_reports_motion_through_the_shipped_vae(tmp_path, capsys):
     assert "motion: flow-labeler accuracy on originals" in capsys.readouterr().out
     # --against: a missing report fails before the evaluation; the same VAE against itself differs by nothing
     args = ["eval", "vae", "--vae", "synth-vae", "--shards", str(heldout), "--limit", "2", "--device", "cpu"]
-    assert main([*args, "--out", str(tmp_path / "b"), "--against", str(tmp_path / "missing.json")]) == 2
+    with pytest.raises(SystemExit, match="--against .*missing.json"):
+        main([*args, "--out", str(tmp_path / "b"), "--against", str(tmp_path / "missing.json")])
     assert main([*args, "--out", str(tmp_path / "b"), "--against", str(tmp_path / "vae.json")]) == 0
     d = json.loads((tmp_path / "b" / "vae.json").read_text())["against"]
     assert d["psnr_db"]["difference"] == pytest.approx(0.0, abs=1e-9) and d["clips"] == 2

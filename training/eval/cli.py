@@ -512,6 +512,17 @@ def _clips(args, items, need_trajectory: bool = True, round_robin_limit: bool = 
     return clips
 
 
+def _read_against(path: str | None, cmd: str) -> dict | None:
+    """The ``--against`` report of ``resim eval CMD`` (None without one). Read before anything is loaded, so a wrong
+    path fails in a second, not after the evaluation."""
+    if not path:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"resim eval {cmd}: --against {path}: cannot read it as a {cmd}.json ({e})") from None
+
+
 def _finish(out: Path, name: str, report: dict, text: str, png_fn) -> None:
     from training.eval.report import write_json
 
@@ -760,12 +771,7 @@ def _cmd_detail(args) -> int:
     items = _heldout_items(args.heldout_from, args.all_clips)
     if items is None and not args.all_clips:
         raise SystemExit("resim eval detail: give --heldout-from (the episodes to evaluate) or --all-clips")
-    other = None
-    if args.against:   # read before anything is loaded: a wrong path fails in a second, not after the probe
-        try:
-            other = json.loads(Path(args.against).read_text())
-        except (OSError, ValueError) as e:
-            raise SystemExit(f"resim eval detail: --against {args.against}: {e}") from None
+    other = _read_against(args.against, "detail")
     clips = [c for c in _clips(args, items, need_trajectory=False, round_robin_limit=False) if c.command is not None]
     if args.limit is not None:
         clips = balanced_clips(clips, args.limit)
@@ -865,13 +871,7 @@ def _cmd_vae(args) -> int:
 
     if not _device(args, "vae"):
         return 2
-    against = None
-    if args.against:   # read before anything is loaded: a wrong path fails in a second, not after the evaluation
-        try:
-            against = json.loads(Path(args.against).read_text())
-        except (OSError, ValueError) as e:
-            print(f"resim eval vae: --against {args.against}: cannot read it as a vae.json ({e})", file=sys.stderr)
-            return 2
+    against = _read_against(args.against, "vae")
     folder = shipped_model(args.vae)
     if not Path(folder).is_dir():
         print(f"resim eval vae: --vae {args.vae}: no such folder or shipped model", file=sys.stderr)

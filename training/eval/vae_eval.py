@@ -23,7 +23,7 @@ import torch
 
 from training.eval.commands import confusion, flow_commands
 from training.eval.fidelity import psnr, ssim
-from training.eval.heading_kept import paired_mean_difference, paired_slope_difference
+from training.eval.heading_kept import paired_mean_difference, paired_slope_difference, slope
 from training.sampling.outputs import decode_latents
 
 
@@ -50,8 +50,7 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
     return {"labeler_on_originals": confusion([recorded[i] for i in keep], [raw_c[i] for i in keep]),
             "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [rec_c[i] for i in keep]),
             "same_label": float(np.mean([a == b for a, b in zip(raw_c, rec_c)])),
-            "heading_kept": (float(np.sum(cy[turning] * ry[turning]) / np.sum(ry[turning] ** 2))
-                             if turning.any() else None),
+            "heading_kept": slope(cy, ry, np.flatnonzero(turning)) if turning.any() else None,
             "mean_abs_heading_deg": {"originals": float(np.abs(ry).mean()), "reconstructions": float(np.abs(cy).mean())},
             "clips": len(clips), "turning_clips": int(turning.sum()),
             # per clip, for paired comparisons of two VAEs on the same clips (--against)
