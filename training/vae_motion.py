@@ -25,7 +25,9 @@ are uint8 frames, the flow carries no gradient, and at 64 x 96 it costs ~1 ms pe
 **Measured: it does not keep the heading** (docs/models/synth-vae.md, "Stage 1e"). The synthetic world's decoder
 fine-tuned with it at weight 1 for 300 steps, against the same run without it, on 48 fresh clips: heading kept
 −0.008 [−0.025, +0.008], PSNR −0.55 dB. The term is small for errors of low spatial frequency (they barely change
-under a warp of a pixel), so it pays a decoder to blur the texture it cannot place, which is what the labeler reads.
+under a warp of a pixel), so it pays a decoder to blur the texture it cannot place. Blur is not what costs the
+labeler the turn, though (a 2-px Gaussian blur of the originals keeps 0.91 of the heading); a cross-fade between
+the group ends is (0.06), and this term did not remove it (training/eval/group_frames.py).
 No shipped model uses it; it stays an option (``model.motion_weight``, default 0) with that measurement.
 """
 from __future__ import annotations

@@ -93,3 +93,23 @@ def test_eval_vae_reports_motion_through_the_shipped_vae(tmp_path, capsys):
     d = json.loads((tmp_path / "b" / "vae.json").read_text())["against"]
     assert d["psnr_db"]["difference"] == pytest.approx(0.0, abs=1e-9) and d["clips"] == 2
     assert "against" in capsys.readouterr().out
+
+
+def test_the_group_end_reading_sees_through_a_cross_fade_inside_each_group(drives):
+    frames, clips, labeler = drives
+    # what the synthetic world's decoder draws: the group ends in place, a cross-fade between them
+    faded = []
+    for v in frames:
+        f = v.astype(np.float32).copy()
+        for a in range(0, len(v) - 4, 4):
+            for j in range(1, 4):
+                f[a + j] = (1 - j / 4) * v[a] + j / 4 * v[a + 4]
+        faded.append(f.round().astype(np.uint8))
+    rep = motion_through(labeler, frames, faded, clips, group_ends=True)
+    assert rep["heading_kept"] < 0.5, rep["heading_kept"]                  # the labeler, as it reads a rollout
+    g = rep["group_ends"]
+    assert g["heading_kept"] > 0.8 and g["originals_heading_kept"] > 0.8, g
+    assert g["labeler_on_reconstructions"]["accuracy"] == 1.0
+    assert "group-end reading" in format_vae_eval({"psnr_db": {"mean": 30.0, "per_clip_min": 29.0},
+                                                    "ssim": {"mean": 0.9}, "clips": 5, "motion": rep})
+    assert "group_ends" not in motion_through(labeler, frames, faded, clips)

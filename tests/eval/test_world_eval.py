@@ -242,10 +242,14 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
     road_world.write_shards(ds, 2, 21, clip_stride_frames=10, seed=1, frames_hw=(64, 96), spec=spec)
     out = root / "commands"
-    assert main(["eval", "commands", *_common(root, ds, out), "--all-clips"]) == 0
+    assert main(["eval", "commands", *_common(root, ds, out), "--all-clips", "--group-ends"]) == 0
     rep = json.loads((out / "commands.json").read_text())
     fl = rep["flow_labeler"]
     n = rep["protocol"]["clips"]
+    # the diagnostic group-end reading: each command's rollouts and both recorded futures, redrawn and read
+    ge = rep["flow_labeler_group_ends"]
+    assert ge["commanded"]["n"] == 3 * n and ge["recorded_through_vae"]["n"] == ge["recorded_future"]["n"] == n
+    assert set(ge["mean_yaw_deg"]) == {*fl["mean_yaw_deg"]} - {"null prompt"}
     # the clips' own latents decoded as a rollout is: the ceiling of any world model through this VAE
     assert fl["recorded_through_vae"]["n"] == fl["recorded_future"]["n"] == n
     assert "recorded through the VAE" in fl["mean_yaw_deg"]
@@ -253,7 +257,8 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
     assert set(fl["mirror_check_deg"]) == set(fl["mean_yaw_deg"]) - {"recorded through the VAE"}
     assert all("recorded_through_vae_flow" in c for c in rep["clips"])
     assert "no counterfactual clips" in rep["branches"]["skipped"]      # the road world has no forks
-    assert "recorded_through_vae" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "recorded_through_vae" in printed and "group-end reading" in printed
     with pytest.raises(SystemExit, match="--counterfactual-only: no two clips .* share a history"):
         main(["eval", "commands", *_common(root, ds, root / "commands-cf"), "--all-clips", "--counterfactual-only"])
 

@@ -266,6 +266,10 @@ def register(subparsers) -> None:
                     help="also roll each fork's history out with the null prompt under each sibling's recorded "
                          "trajectory and score the branch it lands on (forks whose clips carry trajectories: the "
                          "CARLA layout's; about 3 more rollouts per such clip)")
+    cm.add_argument("--group-ends", action="store_true",
+                    help="diagnostic: also read every video with the frames inside each 4-frame latent group "
+                         "redrawn by optical-flow interpolation between the group ends (what the latents turn, "
+                         "without the decoder's cross-fade inside a group; adds ~1 s per video)")
     cm.set_defaults(func=_cmd_commands)
 
     cl = sub.add_parser("command-loss", help="does the model use the command? its loss under each command (no sampling)",
@@ -333,6 +337,10 @@ def register(subparsers) -> None:
     v.add_argument("--against", default=None,
                    help="another VAE's vae.json read on the same clips: report this VAE minus that one (PSNR, "
                         "labeler accuracy through the VAE, heading kept) with paired bootstrap intervals")
+    v.add_argument("--group-ends", action="store_true",
+                   help="diagnostic: also read the motion with the frames inside each 4-frame latent group redrawn "
+                        "by optical-flow interpolation between the group ends (how much of the heading the decoder "
+                        "loses inside a group), on reconstructions and originals")
     v.set_defaults(func=_cmd_vae)
 
     pl = sub.add_parser("planning", help="video-prediction policy (rollout + IDM) vs VO planner vs CV: ADE/FDE",
@@ -712,7 +720,7 @@ def _cmd_commands(args) -> int:
           f"{clips[0].latents.shape[0]} latent frames, {runner.cfg.num_steps} DDIM steps ...", file=sys.stderr)
     t0 = time.perf_counter()
     rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons,
-                        trajectory_branches=args.trajectory_branches)
+                        trajectory_branches=args.trajectory_branches, group_ends=args.group_ends)
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     recorded = [c.command for c in clips]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
@@ -889,7 +897,7 @@ def _cmd_vae(args) -> int:
     labeler, why_not = flow_labeler_status()
     if labeler is None:
         print(f"[resim eval vae] motion through the VAE not measured: {why_not}", file=sys.stderr)
-    rep = vae_eval(vae, clips, labeler=labeler)
+    rep = vae_eval(vae, clips, labeler=labeler, group_ends=args.group_ends)
     rep["protocol"] = {"vae": str(folder), "vae_placeholder": vae.info.placeholder, "shards": str(args.shards),
                        "episodes": len({c.item_id for c in clips}), "resolution_hw": list(clips[0].frames.shape[1:3]),
                        "round_trip": "VideoVAE.encode (posterior sample x scaling factor, seed = clip index) -> "

@@ -23,6 +23,9 @@ anything". The protocol (counterfactual commands from one history):
   trajectory: each history is rolled out with the null prompt under each sibling's recorded trajectory and
   scored the same way. The trajectory is then the only thing that tells the branches apart, so this reads
   ReSim's trajectory conditioning without the IDM, whose error on this world is close to constant velocity's.
+* **the group-end reading** (``group_ends=True``), a diagnostic: the labeler on the same videos with the frames
+  inside each latent group redrawn from the group ends (``training.eval.group_frames``). A decoder that cross-fades
+  between group ends hides a turn from the labeler; this reading shows what the latents turn without it.
 
 The rollouts are done by :class:`training.eval.worldeval.WorldRollouts`, so they use the sampler users use.
 """
@@ -39,6 +42,7 @@ from shards.schema import COMMANDS
 from training.eval.branches import (branch_matching, counterfactual_groups, sibling_trajectory_requests,
                                     trajectory_groups)
 from training.eval.fidelity import psnr, ssim
+from training.eval.group_frames import redraw_all
 from training.eval.worldeval import EvalClip, WorldRollouts, _idm_on
 
 NULL = "null prompt"
@@ -101,10 +105,12 @@ def fidelity_per_horizon(gen: np.ndarray, ref: np.ndarray, num_history_frames: i
 
 
 def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any, *, idm: Any = None,
-                  horizons_s: Sequence[float] = (0.5, 1.0, 2.0, 4.0), trajectory_branches: bool = False) -> dict:
+                  horizons_s: Sequence[float] = (0.5, 1.0, 2.0, 4.0), trajectory_branches: bool = False,
+                  group_ends: bool = False) -> dict:
     """The protocol above on ``clips`` (one geometry); returns the report (``_videos`` holds the rollouts).
     ``trajectory_branches``: also roll the forks out under their siblings' trajectories (report key
-    ``trajectory_branches``)."""
+    ``trajectory_branches``). ``group_ends``: also the diagnostic reading of :func:`group_end_reading` (report key
+    ``flow_labeler_group_ends``)."""
     if not clips:
         raise ValueError("no clips to evaluate")
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
@@ -123,7 +129,8 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
 
     flow = {k: flow_commands(v, nh, fps, labeler) for k, v in videos.items()}
     gt_flow, gt_yaw = flow_commands(gt, nh, fps, labeler)
-    vae_flow, vae_yaw = flow_commands(runner.decode_recorded(clips), nh, fps, labeler)
+    through_vae = runner.decode_recorded(clips)
+    vae_flow, vae_yaw = flow_commands(through_vae, nh, fps, labeler)
     recorded = [c.command for c in clips]
     rep: dict[str, Any] = {"flow_labeler": {}, "idm": {}}
     cond = [c for c in COMMANDS for _ in range(n)]
@@ -140,6 +147,9 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
     rep["flow_labeler"]["mirror_check_deg"] = {k: labeler_lean(v, flow[k][1], nh, fps, labeler)
                                                for k, v in videos.items()}
     rep["flow_labeler"]["mirror_check_deg"]["recorded future"] = labeler_lean(gt, gt_yaw, nh, fps, labeler)
+    if group_ends:
+        rep["flow_labeler_group_ends"] = group_end_reading(
+            {k: v for k, v in videos.items() if k != NULL}, gt, through_vae, recorded, nh, fps, labeler)
     if idm is not None:
         lcfg = labeler_preset("default")
         by_idm = {k: idm_commands(v, nh, idm, lcfg) for k, v in videos.items()}
@@ -168,6 +178,27 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
                      **{f"flow_{k}": flow[k][0][i] for k in videos}} for i, c in enumerate(clips)]
     rep["_videos"] = {**videos, "recorded": gt}
     return rep
+
+
+def group_end_reading(videos: dict[str, np.ndarray], recorded_video: np.ndarray, through_vae: np.ndarray,
+                      recorded: Sequence[str | None], num_history_frames: int, fps_hz: float, labeler: Any) -> dict:
+    """The flow labeler on the videos with the frames inside each latent group redrawn from the group ends
+    (training/eval/group_frames.py): what the rollouts' latents turn, without the decoder's cross-fade between
+    group ends. A diagnostic beside the labeler on the decoded frames, which stays the measure. ``videos``: command
+    → uint8 ``(N, T, H, W, 3)`` rollouts under it; the recorded future (originals, the reading's own ceiling) and
+    the recorded future through the VAE are redrawn and read alike."""
+    flow = {k: flow_commands(redraw_all(v), num_history_frames, fps_hz, labeler) for k, v in videos.items()}
+    gt_c, gt_y = flow_commands(redraw_all(recorded_video), num_history_frames, fps_hz, labeler)
+    vae_c, vae_y = flow_commands(redraw_all(through_vae), num_history_frames, fps_hz, labeler)
+    cond = [c for c in videos for _ in range(len(recorded_video))]
+    mean = {k: float(np.mean(v[1])) for k, v in flow.items()}
+    return {"commanded": confusion(cond, [lab for c in videos for lab in flow[c][0]]),
+            "recorded_future": confusion(list(recorded), gt_c),
+            "recorded_through_vae": confusion(list(recorded), vae_c),
+            "mean_yaw_deg": {**mean, "recorded future": float(np.mean(gt_y)),
+                             "recorded through the VAE": float(np.mean(vae_y))},
+            "what": "frames inside each 4-frame latent group redrawn by optical-flow interpolation between the "
+                    "group ends, then read by the flow labeler: a diagnostic, not the target's measure"}
 
 
 def trajectory_branch_eval(runner: WorldRollouts, clips: Sequence[EvalClip], groups: Sequence[Sequence[int]],

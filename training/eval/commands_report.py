@@ -33,6 +33,16 @@ def format_commands(rep: dict) -> str:
         lines.append("  the labeler's own lean on these videos, (heading + heading mirrored) / 2 (deg; ~0: a lean "
                      "above is the videos'): " + "  ".join(f"{SHORT.get(k, k)} {v:+.1f}"
                                                             for k, v in fl["mirror_check_deg"].items()))
+    ge = rep.get("flow_labeler_group_ends")
+    if ge:
+        lines.append("group-end reading (diagnostic: frames inside each latent group redrawn from the group ends):")
+        for name in ("commanded", "recorded_future", "recorded_through_vae"):
+            c = ge[name]
+            per = "  ".join(f"{SHORT[k]} {v:.2f}" if v is not None else f"{SHORT[k]} n/a"
+                            for k, v in c["per_command"].items())
+            lines.append(f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']}; {per})")
+        lines.append("  mean heading (deg, left +): " + "  ".join(f"{SHORT.get(k, k)} {v:+.1f}"
+                                                               for k, v in ge["mean_yaw_deg"].items()))
     if "branches" in rep:                             # reports written before forks were scored have none
         lines.append(format_branches(rep["branches"]))
     if "trajectory_branches" in rep:

@@ -23,6 +23,7 @@ import torch
 
 from training.eval.commands import confusion, flow_commands
 from training.eval.fidelity import psnr, ssim
+from training.eval.group_frames import redraw_all
 from training.eval.heading_kept import paired_mean_difference, paired_slope_difference, slope
 from training.sampling.outputs import decode_latents
 
@@ -37,9 +38,12 @@ def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarra
 
 
 def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np.ndarray],
-                   clips: Sequence[Any]) -> dict:
+                   clips: Sequence[Any], group_ends: bool = False) -> dict:
     """The flow labeler's command and heading change (deg, left +) of each clip's future, on the originals
-    and on the reconstructions; accuracies against the recorded commands, and how much heading survives."""
+    and on the reconstructions; accuracies against the recorded commands, and how much heading survives.
+    ``group_ends``: also the same reading with the frames inside each latent group redrawn from the group ends
+    (training/eval/group_frames.py, a diagnostic: how much of the loss is the decoder's drawing inside a group),
+    on the reconstructions and, for the reading's own ceiling, on the originals."""
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     raw_c, raw_y = flow_commands(np.stack(frames), nh, fps, labeler)
     rec_c, rec_y = flow_commands(np.stack(recs), nh, fps, labeler)
@@ -47,7 +51,7 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
     keep = [i for i, c in enumerate(recorded) if c is not None]
     ry, cy = np.asarray(raw_y), np.asarray(rec_y)
     turning = np.abs(ry) >= TURNING_DEG
-    return {"labeler_on_originals": confusion([recorded[i] for i in keep], [raw_c[i] for i in keep]),
+    out = {"labeler_on_originals": confusion([recorded[i] for i in keep], [raw_c[i] for i in keep]),
             "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [rec_c[i] for i in keep]),
             "same_label": float(np.mean([a == b for a, b in zip(raw_c, rec_c)])),
             "heading_kept": slope(cy, ry, np.flatnonzero(turning)) if turning.any() else None,
@@ -56,12 +60,25 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
             # per clip, for paired comparisons of two VAEs on the same clips (--against)
             "per_clip": {"recorded": recorded, "originals_command": list(raw_c), "reconstructions_command": list(rec_c),
                          "originals_yaw_deg": ry.tolist(), "reconstructions_yaw_deg": cy.tolist()}}
+    if group_ends:
+        g_raw_c, g_raw_y = flow_commands(redraw_all(np.stack(frames)), nh, fps, labeler)
+        g_rec_c, g_rec_y = flow_commands(redraw_all(np.stack(recs)), nh, fps, labeler)
+        idx = np.flatnonzero(turning)
+        out["group_ends"] = {
+            "labeler_on_originals": confusion([recorded[i] for i in keep], [g_raw_c[i] for i in keep]),
+            "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [g_rec_c[i] for i in keep]),
+            "heading_kept": slope(np.asarray(g_rec_y), ry, idx) if turning.any() else None,
+            "originals_heading_kept": slope(np.asarray(g_raw_y), ry, idx) if turning.any() else None,
+            "what": "frames inside each 4-frame latent group redrawn by optical-flow interpolation between the "
+                    "group ends; heading kept against the originals as they are"}
+    return out
 
 
-def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any = None) -> dict:
+def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any = None,
+             group_ends: bool = False) -> dict:
     """Per-frame PSNR/SSIM over ``clips`` (``EvalClip``: ``.frames`` uint8 (T, H, W, 3)); ``_examples`` holds
     the first batch's originals and reconstructions for the picture. With ``labeler`` (``FlowLabeler``),
-    ``motion`` (:func:`motion_through`): does the ego motion survive the round trip?"""
+    ``motion`` (:func:`motion_through`, with ``group_ends``): does the ego motion survive the round trip?"""
     per_psnr, per_ssim, examples = [], [], None
     all_frames, all_recs = [], []
     for i in range(0, len(clips), batch_size):
@@ -83,7 +100,7 @@ def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any =
            "ssim": {"mean": float(s.mean()), "per_frame": s.mean(0).tolist()},
            "clips": len(clips), "frames_per_clip": int(p.shape[1]), "_examples": examples}
     if labeler is not None:
-        rep["motion"] = motion_through(labeler, all_frames, all_recs, clips)
+        rep["motion"] = motion_through(labeler, all_frames, all_recs, clips, group_ends=group_ends)
     return rep
 
 
@@ -140,6 +157,13 @@ def format_vae_eval(rep: dict) -> str:
                      f"reconstructions {m['labeler_on_reconstructions']['accuracy']:.2f} (the ceiling of a world "
                      f"model's command accuracy through this VAE); same label {m['same_label']:.2f}; heading kept "
                      f"{kept} on {m['turning_clips']} turning clips (1 = all)")
+        g = m.get("group_ends")
+        if g:
+            f = lambda x: "n/a" if x is None else f"{x:.2f}"
+            lines.append(f"group-end reading (diagnostic: frames inside each latent group redrawn from the group "
+                         f"ends): labeler on reconstructions {g['labeler_on_reconstructions']['accuracy']:.2f}, "
+                         f"heading kept {f(g['heading_kept'])}; on the originals redrawn alike (the reading's own "
+                         f"ceiling) {g['labeler_on_originals']['accuracy']:.2f}, {f(g['originals_heading_kept'])}")
     return "\n".join(lines)
 
 
