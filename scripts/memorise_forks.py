@@ -59,15 +59,21 @@ def fork_clips(shards: str, histories: int) -> list:
     raise SystemExit(f"{shards}: {len(picked) // 3} three-way forks, --histories asks for {histories}")
 
 
-def rollouts(model, clips, vae, prompts, schedule, steps: int) -> dict:
+def rollouts(model, clips, vae, prompts, schedule, steps: int, group_ends: bool = False) -> dict:
     rc = {**ROLLOUT_PRESETS["resim"], "num_steps": steps, "guidance": guidance_preset("resim")}
     runner = WorldRollouts(model, vae, from_dict(RolloutConfig, rc), prompts, seed=0, batch_size=8, schedule=schedule)
     lab, _ = flow_labeler_status()
-    rep = commands_eval(runner, clips, lab)
+    rep = commands_eval(runner, clips, lab, group_ends=group_ends)
     fl = rep["flow_labeler"]
-    return {"labeler_commanded": fl["commanded"]["accuracy"], "labeler_matrix": fl["commanded"]["matrix"],
-            "labeler_recorded_through_vae": fl["recorded_through_vae"]["accuracy"],
-            "mean_heading_deg": fl["mean_yaw_deg"], "branches": rep["branches"]}
+    out = {"labeler_commanded": fl["commanded"]["accuracy"], "labeler_matrix": fl["commanded"]["matrix"],
+           "labeler_recorded_through_vae": fl["recorded_through_vae"]["accuracy"],
+           "mean_heading_deg": fl["mean_yaw_deg"], "branches": rep["branches"]}
+    if group_ends:
+        ge = rep["flow_labeler_group_ends"]
+        out["group_ends"] = {"labeler_commanded": ge["commanded"]["accuracy"], "matrix": ge["commanded"]["matrix"],
+                             "recorded_through_vae": ge["recorded_through_vae"]["accuracy"],
+                             "recorded_future": ge["recorded_future"]["accuracy"], "mean_heading_deg": ge["mean_yaw_deg"]}
+    return out
 
 
 def main(argv=None) -> int:
@@ -80,6 +86,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--ddim-steps", type=int, default=25)
+    ap.add_argument("--group-ends", action="store_true",
+                    help="also the group-end reading of resim eval commands --group-ends (diagnostic)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -104,7 +112,7 @@ def main(argv=None) -> int:
               + " / ".join(f"{100 * r['worth_opposite']:+.1f} %" for r in row.values()), file=sys.stderr)
 
     print(f"{len(clips)} clips of {args.histories} forks; rolling out before training ...", file=sys.stderr)
-    report["before"] = rollouts(model.eval(), clips, vae, prompts, schedule, args.ddim_steps)
+    report["before"] = rollouts(model.eval(), clips, vae, prompts, schedule, args.ddim_steps, args.group_ends)
     worth(0)
     x_all = torch.from_numpy(np.stack([c.latents for c in clips])).float()
     text_all = torch.cat([prompts(c) for c in recorded])
@@ -131,12 +139,18 @@ def main(argv=None) -> int:
             worth(step)
     report["train_seconds"] = round(time.perf_counter() - t0, 1)
     torch.save(model.state_dict(), out / "model.pt")
-    report["after"] = rollouts(model.eval().requires_grad_(False), clips, vae, prompts, schedule, args.ddim_steps)
+    report["after"] = rollouts(model.eval().requires_grad_(False), clips, vae, prompts, schedule, args.ddim_steps,
+                               args.group_ends)
     (out / "report.json").write_text(json.dumps(report, indent=1))
     for when in ("before", "after"):
         r = report[when]
         print(f"{when}: flow labeler {r['labeler_commanded']:.3f} (recorded through the VAE "
               f"{r['labeler_recorded_through_vae']:.3f}); {format_branches(r['branches'])}")
+        if "group_ends" in r:
+            g = r["group_ends"]
+            print(f"  group-end reading: flow labeler {g['labeler_commanded']:.3f} (recorded through the VAE "
+                  f"{g['recorded_through_vae']:.3f}, recorded {g['recorded_future']:.3f}); mean heading "
+                  + " / ".join(f"{k} {v:+.1f}" for k, v in g["mean_heading_deg"].items()))
     return 0
 
 
