@@ -19,7 +19,8 @@ al. 2018, "Super SloMo", eq. 4) with OpenCV's DIS flow (:func:`training.vae_moti
 estimator), blended by time without occlusion reasoning. Written here because the field's frame interpolators
 (RIFE, FILM) need downloaded weights; this needs none. On the originals it keeps 0.66-0.85 of the heading (three
 fork worlds): the reading's own ceiling. It can under-read: tight right turns of 55-95° on a seed-80 fork world read
-29-43° (the same mirrored; left turns there read within a few degrees), so read it beside the decoded reading.
+29-43° (the same mirrored; left turns there read within a few degrees): over flat scenery the trees move further
+between group ends than DIS follows, and the redraw blends them. Read it beside the decoded reading.
 """
 from __future__ import annotations
 
