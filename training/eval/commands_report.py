@@ -14,6 +14,12 @@ from training.sampling.outputs import write_gif
 SHORT = {"Turning left": "left", "Moving forward": "forward", "Turning right": "right"}
 
 
+def _confusion_line(name: str, c: dict) -> str:
+    """One row of a confusion table: accuracy, count and recall per command."""
+    per = "  ".join(f"{SHORT[k]} {v:.2f}" if v is not None else f"{SHORT[k]} n/a" for k, v in c["per_command"].items())
+    return f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']}; {per})"
+
+
 def format_commands(rep: dict) -> str:
     fl = rep["flow_labeler"]
     lines = ["command accuracy (flow labeler on the generated future; 1/3 = ignores the command):"]
@@ -21,8 +27,7 @@ def format_commands(rep: dict) -> str:
         c = fl.get(name)
         if c is None:                                  # reports written before the VAE row existed
             continue
-        per = "  ".join(f"{SHORT[k]} {v:.2f}" if v is not None else f"{SHORT[k]} n/a" for k, v in c["per_command"].items())
-        lines.append(f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']}; {per})")
+        lines.append(_confusion_line(name, c))
     if isinstance(rep.get("idm"), dict):
         lines.append("command accuracy (IDM trajectory → command):")
         for name, c in rep["idm"].items():
@@ -36,11 +41,7 @@ def format_commands(rep: dict) -> str:
     ge = rep.get("flow_labeler_group_ends")
     if ge:
         lines.append("group-end reading (diagnostic: frames inside each latent group redrawn from the group ends):")
-        for name in ("commanded", "recorded_future", "recorded_through_vae"):
-            c = ge[name]
-            per = "  ".join(f"{SHORT[k]} {v:.2f}" if v is not None else f"{SHORT[k]} n/a"
-                            for k, v in c["per_command"].items())
-            lines.append(f"  {name:<24} {c['accuracy']:.3f}  (n={c['n']}; {per})")
+        lines += [_confusion_line(name, ge[name]) for name in ("commanded", "recorded_future", "recorded_through_vae")]
         lines.append("  mean heading (deg, left +): " + "  ".join(f"{SHORT.get(k, k)} {v:+.1f}"
                                                                for k, v in ge["mean_yaw_deg"].items()))
     if "branches" in rep:                             # reports written before forks were scored have none

@@ -50,9 +50,9 @@ def redraw_inside_groups(video: np.ndarray, group: int = GROUP_FRAMES) -> np.nda
     if group < 2:
         raise ValueError(f"group must be >= 2 frames, got {group}")
     ends = v[::group]
-    out = v.astype(np.float32)
     if len(ends) < 2:
         return v.copy()
+    out = v.astype(np.float32)
     t = torch.from_numpy(np.ascontiguousarray(ends)).permute(0, 3, 1, 2)[None]      # (1, N, 3, H, W)
     # backward_flow pair k: ends[k+1](p) ≈ ends[k](p + f(p)), i.e. the flow from end k+1 to end k (F_10 below);
     # on the reversed sequence, the flow from end k to end k+1 (F_01)
