@@ -54,6 +54,40 @@ def test_a_blur_keeps_the_heading_a_frozen_reconstruction_loses_it(drives):
                                                          "ssim": {"mean": 0.9}, "clips": 5, "motion": lost})
 
 
+def _by_group(v: np.ndarray, frame_of) -> np.ndarray:
+    return np.stack([v[min(frame_of(t), len(v) - 1)] for t in range(len(v))])
+
+
+def test_heading_kept_by_place_in_the_latent_group(drives):
+    """Where inside a 4-frame latent group the heading goes: kept whole at every place when the frames are the
+    originals; a decoder that holds each group on its end frame moves only across the group boundary (place 0,
+    with four places' worth of motion) and not at all inside; a cross-fade between group ends keeps less than the
+    originals at every place inside the group."""
+    frames, clips, labeler = drives
+    same = motion_through(labeler, frames, frames, clips)["heading_kept_by_group_place"]
+    assert same == pytest.approx([1.0] * 4)
+    held = [_by_group(v, lambda t: 4 * -(-t // 4)) for v in frames]          # frames 1-4 show 4, 5-8 show 8, ...
+    jump = motion_through(labeler, frames, held, clips)
+    places = jump["heading_kept_by_group_place"]
+    assert places[0] > 2.5 and max(abs(p) for p in places[1:]) < 0.2, places
+    assert jump["heading_kept"] > 0.6, jump                                   # the whole turn is still there
+    assert "by the frame's place in its 4-frame latent group" in format_vae_eval(
+        {"psnr_db": {"mean": 30.0, "per_clip_min": 29.0}, "ssim": {"mean": 0.9}, "clips": 5, "motion": jump})
+    fade = [np.stack([v[t] if t % 4 == 0 else
+                      ((1 - (t % 4) / 4) * v[t - t % 4].astype(np.float32)
+                       + (t % 4) / 4 * v[min(t - t % 4 + 4, len(v) - 1)]).round().astype(np.uint8)
+                      for t in range(len(v))]) for v in frames]
+    faded = motion_through(labeler, frames, fade, clips)["heading_kept_by_group_place"]
+    assert max(faded) < 0.8, faded
+
+
+def test_heading_by_place_refuses_clips_that_do_not_match():
+    from training.eval.vae_eval import heading_kept_by_group_place
+    with pytest.raises(ValueError, match="one of each per clip"):
+        heading_kept_by_group_place([np.zeros(40)], [np.zeros(40)] * 2, 9, np.array([True]))
+    assert heading_kept_by_group_place([np.ones(40)], [np.ones(40)], 9, np.array([False])) == [None] * 4
+
+
 def test_paired_difference_of_two_vaes_on_the_same_clips(drives):
     """--against: the VAE that blurs minus the one that freezes the motion keeps clearly more of the heading, with
     a paired interval above 0; reports read on other clips are refused."""

@@ -16,12 +16,12 @@ accuracy through this VAE (a blur of the same PSNR keeps the heading; a VAE that
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
 
-from training.eval.commands import confusion, flow_commands
+from training.eval.commands import confusion, flow_commands, flow_rates
 from training.eval.fidelity import psnr, ssim
 from training.eval.group_frames import redraw_all
 from training.eval.heading_kept import paired_mean_difference, paired_slope_difference, slope
@@ -29,6 +29,31 @@ from training.sampling.outputs import decode_latents
 
 
 TURNING_DEG = 10.0   # the heading change (deg) over a clip's future that counts it as turning for the heading kept
+GROUP_FRAMES = 4     # frames per latent group of the 4x temporal VAE: frame 0 alone, then frames 1-4, 5-8, ...
+
+
+def heading_kept_by_group_place(orig_rates: Sequence[np.ndarray], rec_rates: Sequence[np.ndarray],
+                                num_history_frames: int, turning: np.ndarray,
+                                group: int = GROUP_FRAMES) -> list[Optional[float]]:
+    """Where inside a latent group a VAE loses the heading: for each place ``k`` of a frame in its group (0: the
+    group's first frame, so the pair reaching it crosses from the previous group's end; ``group - 1``: the group's
+    end), the heading kept over the frame pairs that end on such frames, i.e. the slope of the reconstructions'
+    summed yaw over those pairs on the originals' (:func:`training.eval.heading_kept.slope`), over the ``turning``
+    clips (a boolean mask). Per-pair rates as :func:`training.eval.commands.flow_rates` gives them: pair ``j`` ends
+    on frame ``num_history_frames + j``. A decoder that draws a group as a cross-fade between its ends keeps little
+    at every place; one that holds a frame and then jumps keeps it all at place 0 and none at the others."""
+    if len(orig_rates) != len(rec_rates) or len(orig_rates) != len(turning):
+        raise ValueError(f"{len(orig_rates)} original, {len(rec_rates)} reconstructed clips and {len(turning)} "
+                         "turning flags: one of each per clip is needed")
+    idx = np.flatnonzero(turning)
+    if not idx.size:
+        return [None] * group
+    out = []
+    for k in range(group):
+        o = np.array([r[((num_history_frames + np.arange(len(r)) - 1) % group) == k].sum() for r in orig_rates])
+        c = np.array([r[((num_history_frames + np.arange(len(r)) - 1) % group) == k].sum() for r in rec_rates])
+        out.append(slope(c, o, idx))
+    return out
 
 
 def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarray:
@@ -45,8 +70,8 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
     (training/eval/group_frames.py, a diagnostic: how much of the loss is the decoder's drawing inside a group),
     on the reconstructions and, for the reading's own ceiling, on the originals."""
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
-    raw_c, raw_y = flow_commands(np.stack(frames), nh, fps, labeler)
-    rec_c, rec_y = flow_commands(np.stack(recs), nh, fps, labeler)
+    raw_c, raw_y, raw_r = flow_rates(np.stack(frames), nh, fps, labeler)
+    rec_c, rec_y, rec_r = flow_rates(np.stack(recs), nh, fps, labeler)
     recorded = [c.command for c in clips]
     keep = [i for i, c in enumerate(recorded) if c is not None]
     ry, cy = np.asarray(raw_y), np.asarray(rec_y)
@@ -55,6 +80,8 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
             "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [rec_c[i] for i in keep]),
             "same_label": float(np.mean([a == b for a, b in zip(raw_c, rec_c)])),
             "heading_kept": slope(cy, ry, np.flatnonzero(turning)) if turning.any() else None,
+            # 0: frames starting a latent group (the pair from the previous group's end) ... 3: the group's end
+            "heading_kept_by_group_place": heading_kept_by_group_place(raw_r, rec_r, nh, turning),
             "mean_abs_heading_deg": {"originals": float(np.abs(ry).mean()), "reconstructions": float(np.abs(cy).mean())},
             "clips": len(clips), "turning_clips": int(turning.sum()),
             # per clip, for paired comparisons of two VAEs on the same clips (--against)
@@ -157,6 +184,10 @@ def format_vae_eval(rep: dict) -> str:
                      f"reconstructions {m['labeler_on_reconstructions']['accuracy']:.2f} (the ceiling of a world "
                      f"model's command accuracy through this VAE); same label {m['same_label']:.2f}; heading kept "
                      f"{kept} on {m['turning_clips']} turning clips (1 = all)")
+        places = m.get("heading_kept_by_group_place")
+        if places and places[0] is not None:
+            lines.append("heading kept by the frame's place in its 4-frame latent group (first ... group end): "
+                         + " / ".join(f"{p:.2f}" for p in places))
         g = m.get("group_ends")
         if g:
             f = lambda x: "n/a" if x is None else f"{x:.2f}"
