@@ -48,12 +48,12 @@ def heading_kept_by_group_place(orig_rates: Sequence[np.ndarray], rec_rates: Seq
     idx = np.flatnonzero(turning)
     if not idx.size:
         return [None] * group
-    out = []
-    for k in range(group):
-        o = np.array([r[((num_history_frames + np.arange(len(r)) - 1) % group) == k].sum() for r in orig_rates])
-        c = np.array([r[((num_history_frames + np.arange(len(r)) - 1) % group) == k].sum() for r in rec_rates])
-        out.append(slope(c, o, idx))
-    return out
+    def by_place(rates: Sequence[np.ndarray]) -> np.ndarray:           # (clips, group): summed rate per place
+        return np.array([np.bincount((num_history_frames + np.arange(len(r)) - 1) % group, weights=r, minlength=group)
+                         for r in rates])
+
+    o, c = by_place(orig_rates), by_place(rec_rates)
+    return [slope(c[:, k], o[:, k], idx) for k in range(group)]
 
 
 def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarray:
