@@ -77,6 +77,7 @@ class FlowLabeler(FlowSampling, MotionFit):
         self.last_foe_per_pair: np.ndarray | None = None   # (N-1, 2) px from the image centre
         self.last_distance_over_height: np.ndarray | None = None   # (N-1,) d/h per pair, known rig only (else nan)
         self.last_foe_sources: list[str] = []   # per chunk: "rig", "pooled" or "per_pair" (what placed the FOE)
+        self.last_rates_deg_s: np.ndarray | None = None   # (N-1,) the yaw rate per pair the last label summed
         self._start_video(10.0)
 
     def _start_video(self, fps_hz: float) -> None:
@@ -137,9 +138,8 @@ class FlowLabeler(FlowSampling, MotionFit):
         # ~0 when the car stands still, NaN where too little texture to tell (see ``ego_motion_pct_s``)
         self.last_motion_px = np.asarray(self._motion, np.float64)
         self.last_foe_sources = [r[3] for r in res]
-        if not res:
-            return np.zeros(0)
-        return np.degrees(np.concatenate([r[0] for r in res])) * fps_hz
+        self.last_rates_deg_s = np.degrees(np.concatenate([r[0] for r in res])) * fps_hz if res else np.zeros(0)
+        return self.last_rates_deg_s
 
     def yaw_rates_deg(self, frames: Iterable[np.ndarray], fps_hz: float, pixel_aspect: float = 1.0) -> np.ndarray:
         """RGB uint8 frames (H, W, 3), consecutive at ``fps_hz`` -> (N-1,) yaw rate per pair, deg/s, left +.

@@ -72,17 +72,14 @@ def flow_commands(videos: np.ndarray, num_history_frames: int, fps_hz: float, la
 
 def flow_rates(videos: np.ndarray, num_history_frames: int, fps_hz: float,
                labeler: Any) -> tuple[list[str], list[float], list[np.ndarray]]:
-    """:func:`flow_commands` and, per video, the yaw rate of each frame pair of its future (deg/s, left +; pair
-    ``j`` ends on frame ``num_history_frames + j``): the same labels as ``labeler.label``, which sums these rates."""
+    """:func:`flow_commands` and, per video, the yaw rate of each frame pair of its future that the label summed
+    (deg/s, left +; pair ``j`` ends on frame ``num_history_frames + j``; ``FlowLabeler.last_rates_deg_s``)."""
     cmds, yaws, rates = [], [], []
     for v in videos:
-        r = labeler.yaw_rates_deg(list(v[num_history_frames - 1:]), fps_hz)
-        if len(r) == 0:
-            raise ValueError("the labeler needs at least two frames of future")
-        lab = labeler.label_from_rates(r, fps_hz, labeler.last_quality)
+        lab = labeler.label(list(v[num_history_frames - 1:]), fps_hz)
         cmds.append(lab.command)
         yaws.append(float(lab.yaw_deg))
-        rates.append(np.asarray(r, np.float64))
+        rates.append(np.asarray(labeler.last_rates_deg_s, np.float64))
     return cmds, yaws, rates
 
 

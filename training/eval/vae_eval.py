@@ -48,6 +48,7 @@ def heading_kept_by_group_place(orig_rates: Sequence[np.ndarray], rec_rates: Seq
     idx = np.flatnonzero(turning)
     if not idx.size:
         return [None] * group
+
     def by_place(rates: Sequence[np.ndarray]) -> np.ndarray:           # (clips, group): summed rate per place
         return np.array([np.bincount((num_history_frames + np.arange(len(r)) - 1) % group, weights=r, minlength=group)
                          for r in rates])
@@ -186,8 +187,8 @@ def format_vae_eval(rep: dict) -> str:
                      f"{kept} on {m['turning_clips']} turning clips (1 = all)")
         places = m.get("heading_kept_by_group_place")
         if places and places[0] is not None:
-            lines.append("heading kept by the frame's place in its 4-frame latent group (first ... group end): "
-                         + " / ".join(f"{p:.2f}" for p in places))
+            lines.append(f"heading kept by the frame's place in its {len(places)}-frame latent group (first ... "
+                         "group end): " + " / ".join(f"{p:.2f}" for p in places))
         g = m.get("group_ends")
         if g:
             f = lambda x: "n/a" if x is None else f"{x:.2f}"
