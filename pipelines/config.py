@@ -22,6 +22,7 @@ workers and hashes names the data it read wherever it is read from.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -74,10 +75,6 @@ class ClipConfig:
         check_positive("waypoint_dt_s", self.waypoint_dt_s)
         if self.num_history_frames < 1 or self.num_future_frames < 1:
             raise ConfigError("num_history_frames and num_future_frames must be >= 1")
-        if (self.num_frames - 1) % 4:
-            raise ConfigError(
-                f"num_history_frames + num_future_frames - 1 = {self.num_frames - 1} must be divisible by 4 "
-                "(CogVideoX's causal VAE compresses time 4x after the first frame)")
         horizon_s = self.num_waypoints * self.waypoint_dt_s
         if horizon_s > self.num_future_frames / self.fps_hz + 1e-9:
             raise ConfigError(f"num_waypoints x waypoint_dt_s = {horizon_s} s exceeds the future window "
@@ -303,6 +300,17 @@ class EncodeConfig:
     def vae_path(self) -> Path:
         return shipped_model(self.vae) if self.vae is not None else shipped_dir(PLACEHOLDER_VAE.name)
 
+    def vae_temporal_compression(self) -> int | None:
+        """The VAE's temporal ratio from its config.json (a component folder or a pipeline folder with vae/),
+        without loading it; None when the folder is not on this machine (the encode stage then says so)."""
+        for f in (self.vae_path / "vae" / "config.json", self.vae_path / "config.json"):
+            if f.is_file():
+                try:
+                    return int(json.loads(f.read_text()).get("temporal_compression_ratio", 4))
+                except (OSError, ValueError, TypeError) as e:
+                    raise ConfigError(f"encode.vae: {f} is not a readable VAE config ({e})") from None
+        return None
+
     @property
     def text_encoder_path(self) -> Path:
         return (shipped_model(self.text_encoder) if self.text_encoder is not None
@@ -402,6 +410,13 @@ class PipelineConfig:
     ray: RayConfig = field(default_factory=RayConfig)
 
     def __post_init__(self):
+        tc = self.encode.vae_temporal_compression()
+        for key, clip in self.clip_configs():
+            if tc and (clip.num_frames - 1) % tc:
+                raise ConfigError(
+                    f"{key}: num_history_frames + num_future_frames - 1 = {clip.num_frames - 1} must be divisible "
+                    f"by the VAE's temporal compression {tc} (a causal video VAE keeps frame 0 alone, then "
+                    f"encodes {tc} frames per latent frame)")
         for key, clip in self.clip_configs():
             if self.balance.enabled and clip.stride_frames % self.balance.turn_factor:
                 raise ConfigError(

@@ -50,6 +50,30 @@ PROMPT_PREFIX = (
 FORBIDDEN_EXTENSIONS = ("pyd", "pickle", "pkl", "pth", "pt", "mp")  # decoders that may run code
 
 
+# A causal video VAE (CogVideoX's, with any temporal ratio r) keeps frame 0 alone and compresses each following
+# group of r frames into one latent frame: 1 + r k pixel frames <-> 1 + k latent frames. The ratio is the VAE's
+# (4 for CogVideoX-2B, 1 for a per-frame VAE); a sample states it through num_frames and latent_shape.
+def latent_frame_count(pixel_frames: int, temporal_compression: int) -> int:
+    """Latent frames of ``pixel_frames`` (>= 1) through a causal VAE of ``temporal_compression``."""
+    return 1 + (int(pixel_frames) - 1) // int(temporal_compression)
+
+
+def pixel_frame_count(latent_frames: int, temporal_compression: int) -> int:
+    """Pixel frames that ``latent_frames`` (>= 1) decode to: ``1 + r (latent_frames - 1)``."""
+    return 1 + int(temporal_compression) * (int(latent_frames) - 1)
+
+
+def temporal_compression_of(num_frames: int, num_latent_frames: int, default: int | None = 4) -> int | None:
+    """The VAE's temporal ratio read off one clip: ``(num_frames - 1) / (num_latent_frames - 1)``; a one-frame
+    clip states none (``default``). Refuses a pair no causal VAE makes (e.g. 49 frames, 12 latents)."""
+    n, t = int(num_frames), int(num_latent_frames)
+    if t <= 1 or n <= 1:
+        return default
+    if (n - 1) % (t - 1):
+        raise ValueError(f"{n} pixel frames and {t} latent frames: no causal VAE ratio maps one onto the other")
+    return (n - 1) // (t - 1)
+
+
 @dataclass(frozen=True)
 class ClipSpec:
     """Clip geometry. Defaults follow ReSim (10 Hz, 9 + 40 frames, 8 waypoints at 2 Hz)."""
@@ -78,7 +102,7 @@ class ClipSpec:
 
     @property
     def num_latent_frames(self) -> int:
-        return 1 + (self.num_frames - 1) // self.vae_temporal_compression
+        return latent_frame_count(self.num_frames, self.vae_temporal_compression)
 
     @property
     def window_s(self) -> float:

@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from shards.duplicates import duplicate_keys
 from shards.npy import stored_to_float32
 from shards.prompts import PromptTable, PromptTableError
-from shards.schema import COMMANDS
+from shards.schema import COMMANDS, latent_frame_count, temporal_compression_of
 from training.config import DataConfig
 from training.stream import (SAMPLE_ORDER, Cursor, DataError, StreamPlan, WorkerStream, batches_per_worker,
                              dataset_counts, shard_mixing)
@@ -99,19 +99,20 @@ class Batch:
         if not self.meta or "num_frames" not in self.meta[0]:
             return None
         t_lat, n = int(self.latents.shape[1]), int(self.meta[0]["num_frames"])
-        return (n - 1) // (t_lat - 1) if t_lat > 1 and n > 1 else None
+        return temporal_compression_of(n, t_lat, default=None) if t_lat > 1 and n > 1 else None
 
     @property
     def num_history_latent_frames(self) -> int | None:
-        """Latent frames made of history pixel frames only: ``1 + (H - 1) // 4`` for the causal VAE (9 -> 3,
-        NAVSIM's 1 -> 1); None when the metadata does not say. Equal across the batch (the stream's buckets)."""
+        """Latent frames made of history pixel frames only: ``1 + (H - 1) // r`` for a causal VAE of ratio r (4:
+        9 -> 3, NAVSIM's 1 -> 1; 1: every frame); None when the metadata does not say. Equal across the batch
+        (the stream's buckets)."""
         c = self._temporal_compression()
         h = self.num_history_frames
-        return 1 + (h - 1) // c if c and h >= 1 else None
+        return latent_frame_count(h, c) if c and h >= 1 else None
 
     @property
     def latent_frame_dt_s(self) -> float | None:
-        """Seconds one latent frame spans: 4 pixel frames / fps (0.4 s at 10 Hz, 2 s at NAVSIM's 2 Hz)."""
+        """Seconds one latent frame spans: r pixel frames / fps (4x VAE: 0.4 s at 10 Hz, 2 s at NAVSIM's 2 Hz)."""
         c = self._temporal_compression()
         fps = float(self.meta[0].get("fps_hz") or 0.0) if self.meta else 0.0
         return c / fps if c and fps > 0 else None

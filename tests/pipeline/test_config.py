@@ -35,7 +35,7 @@ def test_shipped_configs_load(tmp_path):
     ("ray.stages.encode.num_gpus=x", "ray.stages.encode.num_gpus"),
     ("encode.height_px=60", "height_px"),                             # not a multiple of 8
     ("clip.stride_frames=12", "balance.turn_factor"),                 # 12 % 5 != 0
-    ("clip.num_future_frames=39", "num_history_frames + num_future_frames"),
+    ("clip.num_future_frames=42", "num_history_frames + num_future_frames"),   # 50 frames after the first: not 4k
     ("labels.labeler.command.window_s=3.0", "labels.labeler.command.window_s"),
     ("labels.labeler.flow.flow_preset=slow", "labels.labeler.flow.flow_preset"),
     ("sources.synthetic.clip.nuscenes={fps_hz: 2}", "layouts"),

@@ -151,7 +151,8 @@ def test_video_history_is_resampled_to_the_clip_rate(tmp_path, fps, expected_bac
     import types
 
     from training.sampling.load import history_from_video
-    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32))
+    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32),
+                                info=types.SimpleNamespace(temporal_compression=4))
     n = 60
     h = history_from_video(_coded_video(tmp_path / "v.mp4", fps, n), vae, 3, (32, 64))
     assert _decode_ids(h.frames) == [n - 1 - d for d in expected_back]
@@ -162,7 +163,8 @@ def test_video_history_slower_than_the_clip_rate_is_refused(tmp_path):
     import types
 
     from training.sampling.load import SamplingInputError, history_from_video
-    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32))
+    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32),
+                                info=types.SimpleNamespace(temporal_compression=4))
     with pytest.raises(SamplingInputError, match="5 fps is below the 10 Hz"):
         history_from_video(_coded_video(tmp_path / "slow.mp4", 5.0, 30), vae, 3, (32, 64))
     with pytest.raises(SamplingInputError, match="readable frames at 30 fps"):   # 0.8 s needed, 0.5 s given
@@ -251,7 +253,8 @@ def test_video_history_takes_the_training_clips_size_and_crop(setup, tmp_path, c
     frames[:, :, 72:] = 255
     video = tmp_path / "wide.mp4"
     video.write_bytes(encode_mp4(frames, 10.0))
-    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 6), np.float32))
+    vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 6), np.float32),
+                                info=types.SimpleNamespace(temporal_compression=4))
     h = history_from_video(video, vae, 3, (32, 48))
     assert h.frames.shape[1:3] == (32, 48) and h.frames.mean() < 40
     common = ["sample", "--checkpoint", str(run), "--history", str(video), "--command", "Moving forward",

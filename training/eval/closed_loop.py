@@ -108,7 +108,8 @@ def history_of(state: StartState, cfg: ClosedLoopConfig, vae: Any, clip_hw: tupl
                expert: Trace) -> tuple[torch.Tensor, np.ndarray, float]:
     """The expert's first ``history_s`` in the true world, where every policy's true loop starts (the loop's
     handover drives the same poses): (latents ``(1, H0, C, h, w)`` from ``vae``, the frames at the world model's
-    clip size ``(1 + 4 (H0 - 1), h, w, 3)`` uint8, the speed at the last one). ``expert``: ``simulate``'s trace."""
+    clip size ``(1 + r (H0 - 1), h, w, 3)`` uint8 (``r``: the VAE's temporal ratio), the speed at the last one).
+    ``expert``: ``simulate``'s trace."""
     renderer = state.renderer(cfg)
     h_step = int(round(cfg.history_s * cfg.sim_hz))
     steps = range(0, h_step + 1, int(round(cfg.sim_hz / cfg.fps_hz)))

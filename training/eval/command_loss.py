@@ -46,7 +46,7 @@ class CommandLossInputError(ValueError):
 
 
 def _history_latents(clip: EvalClip) -> int:
-    return 1 + (clip.num_history_frames - 1) // 4
+    return clip.num_history_latents
 
 
 @torch.no_grad()

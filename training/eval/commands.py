@@ -161,8 +161,10 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
                                                for k, v in videos.items()}
     rep["flow_labeler"]["mirror_check_deg"]["recorded future"] = labeler_lean(gt, gt_yaw, nh, fps, labeler)
     if group_ends:
-        rep["flow_labeler_group_ends"] = group_end_reading(
-            {k: v for k, v in videos.items() if k != NULL}, gt, through_vae, recorded, nh, fps, labeler)
+        tc = clips[0].temporal_compression
+        rep["flow_labeler_group_ends"] = (group_end_reading(
+            {k: v for k, v in videos.items() if k != NULL}, gt, through_vae, recorded, nh, fps, labeler, tc)
+            if tc > 1 else {"skipped": "a per-frame VAE (temporal ratio 1) has no frames inside a latent group"})
     if idm is not None:
         lcfg = labeler_preset("default")
         by_idm = {k: idm_commands(v, nh, idm, lcfg) for k, v in videos.items()}
@@ -194,15 +196,16 @@ def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any
 
 
 def group_end_reading(videos: dict[str, np.ndarray], recorded_video: np.ndarray, through_vae: np.ndarray,
-                      recorded: Sequence[str | None], num_history_frames: int, fps_hz: float, labeler: Any) -> dict:
+                      recorded: Sequence[str | None], num_history_frames: int, fps_hz: float, labeler: Any,
+                      group: int = 4) -> dict:
     """The flow labeler on the videos with the frames inside each latent group redrawn from the group ends
     (training/eval/group_frames.py): what the rollouts' latents turn, without the decoder's cross-fade between
     group ends. A diagnostic beside the labeler on the decoded frames, which stays the measure. ``videos``: command
     → uint8 ``(N, T, H, W, 3)`` rollouts under it; the recorded future (originals, the reading's own ceiling) and
     the recorded future through the VAE are redrawn and read alike."""
-    flow = {k: flow_commands(redraw_all(v), num_history_frames, fps_hz, labeler) for k, v in videos.items()}
-    gt_c, gt_y = flow_commands(redraw_all(recorded_video), num_history_frames, fps_hz, labeler)
-    vae_c, vae_y = flow_commands(redraw_all(through_vae), num_history_frames, fps_hz, labeler)
+    flow = {k: flow_commands(redraw_all(v, group), num_history_frames, fps_hz, labeler) for k, v in videos.items()}
+    gt_c, gt_y = flow_commands(redraw_all(recorded_video, group), num_history_frames, fps_hz, labeler)
+    vae_c, vae_y = flow_commands(redraw_all(through_vae, group), num_history_frames, fps_hz, labeler)
     cond = [c for c in videos for _ in range(len(recorded_video))]
     mean = {k: float(np.mean(v[1])) for k, v in flow.items()}
     return {"commanded": confusion(cond, [lab for c in videos for lab in flow[c][0]]),
@@ -210,8 +213,8 @@ def group_end_reading(videos: dict[str, np.ndarray], recorded_video: np.ndarray,
             "recorded_through_vae": confusion(list(recorded), vae_c),
             "mean_yaw_deg": {**mean, "recorded future": float(np.mean(gt_y)),
                              "recorded through the VAE": float(np.mean(vae_y))},
-            "what": "frames inside each 4-frame latent group redrawn by optical-flow interpolation between the "
-                    "group ends, then read by the flow labeler: a diagnostic, not the target's measure"}
+            "what": f"frames inside each {group}-frame latent group redrawn by optical-flow interpolation between "
+                    "the group ends, then read by the flow labeler: a diagnostic, not the target's measure"}
 
 
 def trajectory_branch_eval(runner: WorldRollouts, clips: Sequence[EvalClip], groups: Sequence[Sequence[int]],

@@ -64,12 +64,13 @@ def reconstruct(vae: Any, frames: np.ndarray, seeds: Sequence[int]) -> np.ndarra
 
 
 def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np.ndarray],
-                   clips: Sequence[Any], group_ends: bool = False) -> dict:
+                   clips: Sequence[Any], group_ends: bool = False, group: int = GROUP_FRAMES) -> dict:
     """The flow labeler's command and heading change (deg, left +) of each clip's future, on the originals
     and on the reconstructions; accuracies against the recorded commands, and how much heading survives.
     ``group_ends``: also the same reading with the frames inside each latent group redrawn from the group ends
     (training/eval/group_frames.py, a diagnostic: how much of the loss is the decoder's drawing inside a group),
-    on the reconstructions and, for the reading's own ceiling, on the originals."""
+    on the reconstructions and, for the reading's own ceiling, on the originals. ``group``: the VAE's temporal
+    ratio, the frames per latent group (1: a per-frame VAE, which has no inside of a group to redraw)."""
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     raw_c, raw_y, raw_r = flow_rates(np.stack(frames), nh, fps, labeler)
     rec_c, rec_y, rec_r = flow_rates(np.stack(recs), nh, fps, labeler)
@@ -82,22 +83,22 @@ def motion_through(labeler: Any, frames: Sequence[np.ndarray], recs: Sequence[np
             "same_label": float(np.mean([a == b for a, b in zip(raw_c, rec_c)])),
             "heading_kept": slope(cy, ry, np.flatnonzero(turning)) if turning.any() else None,
             # 0: frames starting a latent group (the pair from the previous group's end) ... 3: the group's end
-            "heading_kept_by_group_place": heading_kept_by_group_place(raw_r, rec_r, nh, turning),
+            "heading_kept_by_group_place": heading_kept_by_group_place(raw_r, rec_r, nh, turning, group),
             "mean_abs_heading_deg": {"originals": float(np.abs(ry).mean()), "reconstructions": float(np.abs(cy).mean())},
             "clips": len(clips), "turning_clips": int(turning.sum()),
             # per clip, for paired comparisons of two VAEs on the same clips (--against)
             "per_clip": {"recorded": recorded, "originals_command": list(raw_c), "reconstructions_command": list(rec_c),
                          "originals_yaw_deg": ry.tolist(), "reconstructions_yaw_deg": cy.tolist()}}
-    if group_ends:
-        g_raw_c, g_raw_y = flow_commands(redraw_all(np.stack(frames)), nh, fps, labeler)
-        g_rec_c, g_rec_y = flow_commands(redraw_all(np.stack(recs)), nh, fps, labeler)
+    if group_ends and group > 1:
+        g_raw_c, g_raw_y = flow_commands(redraw_all(np.stack(frames), group), nh, fps, labeler)
+        g_rec_c, g_rec_y = flow_commands(redraw_all(np.stack(recs), group), nh, fps, labeler)
         idx = np.flatnonzero(turning)
         out["group_ends"] = {
             "labeler_on_originals": confusion([recorded[i] for i in keep], [g_raw_c[i] for i in keep]),
             "labeler_on_reconstructions": confusion([recorded[i] for i in keep], [g_rec_c[i] for i in keep]),
             "heading_kept": slope(np.asarray(g_rec_y), ry, idx) if turning.any() else None,
             "originals_heading_kept": slope(np.asarray(g_raw_y), ry, idx) if turning.any() else None,
-            "what": "frames inside each 4-frame latent group redrawn by optical-flow interpolation between the "
+            "what": f"frames inside each {group}-frame latent group redrawn by optical-flow interpolation between the "
                     "group ends; heading kept against the originals as they are"}
     return out
 
@@ -128,7 +129,8 @@ def vae_eval(vae: Any, clips: Sequence[Any], batch_size: int = 2, labeler: Any =
            "ssim": {"mean": float(s.mean()), "per_frame": s.mean(0).tolist()},
            "clips": len(clips), "frames_per_clip": int(p.shape[1]), "_examples": examples}
     if labeler is not None:
-        rep["motion"] = motion_through(labeler, all_frames, all_recs, clips, group_ends=group_ends)
+        rep["motion"] = motion_through(labeler, all_frames, all_recs, clips, group_ends=group_ends,
+                                       group=int(vae.info.temporal_compression))
     return rep
 
 

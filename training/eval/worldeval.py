@@ -36,6 +36,7 @@ import torch
 from labeling.config import preset as labeler_preset
 from labeling.flow import FlowLabeler
 from shards.reader import iter_samples
+from shards.schema import latent_frame_count, temporal_compression_of
 from training.eval.idm_train import constant_velocity, resize_frames, trajectory_errors
 from training.eval.quality import VideoQualityEvaluator
 from training.sampling.outputs import decode_rollout
@@ -53,6 +54,15 @@ class EvalClip:
     num_history_frames: int
     fps_hz: float
     vae_placeholder: bool
+
+    @property
+    def temporal_compression(self) -> int:
+        """Pixel frames per latent frame after the first, as the dataset's VAE encoded this clip."""
+        return temporal_compression_of(len(self.frames), len(self.latents))
+
+    @property
+    def num_history_latents(self) -> int:
+        return latent_frame_count(self.num_history_frames, self.temporal_compression)
 
 
 def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = None, limit: int | None = None,
@@ -137,7 +147,7 @@ class WorldRollouts:
         self._t0 = self._last_log = time.perf_counter()
 
     def history_latents(self, clip: EvalClip) -> int:
-        return 1 + (clip.num_history_frames - 1) // 4
+        return clip.num_history_latents
 
     def generate(self, clips: Sequence[EvalClip], trajectories: Sequence[np.ndarray | None],
                  commands: Sequence[str | None], offset: int = 0,

@@ -14,6 +14,7 @@ from pathlib import Path
 from resim.argtypes import (height_width, local_dir, non_negative_float, non_negative_int, positive_float,
                             positive_int, torch_device)
 from resim.config import ConfigError, from_dict, save, to_dict
+from shards.schema import pixel_frame_count
 from training.sampling.compile import add_compile_args, maybe_compile   # no torch: see its imports
 
 REPO = Path(__file__).resolve().parents[2]
@@ -26,8 +27,9 @@ examples:
   resim sample ... --command "Moving forward" --command "Turning left" --seconds 8    # one command per 4-s round
   resim sample ... --preset vid2world --actions-from-trajectory                      # frame by frame + actions
 
-History: a video file (resampled to the model's training clip rate, 10 Hz for video sources; its last
-1 + 4 (N - 1) frames, N = --history-frames (default 3: 9 frames), are encoded with --vae; files below that rate
+History: a video file (resampled to the model's training clip rate, 10 Hz for CogVideoX-style video sources; its
+last 1 + r (N - 1) frames, N = --history-frames (default 3), r = the VAE's temporal ratio (4: 9 frames; 1: 3
+frames), are encoded with --vae; files below that rate
 are refused) or, with --shards, a sample key (its stored history latents, at the shard's rate: --seconds and the
 actions follow it). A key's clip must hold N latent history frames: video sources (OpenDV, CARLA) keep 9 pixel
 frames = 3; a NAVSIM key keeps 1 (2 Hz), so sample it with --history-frames 1.
@@ -219,9 +221,11 @@ def _shard_history_frames(root: str, key: str) -> tuple[int, int, float] | None:
     """(latent history frames, pixel history frames, fps) of a shard sample, or None if it cannot be read."""
     try:
         from shards.reader import find_sample
-        meta = find_sample(root, key, decode_video=False, attach_prompts=False)["meta.json"]
-        px = int(meta["num_history_frames"])
-        return 1 + (px - 1) // 4, px, float(meta["fps_hz"])
+        from shards.schema import latent_frame_count, temporal_compression_of
+        s = find_sample(root, key, decode_video=False, attach_prompts=False)
+        meta, px = s["meta.json"], int(s["meta.json"]["num_history_frames"])
+        tc = temporal_compression_of(int(meta["num_frames"]), len(s["latent.npy"]))
+        return latent_frame_count(px, tc), px, float(meta["fps_hz"])
     except Exception:   # only for a better message; the original error is raised when this fails
         return None
 
@@ -281,8 +285,7 @@ class _Setup:
                 raise SamplingInputError(
                     f"history {args.history!r}: its clip holds {h} latent history frame(s) ({px} pixel frames at "
                     f"{fps:g} Hz), the rollout keeps {self.cfg.history_frames}: pass --history-frames {h}, or use "
-                    f"a clip with at least {1 + 4 * (self.cfg.history_frames - 1)} history frames (a video "
-                    "source)") from None
+                    f"a clip with {self.cfg.history_frames} latent history frames (a video source)") from None
         self.prompts = PromptSource(self.history.prompt_root, args.text_encoder, device=self.device,
                                     max_tokens=args.max_text_tokens)
         self.num_future = rollout_num_future_frames(args.seconds, self.history.fps_hz, self.vae.info.temporal_compression)
@@ -395,7 +398,7 @@ def _cmd_sample(args) -> int:
     _say("sample")("decoding the rollout with the VAE, writing the video ...")
     frames = decode_rollout(s.vae, res.latents, res.num_history_frames, s.cfg.frames_per_round,
                             s.cfg.history_frames)[0]
-    num_hist_px = 1 + 4 * (res.num_history_frames - 1)
+    num_hist_px = pixel_frame_count(res.num_history_frames, s.vae.info.temporal_compression)
     title = " | ".join(dict.fromkeys(res.round_labels)) + f"   ({args.seconds:g} s, seed {args.seed})"
     paths = write_rollout(out, "sample", frames, res.latents[0].cpu().numpy(), num_history_px=num_hist_px,
                           fps_hz=s.history.fps_hz, title=title,

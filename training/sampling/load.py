@@ -8,8 +8,9 @@ so LoRA layers and overrides match the saved tensors), then the saved weights ar
 checking and loading are ``training.exported``'s, shared with the IDM and the reward model.
 
 History: a video file (resampled to the clip rate the model was trained at, 10 Hz for video sources, then its
-last ``1 + 4 (H - 1)`` frames, resized, encoded with the VAE) or a shard sample key (its stored latents' first
-``H`` latent frames, i.e. the clip's history, and its pixel frames for outputs; the shard's own rate).
+last ``1 + r (H - 1)`` frames, r the VAE's temporal ratio, resized, encoded with the VAE) or a shard sample key (its
+stored latents' first ``H`` latent frames, i.e. the clip's history, and its pixel frames for outputs; the shard's
+own rate).
 Prompts: the dataset's prompt table when it holds the prompt, else the T5 encoder.
 """
 from __future__ import annotations
@@ -32,7 +33,8 @@ from resim.config import from_dict, safe_yaml
 from resim.models import PLACEHOLDER_VAE, shipped_dir, shipped_model
 from shards.prompts import PromptTable, PromptTableError
 from shards.reader import ShardReadError, find_sample
-from shards.schema import prompt_id, prompt_text
+from shards.schema import (latent_frame_count, pixel_frame_count, prompt_id, prompt_text,
+                           temporal_compression_of)
 from training.diffusion.config import ObjectiveConfig
 from training.exported import ExportError, find_export, load_exported, read_config
 from training.models.lora import to_peft_layout
@@ -132,7 +134,7 @@ def run_objective(ckpt: str | Path) -> ObjectiveConfig:
 @dataclass
 class History:
     latents: torch.Tensor             # (1, H, C, h, w) float32
-    frames: np.ndarray | None         # (1 + 4 (H - 1), H_px, W_px, 3) uint8: the pixel history, for outputs
+    frames: np.ndarray | None         # (1 + r (H - 1), H_px, W_px, 3) uint8: the pixel history, for outputs
     fps_hz: float
     source: str                       # what it came from
     prompt_root: Path | None = None   # dataset whose prompt table can be used
@@ -149,14 +151,15 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
         raise SamplingInputError(f"history {key!r}: {e}") from None
     meta = s["meta.json"]
     lat = np.asarray(s["latent.npy"], dtype=np.float32)
-    h_meta = 1 + (int(meta["num_history_frames"]) - 1) // 4
+    tc = temporal_compression_of(int(meta["num_frames"]), lat.shape[0])   # the VAE that encoded this dataset
+    h_meta = latent_frame_count(int(meta["num_history_frames"]), tc)
     if num_latent_frames > h_meta:
         raise SamplingInputError(f"history {key!r}: asks for {num_latent_frames} latent history frames, the clip's "
                                  f"history has {h_meta} ({meta['num_history_frames']} pixel frames)")
     lat = lat[h_meta - num_latent_frames:h_meta]
-    px = 1 + 4 * (h_meta - 1)
+    px = pixel_frame_count(h_meta, tc)
     frames = s.get("frames")
-    frames = frames[px - (1 + 4 * (num_latent_frames - 1)):px] if frames is not None else None
+    frames = frames[px - pixel_frame_count(num_latent_frames, tc):px] if frames is not None else None
     traj = s.get("traj.npy")
     return History(torch.from_numpy(lat)[None], frames, float(meta["fps_hz"]), f"shard:{key}", Path(root), meta,
                    None if traj is None else np.asarray(traj, np.float32))
@@ -164,7 +167,8 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
 
 def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_hw: tuple[int, int],
                        clip_fps_hz: float = VIDEO_CLIP_FPS_HZ) -> History:
-    """The last ``1 + 4 (H - 1)`` frames of a video file at ``clip_fps_hz``, resized to ``size_hw``, encoded by
+    """The last ``1 + r (H - 1)`` frames (``r``: the VAE's temporal ratio) of a video file at ``clip_fps_hz``,
+    resized to ``size_hw``, encoded by
     ``vae`` (VideoVAE). The model learnt motion at the training clip rate (a 9-frame history spans 0.8 s at 10 Hz),
     so the file is resampled first, as the pipeline's OpenDV reader does: clip frame k takes the source frame
     nearest to its time, counted back from the last frame (the "now" the rollout continues from). A file slower
@@ -188,7 +192,7 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
         raise SamplingInputError(f"history {p}: {src_fps:g} fps is below the {clip_fps_hz:g} Hz clip rate the "
                                  f"model was trained at; give a video of at least {clip_fps_hz:g} fps")
     step = max(src_fps / clip_fps_hz, 1.0)   # source frames per clip frame (>= 1 within the slack)
-    need = 1 + 4 * (num_latent_frames - 1)
+    need = pixel_frame_count(num_latent_frames, vae.info.temporal_compression)
     back = [round((need - 1 - k) * step) for k in range(need)]    # source frames before the last one
     buf: deque = deque(maxlen=back[0] + 1)   # only the tail is kept: long files need no memory for the rest
     n = 0

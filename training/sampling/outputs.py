@@ -1,7 +1,8 @@
 """What a rollout leaves on disk: decoded video (MP4 + GIF), a contact sheet, the latents.
 
 * :func:`decode_latents` – CogVideoX VAE decode of ``(B, T, C, h, w)`` latents (× scaling factor, as stored in
-  shards) → ``(B, 1 + 4 (T - 1), H, W, 3)`` uint8 RGB; :func:`decode_rollout` does it round by round.
+  shards) → ``(B, 1 + r (T - 1), H, W, 3)`` uint8 RGB (r: the VAE's temporal ratio); :func:`decode_rollout` does
+  it round by round.
 * :func:`draw_trajectory` – a bird's-eye panel of the 8 waypoints (x forward = up, y left = left).
 * :func:`contact_sheet` – a grid of frames (last history frame + evenly spaced future frames), with the
   command and the trajectory drawn.
@@ -26,9 +27,19 @@ HISTORY_EDGE = (90, 160, 255)
 FUTURE_EDGE = (255, 170, 60)
 
 
+def temporal_compression(vae: Any) -> int:
+    """Pixel frames per latent frame after the first of ``vae`` (a ``VideoVAE`` or a diffusers VAE): 4 for
+    CogVideoX's, 1 for a per-frame VAE."""
+    info = getattr(vae, "info", None)
+    if info is not None:
+        return int(info.temporal_compression)
+    return int(getattr(getattr(vae, "model", vae).config, "temporal_compression_ratio", 4))
+
+
 def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch_size: int = 1) -> np.ndarray:
     """Latents ``(B, T, C, h, w)`` (torch or numpy, VAE latent × scaling factor) → uint8 ``(B, F, H, W, 3)``,
-    ``F = 1 + 4 (T - 1)`` (frame 0 alone, then 4 pixel frames per latent frame, as the encoder made them).
+    ``F = 1 + r (T - 1)`` (frame 0 alone, then ``r`` pixel frames per latent frame, as the encoder made them; ``r``
+    the VAE's temporal ratio, 4 for CogVideoX's, 1 for a per-frame VAE).
 
     ``batch_size``: samples decoded in one VAE call (it bounds the memory). diffusers' slicing, which
     ``media.encoders.VideoVAE`` turns on to bound the encoder's memory, would split each call into one decode per
@@ -58,10 +69,11 @@ def decode_latents(vae: Any, latents, scaling_factor: float | None = None, batch
     if z.dim() != 5 or z.shape[1] < 1:
         raise ValueError(f"latents must be (B, T, C, h, w) with T >= 1, got {tuple(z.shape)}")
     t = z.shape[1]
-    want = 1 + 4 * (t - 1)
+    tc = temporal_compression(vae)
+    want = 1 + tc * (t - 1)
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    padded = t % 2 == 0
+    padded = tc > 1 and t % 2 == 0      # a per-frame VAE (ratio 1) upsamples no time: every T decodes to T frames
     if padded:
         z = torch.cat([z, z[:, -1:]], dim=1)
     p = next(model.parameters())
@@ -156,17 +168,18 @@ def decode_rollout(vae: Any, latents, num_history: int, frames_per_round: int, h
     clip length the VAE/model work at), as ReSim decodes each 4-s prediction:
 
     round 0: latents ``[0, H0 + F0)`` → all its pixel frames; round r ≥ 1 (starting at latent ``s``): the window
-    ``[s - history_frames, s + F_r)`` → its last ``4 F_r`` pixel frames. Returns ``(B, 1 + 4 (T - 1), H, W, 3)``.
+    ``[s - history_frames, s + F_r)`` → its last ``r F_r`` pixel frames (``r``: the VAE's temporal ratio).
+    Returns ``(B, 1 + r (T - 1), H, W, 3)``.
     ``batch_size``: rollouts per VAE call (:func:`decode_latents`).
     """
-    t = int(latents.shape[1])
+    t, tc = int(latents.shape[1]), temporal_compression(vae)
     first_end = min(t, num_history + frames_per_round)
     parts = [decode_latents(vae, latents[:, :first_end], batch_size=batch_size)]
     s = first_end
     while s < t:
         e = min(t, s + frames_per_round)
         win = decode_latents(vae, latents[:, max(0, s - history_frames):e], batch_size=batch_size)
-        parts.append(win[:, -4 * (e - s):])
+        parts.append(win[:, -tc * (e - s):])
         s = e
     return np.concatenate(parts, axis=1)
 

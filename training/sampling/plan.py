@@ -15,8 +15,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from shards.schema import pixel_frame_count
 from training.reward.score import score_videos
-from training.sampling.outputs import decode_rollout
+from training.sampling.outputs import decode_rollout, temporal_compression
 from training.sampling.rollout import Condition, RolloutConfig, rollout
 
 CANDIDATE_NAMES = ("keep_lane", "turn_left", "turn_right", "brake", "swerve")
@@ -129,7 +130,7 @@ def plan(world_model: Any, reward_model: Any, vae: Any, history: torch.Tensor,
                             cfg.history_frames, batch_size=min(k, 8))  # (K, F, H, W, 3)
     say(f"scoring {k} futures with Video2Reward ...")
     h0 = res.num_history_frames
-    num_hist_px = 1 + 4 * (h0 - 1)
+    num_hist_px = pixel_frame_count(h0, temporal_compression(vae))
     futures = [f[num_hist_px:] for f in frames]
     scores = score_videos(reward_model, futures, names=[c.name for c in candidates])
     order = np.argsort(-scores, kind="stable")
