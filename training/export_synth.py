@@ -42,9 +42,11 @@ def install_world(run: Path, out: Path) -> Path:
         cfg["reference"]["initialised_from"] = Path(cfg["model"]["init_weights"]).name + " of the earlier stage"
         cfg["model"]["init_weights"] = None
     (dst / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
-    enc = yaml.safe_load((final / "data_encode.yaml").read_text())["encode"]
+    data = yaml.safe_load((final / "data_encode.yaml").read_text())
+    enc = data["encode"]
     enc.update({"vae": SYNTH_VAE, "text_encoder": enc.get("text_encoder") or PLACEHOLDER_T5})
-    (dst / "data_encode.yaml").write_text(yaml.safe_dump({"encode": enc}, sort_keys=False))
+    clip = {"clip": data["clip"]} if data.get("clip") else {}
+    (dst / "data_encode.yaml").write_text(yaml.safe_dump({"encode": enc, **clip}, sort_keys=False))
     return dst
 
 

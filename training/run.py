@@ -170,11 +170,13 @@ def finished_step(out: str | Path) -> int | None:
 
 def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
     """``RUN/final/data_encode.yaml``: the ``encode`` section (VAE, text encoder, sizes) of the training data's
-    pipeline config, so a sampler decodes with the VAE the model learnt the latents of, at their size."""
+    pipeline config, so a sampler decodes with the VAE the model learnt the latents of, at their size; and its
+    ``clip`` geometry (rate and frames), so a video history is resampled to the rate the model learnt motion at."""
     if cfg.data.shards is None or not (Path(cfg.data.shards) / "config.yaml").is_file():
         return None
     try:
-        enc = (safe_yaml((Path(cfg.data.shards) / "config.yaml").read_text()) or {}).get("encode")
+        data_cfg = safe_yaml((Path(cfg.data.shards) / "config.yaml").read_text()) or {}
+        enc, clip = data_cfg.get("encode"), data_cfg.get("clip")
     except (OSError, yaml.YAMLError, AttributeError):
         return None
     if not isinstance(enc, dict):
@@ -186,7 +188,10 @@ def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
             enc[k] = Path(enc[k]).name
     path = Path(out) / "final" / "data_encode.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump({"shards": str(cfg.data.shards), "encode": enc}, sort_keys=False))
+    clip = {k: clip[k] for k in ("fps_hz", "num_history_frames", "num_future_frames")
+            if k in clip} if isinstance(clip, dict) else None
+    path.write_text(yaml.safe_dump({"shards": str(cfg.data.shards), "encode": enc,
+                                    **({"clip": clip} if clip else {})}, sort_keys=False))
     return path
 
 

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from tests.pipeline.conftest import REPO
 
@@ -11,6 +12,7 @@ from pipelines import runner
 from resim.cli import main
 from shards.reader import iter_samples
 from shards.schema import latent_frame_count, pixel_frame_count
+from shards.video import encode_mp4
 
 # one geometry for both ratios: 2.5 Hz, 3 history + 10 future frames (13 = 1 + 4 x 3 = 1 + 1 x 12)
 CLIP = ["clip.fps_hz=2.5", "labels.labeler.flow.sample_hz=2.5", "clip.num_history_frames=3",
@@ -33,7 +35,7 @@ def test_a_dataset_of_either_temporal_ratio_encodes_trains_and_samples(config_fo
     vae = _vae_folder(tmp_path, ratio)
     cfg = config_for("data", *CLIP, f"encode.vae={vae}")
     runner.run(cfg)
-    samples = list(iter_samples(cfg.out, decode_video=False, attach_prompts=False))
+    samples = list(iter_samples(cfg.out, decode_video=True, attach_prompts=False))
     assert {s["meta.json"]["num_frames"] for s in samples} == {13, 9}       # video clips and 2-Hz NAVSIM clips
     for s in samples:    # 13 frames: 13 latents per-frame, 4 at 4x; NAVSIM's 9: 9 or 3
         assert s["latent.npy"].shape[0] == latent_frame_count(s["meta.json"]["num_frames"], ratio)
@@ -54,6 +56,17 @@ def test_a_dataset_of_either_temporal_ratio_encodes_trains_and_samples(config_fo
     meta = json.loads((out / "sample_meta.json").read_text())
     assert meta["num_frames"] == pixel_frame_count(h + future, ratio)     # decoded by the dataset's own VAE
     assert meta["num_history_frames"] == pixel_frame_count(h, ratio)
+
+    # a video file as the history: resampled to the 2.5 Hz the run recorded from its data, encoded by that VAE
+    assert yaml.safe_load((run / "final" / "data_encode.yaml").read_text())["clip"]["fps_hz"] == 2.5
+    video = tmp_path / "history.mp4"
+    video.write_bytes(encode_mp4(np.concatenate([s["frames"] for s in samples[:2]]), 10.0))   # 26 frames
+    out = tmp_path / "sample-video"
+    assert main(["sample", "--checkpoint", str(run), "--history", str(video), "--history-frames", str(h),
+                 "--command", "Turning right", "--seconds", "2", "--steps", "2", "--device", "cpu",
+                 "--out", str(out)]) == 0
+    meta = json.loads((out / "sample_meta.json").read_text())
+    assert meta["fps_hz"] == 2.5 and meta["num_frames"] == pixel_frame_count(h + future, ratio)
 
 
 def test_the_clip_length_is_checked_against_the_vaes_own_ratio(tmp_path):

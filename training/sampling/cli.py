@@ -239,8 +239,8 @@ class _Setup:
 
         from media.encoders import VideoVAE
         from training.sampling.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
-                                            history_from_video, load_world_model, run_objective, trained_size_hw,
-                                            video_clip_fps_hz)
+                                            history_from_video, load_world_model, run_objective,
+                                            trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
         from training.sampling.rollout import ddim_schedule, rollout_num_future_frames
 
         self.device = device
@@ -272,8 +272,9 @@ class _Setup:
                 raise UsageError(f"--size {size[0]}x{size[1]}: both sides must be multiples of {mult} (the VAE's "
                                  f"{sc}x downsampling times the model's patch size), e.g. the model's sample size "
                                  f"{mcfg.sample_height * sc}x{mcfg.sample_width * sc}")
-            self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size,
-                                              video_clip_fps_hz(self.objective, self.vae.info.temporal_compression))
+            fps = (trained_clip_fps_hz(args.checkpoint, args.shards)
+                   or video_clip_fps_hz(self.objective, self.vae.info.temporal_compression))
+            self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size, fps)
         else:
             try:
                 self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)

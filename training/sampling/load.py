@@ -287,6 +287,28 @@ def _encode_section(path: Path) -> dict | None:
     return enc
 
 
+def trained_clip_fps_hz(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> float | None:
+    """The clip rate (Hz) the model's training clips were cut at: ``shards``' pipeline config, else the world model's
+    ``final/data_encode.yaml`` (its ``clip`` section, written since the trainer records it); None when neither
+    says (older runs: :func:`video_clip_fps_hz` derives it from the objective)."""
+    paths = [Path(shards) / "config.yaml"] if shards is not None else []
+    if checkpoint is not None:
+        paths += [d / ENCODE_FILE for d in (Path(shipped_model(checkpoint)), Path(shipped_model(checkpoint)) / "final")]
+    for path in paths:
+        if not path.is_file():
+            continue
+        try:
+            d = safe_yaml(path.read_text())
+        except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
+            raise SamplingInputError(f"{path}: unreadable ({e})") from None
+        fps = (d.get("clip") or {}).get("fps_hz") if isinstance(d, dict) else None
+        if isinstance(fps, (int, float)) and not isinstance(fps, bool):
+            if not (math.isfinite(fps) and fps > 0):
+                raise SamplingInputError(f"{path}: clip.fps_hz must be a finite number > 0, got {fps!r}")
+            return float(fps)
+    return None
+
+
 def trained_size_hw(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> tuple[int, int] | None:
     """(H, W) pixels of the clips the latents were encoded from (``shards``' pipeline config, else the world
     model's ``final/data_encode.yaml``); None when neither says. A history video must be encoded at this size."""

@@ -1,0 +1,90 @@
+"""What a representation costs: the world model's training step on its latents and the VAE's encode per clip,
+as ratios against the shipped layout (CogVideoX's 4x temporal VAE at 10 Hz) run in the same process.
+
+Layouts (the synthetic world's 64 x 96 clips; docs/lab/2026-12-07-representation.md):
+  R4@10   4x temporal VAE, 10 Hz, 9 + 40 frames -> 13 latent frames of 16 x 8 x 12   (baseline)
+  R2@5    2x temporal VAE,  5 Hz, 5 + 20 frames -> 13 latent frames
+  R1@5    per-frame VAE,    5 Hz, 3 + 20 frames -> 23 latent frames
+  px@5    pixels (no VAE),  5 Hz, 3 + 20 frames of 3 x 64 x 96, 8 x 8 patches: the reference ceiling
+The step is the world model's forward + backward on a batch (random weights and inputs: the cost does not depend
+on them), the synth preset (width 192, 6 blocks) with 64 text tokens. Encode: the VAE's widths as trained
+(16, 32, 64, 64), random weights, one clip per call as the pipeline's actors run it.
+
+Usage: PYTHONPATH=. python bench/representation_cost.py [--batch 8] [--threads 2] [--repeats 3]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from diffusers import AutoencoderKLCogVideoX
+
+from training.models.config import preset
+from training.models.dit import WorldModel
+from training.vae import VaeTrainConfig, diffusers_config
+
+# name: (VAE temporal ratio or None for pixels, pixel frames, latent frames)
+LAYOUTS = {"R4@10": (4, 49, 13), "R2@5": (2, 25, 13), "R1@5": (1, 23, 23), "px@5": (None, 23, 23)}
+
+
+def _best_ms(fn, repeats: int) -> float:
+    fn()                                                     # warm-up
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3
+
+
+def step_ms(ratio: int | None, latent_frames: int, batch: int, repeats: int) -> tuple[float, int]:
+    over = dict(in_channels=3, out_channels=3, patch_size=8) if ratio is None else {}
+    torch.manual_seed(0)
+    model = WorldModel(preset("synth", **over)).train()
+    c, h, w = (3, 64, 96) if ratio is None else (16, 8, 12)
+    x = torch.randn(batch, latent_frames, c, h, w)
+    t = torch.randint(0, 1000, (batch, latent_frames))
+    text = torch.randn(batch, model.cfg.max_text_seq_length, model.cfg.text_embed_dim)
+
+    def step():
+        model.zero_grad(set_to_none=True)
+        torch.nn.functional.mse_loss(model(x, t, text), x).backward()
+
+    p = model.cfg.patch_size
+    return _best_ms(step, repeats), latent_frames * (h // p) * (w // p)
+
+
+def encode_ms(ratio: int, frames: int, repeats: int) -> float:
+    cfg = VaeTrainConfig(block_out_channels=(16, 32, 64, 64), temporal_compression_ratio=ratio, clip_frames=9)
+    torch.manual_seed(0)
+    vae = AutoencoderKLCogVideoX(**diffusers_config(cfg)).eval()
+    x = torch.rand(1, 3, frames, 64, 96) * 2 - 1
+    with torch.inference_mode():
+        return _best_ms(lambda: vae.encode(x).latent_dist.mean, repeats)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    print(f"device=cpu threads={a.threads} batch={a.batch} (best of {a.repeats} after a warm-up)")
+    rows = {}
+    for name, (ratio, px, lat) in LAYOUTS.items():
+        ms, tokens = step_ms(ratio, lat, a.batch, a.repeats)
+        enc = encode_ms(ratio, px, a.repeats) if ratio is not None else None
+        rows[name] = (tokens, ms, enc)
+        print(f"  measured {name}", flush=True)
+    base_step, base_enc = rows["R4@10"][1], rows["R4@10"][2]
+    print(f"| layout | video tokens | train step (ms) | vs R4@10 | encode per clip (ms) | vs R4@10 |")
+    print("|---|---|---|---|---|---|")
+    for name, (tokens, ms, enc) in rows.items():
+        e = "-" if enc is None else f"{enc:.0f} | {enc / base_enc:.2f}x"
+        print(f"| {name} | {tokens} | {ms:.0f} | {ms / base_step:.2f}x | {e if enc is not None else '- | -'} |")
+
+
+if __name__ == "__main__":
+    main()
