@@ -154,6 +154,25 @@ WORLD_PRESETS["synth-fork-plan"].update(preset="synth-fork-plan")
 WORLD_PRESETS["synth-fork-plan"]["model"]["objective"].update(trajectory_drop_prob=0.1)
 WORLD_PRESETS["synth-fork-plan"]["trainer"]["steps"] = 1500
 
+# The synthetic world model from scratch, one run (docs/models/synth-world.md; the recipe: scripts/train_synth_world.sh).
+# Data: configs/pipeline/synth-world.yaml, 5-Hz clips of 3 + 20 frames through the per-frame synth-vae5 (a turn
+# stays a turn frame by frame: docs/lab/2026-12-07-representation.md), forks + experts + hazardous explorers.
+# The command reaches the model through the T5 tokens and a pooled text vector in AdaLN; the trajectory is dropped
+# on half of the clips of every source, so the command alone must steer there; ReSim's history noise over the full
+# range (App. B.2). Constant learning rate after warm-up: the run is trained in budgeted segments across sessions
+# (trainer.max_wall_s, --resume), and a constant rate makes the segmented run the same run as an unbroken one.
+WORLD_PRESETS["synth-world"] = {
+    "model_name": "world", "preset": "synth-world",
+    "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "latent_frames": 23,
+              "overrides": dict(_SYNTH_TEXT_POOL),
+              "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.2, "trajectory_drop_prob": 0.5,
+                            "trajectory_keep_sources": [], "action_drop_prob": 1.0, "latent_frame_dt_s": 0.2}},
+    "data": {"batch_size_per_gpu": 8, "num_workers": 1},
+    "optim": {"lr": 3e-4, "warmup_steps": 200, "schedule": "constant", "grad_clip_norm": 1.0},
+    "trainer": {"steps": 100_000, "checkpoint_every_steps": 500, "keep_checkpoints": 2, "precision": "fp32",
+                "ema_decay": 0.999, "log_every_steps": 20},
+}
+
 VAE_PRESETS: dict[str, dict] = {
     # the synthetic world's VAE (configs/models/synth-vae, docs/models/synth-vae.md): 64x96 clips of
     # configs/pipeline/synthetic.yaml, 17-frame crops; wider at the low-resolution levels, where width is cheap

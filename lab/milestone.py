@@ -1,0 +1,79 @@
+"""Keep a long world-model run across machines: its EMA weights as one bf16 file at one path, with its progress.
+
+A session may end on a machine that does not come back, with every uncommitted file. So at the end of each session
+the run's EMA weights are committed as ``lab/runs/<name>/ema.bf16.safetensors`` (overwritten each time: one file,
+~10 MB, not a folder of checkpoints) beside ``progress.json``: steps, CPU-hours spent (wall x threads, summed over
+the segments), the loss curve per 500 steps and the dev readings. Where the machine survives, the run resumes
+exactly from its own checkpoint (``--resume``); where it does not, from this file
+(``--set model.init_weights=lab/runs/<name>/ema.bf16.safetensors``; the optimiser restarts, the step count goes on
+from ``progress.json``).
+
+  python lab/milestone.py save RUN --name synth-world [--threads 2] [--segment-wall-s S] [--diag sizing.jsonl]
+  python lab/milestone.py show --name synth-world
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+ROOT = Path(__file__).resolve().parent / "runs"
+
+
+def save(run: Path, name: str, threads: int, segment_wall_s: float | None, diag: Path | None) -> Path:
+    dst = ROOT / name
+    dst.mkdir(parents=True, exist_ok=True)
+    final = run / "final"
+    src = final / "ema.safetensors" if (final / "ema.safetensors").is_file() else final / "model.safetensors"
+    state = {k: v.to(torch.bfloat16) if v.is_floating_point() else v for k, v in load_file(str(src)).items()}
+    save_file(state, str(dst / "ema.bf16.safetensors.tmp"))
+    (dst / "ema.bf16.safetensors.tmp").replace(dst / "ema.bf16.safetensors")   # never a half-written file
+    shutil.copyfile(run / "config.yaml", dst / "config.yaml")
+    if (final / "data_encode.yaml").is_file():
+        shutil.copyfile(final / "data_encode.yaml", dst / "data_encode.yaml")
+    prev = json.loads((dst / "progress.json").read_text()) if (dst / "progress.json").is_file() else {}
+    metrics = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if '"loss"' in x]
+    same_run = prev.get("run") == str(run.resolve())
+    # a run restarted from this file (a new machine) goes on from the saved step and CPU-hours
+    offset = int(prev.get("step_offset", 0)) if same_run or not prev else int(prev["step"])
+    before = float(prev.get("cpu_hours_before", 0.0)) if same_run or not prev else float(prev["cpu_hours"])
+    curve = {}
+    for m in metrics:
+        curve.setdefault((offset + m["step"]) // 500 * 500, []).append(m["loss"])
+    wall = sum(m.get("step_time_s", 0.0) for m in metrics)
+    prog = {"name": name, "run": str(run.resolve()), "weights": src.name + " of the run, cast to bf16",
+            "step": offset + metrics[-1]["step"], "step_offset": offset,
+            "cpu_hours": round(before + wall * threads / 3600, 2), "cpu_hours_before": before, "threads": threads,
+            "loss_per_500_steps": {str(k): round(sum(v) / len(v), 5) for k, v in sorted(curve.items())},
+            "segment_wall_s": segment_wall_s,
+            "dev_readings": [json.loads(x) for x in diag.read_text().splitlines()] if diag and diag.is_file()
+            else prev.get("dev_readings", [])}
+    (dst / "progress.json").write_text(json.dumps(prog, indent=1) + "\n")
+    return dst
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("save")
+    s.add_argument("run", type=Path)
+    s.add_argument("--name", required=True)
+    s.add_argument("--threads", type=int, default=2, help="threads the run trained with (CPU-hours = wall x this)")
+    s.add_argument("--segment-wall-s", type=float)
+    s.add_argument("--diag", type=Path, help="a jsonl of dev readings to keep with the weights")
+    sh = sub.add_parser("show")
+    sh.add_argument("--name", required=True)
+    a = p.parse_args()
+    if a.cmd == "save":
+        print(f"saved {save(a.run, a.name, a.threads, a.segment_wall_s, a.diag)}")
+    else:
+        print((ROOT / a.name / "progress.json").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
