@@ -14,7 +14,7 @@ from pathlib import Path
 from resim.argtypes import (height_width, local_dir, non_negative_float, non_negative_int, positive_float,
                             positive_int, torch_device)
 from resim.config import ConfigError, from_dict, save, to_dict
-from shards.schema import pixel_frame_count
+from shards.schema import latent_frame_count, pixel_frame_count, temporal_compression_of
 from training.sampling.compile import add_compile_args, maybe_compile   # no torch: see its imports
 
 REPO = Path(__file__).resolve().parents[2]
@@ -221,7 +221,6 @@ def _shard_history_frames(root: str, key: str) -> tuple[int, int, float] | None:
     """(latent history frames, pixel history frames, fps) of a shard sample, or None if it cannot be read."""
     try:
         from shards.reader import find_sample
-        from shards.schema import latent_frame_count, temporal_compression_of
         s = find_sample(root, key, decode_video=False, attach_prompts=False)
         meta, px = s["meta.json"], int(s["meta.json"]["num_history_frames"])
         tc = temporal_compression_of(int(meta["num_frames"]), len(s["latent.npy"]))
