@@ -54,11 +54,7 @@ class EvalClip:
     num_history_frames: int
     fps_hz: float
     vae_placeholder: bool
-
-    @property
-    def temporal_compression(self) -> int:
-        """Pixel frames per latent frame after the first, as the dataset's VAE encoded this clip."""
-        return temporal_compression_of(len(self.frames), len(self.latents))
+    temporal_compression: int = 4  # pixel frames per latent frame after the first, as the dataset's VAE encoded it
 
     @property
     def num_history_latents(self) -> int:
@@ -82,9 +78,11 @@ def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = N
             continue
         if need_trajectory and "traj.npy" not in s:
             continue
-        out.append(EvalClip(s["__key__"], m["item_id"], np.asarray(s["latent.npy"], np.float32), s["frames"],
+        lat = np.asarray(s["latent.npy"], np.float32)
+        out.append(EvalClip(s["__key__"], m["item_id"], lat, s["frames"],
                             np.asarray(s["traj.npy"], np.float32) if "traj.npy" in s else None, m.get("command"),
-                            int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder"))))
+                            int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder")),
+                            temporal_compression_of(int(m["num_frames"]), len(lat))))
     out.sort(key=lambda c: c.key)
     out = _one_geometry(out)
     return spread_over_episodes(out, limit) if limit is not None else out
