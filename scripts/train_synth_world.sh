@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Reproduce the synthetic world's models from a fresh clone on a CPU, with the commands a user runs:
-#   1. the per-frame VAE (configs/models/synth-vae-frame): the 5-Hz clips of one world, `resim train vae`;
+#   1. the per-frame VAE (`resim train vae --preset synth-frame`; its candidate so far: lab/runs/synth-vae-frame);
 #   2. the world model's data: `resim pipeline run configs/pipeline/synth-world.yaml` through that VAE;
 #   3. the world model (`resim train world --preset synth-world`), one run, in budgeted segments that resume.
 # Records: docs/lab/2026-12-07-representation.md, docs/lab/2026-12-07-world-recipe.md; cards: docs/models/.
@@ -11,7 +11,7 @@
 #   SEGMENT_S   wall seconds of world-model training per call (default 3600); call again to go on
 #   TOTAL_STEPS stop the world model at this many steps (default: the preset's 100,000, i.e. the budget decides)
 #   THREADS     torch threads for training (default 2: the whole 2-core machine)
-#   VAE=PATH    skip step 1 and encode with this VAE folder (e.g. configs/models/synth-vae-frame)
+#   VAE=PATH    skip step 1 and encode with this VAE folder (e.g. lab/runs/synth-vae-frame)
 # Time on the shared 2-core x86-64 CPU: step 1 ~45 min, step 2 ~20 min, step 3 as budgeted.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -154,8 +154,8 @@ WORLD_PRESETS["synth-fork-plan"].update(preset="synth-fork-plan")
 WORLD_PRESETS["synth-fork-plan"]["model"]["objective"].update(trajectory_drop_prob=0.1)
 WORLD_PRESETS["synth-fork-plan"]["trainer"]["steps"] = 1500
 
-# The synthetic world model from scratch, one run (docs/models/synth-world.md; the recipe: scripts/train_synth_world.sh).
-# Data: configs/pipeline/synth-world.yaml, 5-Hz clips of 3 + 20 frames through the per-frame synth-vae5 (a turn
+# The synthetic world model from scratch, one run (docs/lab/2026-12-07-world-recipe.md; scripts/train_synth_world.sh).
+# Data: configs/pipeline/synth-world.yaml, 5-Hz clips of 3 + 20 frames through the per-frame VAE (a turn
 # stays a turn frame by frame: docs/lab/2026-12-07-representation.md), forks + experts + hazardous explorers.
 # The command reaches the model through the T5 tokens and a pooled text vector in AdaLN; the trajectory is dropped
 # on half of the clips of every source, so the command alone must steer there; ReSim's history noise over the full
@@ -163,8 +163,9 @@ WORLD_PRESETS["synth-fork-plan"]["trainer"]["steps"] = 1500
 # (trainer.max_wall_s, --resume), and a constant rate makes the segmented run the same run as an unbroken one.
 WORLD_PRESETS["synth-world"] = {
     "model_name": "world", "preset": "synth-world",
-    "model": {"preset": "synth", "trainable": "all", "latent_hw": [8, 12], "latent_frames": 23,
-              "overrides": dict(_SYNTH_TEXT_POOL),
+    "model": {"preset": "synth", "trainable": "all", "latent_hw": [16, 24], "latent_frames": 23,
+              # the per-frame VAE's 8 x 16 x 24 latents in 4 x 4 patches: 24 tokens per frame, as 8x latents in 2 x 2
+              "overrides": {**_SYNTH_TEXT_POOL, "in_channels": 8, "out_channels": 8, "patch_size": 4},
               "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.2, "trajectory_drop_prob": 0.5,
                             "trajectory_keep_sources": [], "action_drop_prob": 1.0, "latent_frame_dt_s": 0.2}},
     "data": {"batch_size_per_gpu": 8, "num_workers": 1},
@@ -192,6 +193,16 @@ VAE_PRESETS: dict[str, dict] = {
         "trainer": {"steps": 4, "checkpoint_every_steps": 2, "precision": "fp32"},
     },
 }
+
+# the synthetic world's per-frame VAE (its candidate: lab/runs/synth-vae-frame; docs/lab/2026-12-07-representation.md): ratio
+# 1, so a turn is drawn frame by frame (no latent group to cross-fade), and 4x spatial (3 levels) with 8 channels:
+# at 8x (8 x 12 latents) the frames came back too blurred for the flow labeler to follow (0.50 of the heading kept;
+# docs/lab/2026-12-07-representation.md). 9-frame crops of the 5-Hz clips of configs/pipeline/synth-world.yaml.
+VAE_PRESETS["synth-frame"] = copy.deepcopy(VAE_PRESETS["synth"])
+VAE_PRESETS["synth-frame"].update(preset="synth-frame")
+VAE_PRESETS["synth-frame"]["model"].update(block_out_channels=[16, 32, 64], latent_channels=8,
+                                           temporal_compression_ratio=1, clip_frames=9, gradient_weight=1.0)
+VAE_PRESETS["synth-frame"]["trainer"]["steps"] = 1200
 
 # stage 1b of the shipped synthetic-world VAE (docs/models/synth-vae.md, "Stage 1b"): "synth"'s weights fine-tuned
 # with detail terms and a spatio-temporal patch adversary (training/vae_gan.py), the first loss that kept the ego
