@@ -3,7 +3,7 @@ threads, as ratios against eager at 1 thread run in the same process.
 
 The step is the trainer's: the `synth-world` preset's model and objective (``training.world.build_world``), wrapped
 as the trainer wraps it on one process (``training.distributed.wrap_model``: compile per block when on), a full
-AdamW step with gradient clipping, on an in-memory batch of the preset's geometry (23 latent frames of 16 x 8 x 12,
+AdamW step with gradient clipping, on an in-memory batch of the preset's geometry (23 latent frames of 8 x 16 x 24,
 3 of history; 64 text tokens). Each configuration times ``--steps`` steps after 3 warm-up steps (the compile
 happens there; its cost is printed). On a shared machine run it twice: the ratios are what carries.
 
@@ -22,9 +22,9 @@ from training.presets import WORLD_PRESETS
 from training.world import build_world
 
 
-def batch_of(b: int, frames: int, seq: int, dim: int) -> Batch:
+def batch_of(b: int, frames: int, chw: tuple[int, int, int], seq: int, dim: int) -> Batch:
     g = torch.Generator().manual_seed(0)
-    return Batch(latents=torch.randn(b, frames, 16, 8, 12, generator=g),
+    return Batch(latents=torch.randn(b, frames, *chw, generator=g),
                  prompt_table=torch.randn(4, seq, dim, generator=g),
                  prompt_index=torch.randint(0, 3, (b,), generator=g), null_index=torch.full((b,), 3),
                  trajectory=torch.randn(b, 8, 3, generator=g), has_trajectory=torch.ones(b, dtype=torch.bool),
@@ -40,7 +40,8 @@ def run(threads: int, compile: bool, batch: int, steps: int, env) -> tuple[float
     model = build_world({k: v for k, v in mcfg.items() if k not in ("latent_hw", "latent_frames")}, device="cpu")
     lm, _ = wrap_model(model, env, parallel="none", compile=compile)
     opt = torch.optim.AdamW([p for p in lm.parameters() if p.requires_grad], lr=1e-4)
-    data = batch_of(batch, mcfg["latent_frames"], model.cfg.max_text_seq_length, model.cfg.text_embed_dim)
+    chw = (model.cfg.in_channels, *mcfg["latent_hw"])
+    data = batch_of(batch, mcfg["latent_frames"], chw, model.cfg.max_text_seq_length, model.cfg.text_embed_dim)
 
     def step():
         loss, _ = lm(data)

@@ -417,7 +417,6 @@ class PipelineConfig:
                     f"{key}: num_history_frames + num_future_frames - 1 = {clip.num_frames - 1} must be divisible "
                     f"by the VAE's temporal compression {tc} (a causal video VAE keeps frame 0 alone, then "
                     f"encodes {tc} frames per latent frame)")
-        for key, clip in self.clip_configs():
             if self.balance.enabled and clip.stride_frames % self.balance.turn_factor:
                 raise ConfigError(
                     f"balance.turn_factor: {key}.stride_frames ({clip.stride_frames}) must be divisible by "

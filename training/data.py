@@ -99,7 +99,7 @@ class Batch:
         if not self.meta or "num_frames" not in self.meta[0]:
             return None
         t_lat, n = int(self.latents.shape[1]), int(self.meta[0]["num_frames"])
-        return temporal_compression_of(n, t_lat, default=None) if t_lat > 1 and n > 1 else None
+        return temporal_compression_of(n, t_lat, default=None)
 
     @property
     def num_history_latent_frames(self) -> int | None:

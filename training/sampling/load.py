@@ -168,8 +168,7 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
 def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_hw: tuple[int, int],
                        clip_fps_hz: float = VIDEO_CLIP_FPS_HZ) -> History:
     """The last ``1 + r (H - 1)`` frames (``r``: the VAE's temporal ratio) of a video file at ``clip_fps_hz``,
-    resized to ``size_hw``, encoded by
-    ``vae`` (VideoVAE). The model learnt motion at the training clip rate (a 9-frame history spans 0.8 s at 10 Hz),
+    resized to ``size_hw``, encoded by ``vae`` (VideoVAE). The model learnt motion at the training clip rate (a 9-frame history spans 0.8 s at 10 Hz),
     so the file is resampled first, as the pipeline's OpenDV reader does: clip frame k takes the source frame
     nearest to its time, counted back from the last frame (the "now" the rollout continues from). A file slower
     than the clip rate is refused: its missing frames would have to be invented."""
@@ -272,15 +271,32 @@ def load_trajectory(spec: str | None) -> np.ndarray | None:
 ENCODE_FILE = "data_encode.yaml"   # RUN/final/: the ``encode`` section of the training data's pipeline config
 
 
-def _encode_section(path: Path) -> dict | None:
-    """The ``encode`` mapping of a pipeline config (``path`` = DATASET/config.yaml) or of ``RUN/final/`` +
-    :data:`ENCODE_FILE`; None when the file is absent."""
+def _data_files(checkpoint: str | Path | None, shards: str | Path | None) -> list[Path]:
+    """Where the training data's config is stated, first match wins: ``shards``' pipeline ``config.yaml``, then the
+    world model's :data:`ENCODE_FILE` (in the export folder or the run's ``final/``)."""
+    paths = [Path(shards) / "config.yaml"] if shards is not None else []
+    if checkpoint is not None:
+        paths += [d / ENCODE_FILE for d in (Path(shipped_model(checkpoint)), Path(shipped_model(checkpoint)) / "final")]
+    return paths
+
+
+def _read_data_config(path: Path) -> Any:
+    """The parsed YAML of a pipeline config or :data:`ENCODE_FILE`; None when the file is absent."""
     if not path.is_file():
         return None
     try:
         d = safe_yaml(path.read_text())
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
         raise SamplingInputError(f"{path}: unreadable ({e}); pass --vae") from None
+    return d
+
+
+def _encode_section(path: Path) -> dict | None:
+    """The ``encode`` mapping of a pipeline config (``path`` = DATASET/config.yaml) or of ``RUN/final/`` +
+    :data:`ENCODE_FILE`; None when the file is absent."""
+    if not path.is_file():
+        return None
+    d = _read_data_config(path)
     enc = d.get("encode", d) if isinstance(d, dict) else None
     if not isinstance(enc, dict):
         raise SamplingInputError(f"{path}: no encode section; pass --vae")
@@ -288,20 +304,12 @@ def _encode_section(path: Path) -> dict | None:
 
 
 def trained_clip_fps_hz(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> float | None:
-    """The clip rate (Hz) the model's training clips were cut at: ``shards``' pipeline config, else the world model's
-    ``final/data_encode.yaml`` (its ``clip`` section, written since the trainer records it); None when neither
-    says (older runs: :func:`video_clip_fps_hz` derives it from the objective)."""
-    paths = [Path(shards) / "config.yaml"] if shards is not None else []
-    if checkpoint is not None:
-        paths += [d / ENCODE_FILE for d in (Path(shipped_model(checkpoint)), Path(shipped_model(checkpoint)) / "final")]
-    for path in paths:
-        if not path.is_file():
-            continue
-        try:
-            d = safe_yaml(path.read_text())
-        except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
-            raise SamplingInputError(f"{path}: unreadable ({e})") from None
-        fps = (d.get("clip") or {}).get("fps_hz") if isinstance(d, dict) else None
+    """The clip rate (Hz) the model's training clips were cut at (the ``clip`` section of :func:`_data_files`; the
+    trainer records it in :data:`ENCODE_FILE`); None when none says (older runs: :func:`video_clip_fps_hz`)."""
+    for path in _data_files(checkpoint, shards):
+        d = _read_data_config(path)
+        clip = d.get("clip") if isinstance(d, dict) else None
+        fps = clip.get("fps_hz") if isinstance(clip, dict) else None
         if isinstance(fps, (int, float)) and not isinstance(fps, bool):
             if not (math.isfinite(fps) and fps > 0):
                 raise SamplingInputError(f"{path}: clip.fps_hz must be a finite number > 0, got {fps!r}")
@@ -312,13 +320,8 @@ def trained_clip_fps_hz(checkpoint: str | Path | None = None, shards: str | Path
 def trained_size_hw(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> tuple[int, int] | None:
     """(H, W) pixels of the clips the latents were encoded from (``shards``' pipeline config, else the world
     model's ``final/data_encode.yaml``); None when neither says. A history video must be encoded at this size."""
-    encs = []
-    if shards is not None:
-        encs.append(_encode_section(Path(shards) / "config.yaml"))
-    if checkpoint is not None:
-        encs += [_encode_section(d / ENCODE_FILE) for d in (Path(shipped_model(checkpoint)),
-                                                             Path(shipped_model(checkpoint)) / "final")]
-    for enc in encs:
+    for path in _data_files(checkpoint, shards):
+        enc = _encode_section(path)
         if enc is not None and isinstance(enc.get("height_px"), int) and isinstance(enc.get("width_px"), int):
             return int(enc["height_px"]), int(enc["width_px"])
     return None
@@ -328,14 +331,7 @@ def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None
     """The VAE folder the latents were encoded with: that of ``shards`` (its pipeline ``config.yaml``), else
     that of the world model's training data (``RUN/final/data_encode.yaml``, written at the end of training),
     else the shipped placeholder. Rollouts must be decoded by the VAE whose latents the model learnt."""
-    enc = None
-    if shards is not None:
-        enc = _encode_section(Path(shards) / "config.yaml")
-    if enc is None and checkpoint is not None:
-        for d in (Path(shipped_model(checkpoint)), Path(shipped_model(checkpoint)) / "final"):
-            enc = _encode_section(d / ENCODE_FILE)
-            if enc is not None:
-                break
+    enc = next((e for e in map(_encode_section, _data_files(checkpoint, shards)) if e is not None), None)
     vae = (enc or {}).get("vae")
     path = shipped_model(vae) if vae else shipped_dir(PLACEHOLDER_VAE)
     if not Path(path).is_dir():
