@@ -5,12 +5,22 @@ another Ray or Python version a 40-line ``Version mismatch`` traceback; and an e
 listens on retried for minutes before dying. Here each is a :class:`ClusterError` whose message names the
 address and the way out, and an explicit address is probed with one TCP connect first, so a dead address fails
 in seconds.
+
+Authentication is Ray's own token mode (``RAY_AUTH_MODE=token``,
+https://docs.ray.io/en/latest/ray-security/token-auth.html). A Ray that resim starts on this machine always uses it (:func:`secure_embedded`); joining a cluster or submitting
+to one, the token is found where Ray's own CLI finds it (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH``,
+``~/.ray/auth_token``), and resim never reads, logs or saves it. docs/security.md says what each mode exposes.
 """
 from __future__ import annotations
 
+import logging
 import os
 import re
+import secrets
 import socket
+from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 # how long the TCP probe of an explicit HOST:PORT waits: a live GCS answers at once, a firewalled one never does
 PROBE_TIMEOUT_S = 5.0
@@ -20,6 +30,31 @@ EMBEDDED_HINT = "or run embedded on this machine with --set ray.address=null"
 
 class ClusterError(RuntimeError):
     """The Ray cluster cannot be used as configured (one line: the address and the reason)."""
+
+
+def has_token() -> bool:
+    """A token is where Ray looks for one: ``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``."""
+    return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+                or (Path.home() / ".ray" / "auth_token").is_file())
+
+
+def secure_embedded() -> str:
+    """Token authentication for the Ray this process is about to start; returns ``RAY_AUTH_MODE``.
+
+    Call before ``import ray``: Ray reads the mode into its C++ config at import. The embedded Ray's gRPC
+    servers listen on every interface (Ray 2.60 has no setting to bind them to loopback; docs/security.md), so
+    the token is what keeps other machines out: without it anyone who reaches a port can run code here.
+    Without a token of the user's own, one is made for this process alone and handed to Ray's processes through
+    the environment they inherit; Ray would otherwise write ``~/.ray/auth_token``, a credential that outlives a
+    cluster that lives only as long as this run. An explicit ``RAY_AUTH_MODE=disabled`` is the user's choice,
+    said once on the console."""
+    mode = os.environ.setdefault("RAY_AUTH_MODE", "token").lower()
+    if mode == "token" and not has_token():
+        os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
+    elif mode == "disabled":
+        log.warning("RAY_AUTH_MODE=disabled: while this run lasts, anyone who can reach this machine's Ray ports "
+                    "can run code as you (docs/security.md); unset it to use a token")
+    return mode
 
 
 def describe_address(address: str | None) -> str:
@@ -58,6 +93,10 @@ def explain(address: str | None, e: BaseException) -> ClusterError | None:
     """The one-line :class:`ClusterError` for what ``ray.init`` raised, or None where it is not a cluster problem."""
     where = describe_address(address)
     text = str(e)
+    if type(e).__name__ == "AuthenticationError" or "InvalidAuthToken" in text:
+        return ClusterError(f"{where}: the cluster refused this process's Ray token (none found, or another); set "
+                            f"RAY_AUTH_MODE=token and the cluster's token in RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH, "
+                            f"as for Ray's own CLI (docs/security.md), {EMBEDDED_HINT}")
     if "Version mismatch" in text:
         # Ray's message: "The cluster was started with:\n Ray: A\n Python: B\nThis process ... with:\n Ray: C ..."
         rays = re.findall(r"Ray:\s*(\S+)", text)
@@ -89,7 +128,7 @@ def join(address: str | None, **init_kwargs) -> None:
         probe(target, describe_address(address))
     try:
         ray.init(address=address, **init_kwargs)
-    except (ConnectionError, RuntimeError) as e:
+    except (ConnectionError, RuntimeError, ray.exceptions.AuthenticationError) as e:
         err = explain(address, e)
         if err is None:
             raise

@@ -205,7 +205,8 @@ def init_ray(cfg: PipelineConfig) -> bool:
 
     A cluster that is absent, dead or of another Ray/Python version is a one-line ``ClusterError``
     (``pipelines.ray_connect``)."""
-    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    if is_embedded(cfg):
+        ray_connect.secure_embedded()   # before `import ray`: Ray reads the mode at import
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     # after RAY_* are set; only the Ray executor needs ray (the local one runs without it)
     import ray

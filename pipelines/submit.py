@@ -27,7 +27,9 @@ from resim.config import save
 from resim.models import shipped_dir, shipped_model
 
 PACKAGES = ("resim", "media", "shards", "labeling", "pipelines")
-JOB_ENV = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0", "HF_HUB_OFFLINE": "1",
+# No RAY_AUTH_* here: the job's processes take the cluster's own mode and token, and env_vars are shown by
+# `ray job list`, so a token must never travel in them.
+JOB_ENV = {"RAY_USAGE_STATS_ENABLED": "0", "HF_HUB_OFFLINE": "1",
            "TRANSFORMERS_OFFLINE": "1", "HF_HUB_DISABLE_PROGRESS_BARS": "1", "TOKENIZERS_PARALLELISM": "false"}
 TERMINAL = ("SUCCEEDED", "FAILED", "STOPPED")
 

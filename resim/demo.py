@@ -292,7 +292,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     data = dict(PRESETS[args.preset])
 

@@ -7,13 +7,17 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
-os.environ.setdefault("RAY_AUTH_MODE", "disabled")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+
+from pipelines.ray_connect import secure_embedded  # noqa: E402
+
+# Ray as resim runs it: token authentication, one token for the session's Rays and the processes that join them
+secure_embedded()
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -87,7 +87,7 @@ def test_bad_videos_are_quarantined_and_the_job_goes_on(ray_session, synth_world
 
 
 def _run_in_subprocess(cfg_args: list[str], out: Path, address: str):
-    env = dict(os.environ, PYTHONPATH=str(REPO), RAY_AUTH_MODE="disabled", RAY_USAGE_STATS_ENABLED="0")
+    env = dict(os.environ, PYTHONPATH=str(REPO), RAY_USAGE_STATS_ENABLED="0")
     cmd = [sys.executable, "-m", "resim", "pipeline", "run", str(REPO / "configs/pipeline/synthetic.yaml"),
            "--out", str(out), "--no-progress", "--set", f"ray.address={address}"]
     for o in cfg_args:

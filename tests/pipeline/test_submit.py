@@ -33,7 +33,7 @@ def ray_head(tmp_path_factory):
                                                 "object-manager-port")]
     temp = Path(f"/tmp/rsp{os.getpid()}")      # short: Ray's unix socket paths must stay < 108 chars
     bindir = str(Path(sys.executable).parent)
-    env = dict(os.environ, RAY_AUTH_MODE="disabled", RAY_USAGE_STATS_ENABLED="0",
+    env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0",
                PATH=bindir + os.pathsep + os.environ.get("PATH", ""))
     env.pop("RAY_ADDRESS", None)
     log = open(tmp_path_factory.mktemp("rayhead") / "ray_start.log", "w")
@@ -95,3 +95,16 @@ def test_submit_status_logs_against_ray_start_head(ray_head, synth_world, tmp_pa
     assert "synthetic/opendv" in capsys.readouterr().out
     assert (out / "config.yaml").is_file() and (out / "stats.json").is_file()
     assert main(["shards", "verify", str(out)]) == 0
+
+    # the head runs with a token (the session's, as `ray start` takes it: RAY_AUTH_MODE/RAY_AUTH_TOKEN); a shell
+    # without it is refused in one line, and the job's env vars carry no token
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+    env.update(HOME=str(tmp_path), PYTHONPATH=str(REPO))
+    r = subprocess.run([sys.executable, "-m", "resim", "pipeline", "status", "resim-test-job", "--address", ray_head],
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr[-2000:]
+    assert "token" in r.stderr.lower() or "unauthorized" in r.stderr.lower(), r.stderr
+    from ray.job_submission import JobSubmissionClient
+
+    job_env = JobSubmissionClient(ray_head).get_job_info("resim-test-job").runtime_env.get("env_vars", {})
+    assert job_env and not any(k.startswith("RAY_AUTH") for k in job_env)
