@@ -83,11 +83,15 @@ class VaeTrainConfig:
     trainable: Literal["all", "decoder"] = "all"
 
     def __post_init__(self):
-        # 4 levels: 8x spatial compression, as CogVideoX. 3 levels (4x) for the synthetic world's 64x96 clips:
-        # at 8x its 8x12 latent grid could not keep the texture the optical flow reads (docs/models/synth-vae.md)
-        if len(self.block_out_channels) not in (3, 4):
-            raise ConfigError("model.block_out_channels needs 4 widths (8x spatial compression, as CogVideoX) "
-                              "or 3 (4x)")
+        # 4 levels: 8x spatial compression, as CogVideoX. 3 (4x) or 2 (2x) for the synthetic world's 64x96 clips:
+        # at 8x its 8x12 latent grid could not keep the texture the optical flow reads (docs/models/synth-vae.md).
+        # Each level below the top halves time too until the temporal ratio is reached, so 4x time needs 3 levels
+        if len(self.block_out_channels) not in (2, 3, 4):
+            raise ConfigError("model.block_out_channels needs 4 widths (8x spatial compression, as CogVideoX), "
+                              "3 (4x) or 2 (2x)")
+        if 2 ** (len(self.block_out_channels) - 1) < self.temporal_compression_ratio:
+            raise ConfigError(f"model.temporal_compression_ratio={self.temporal_compression_ratio} needs at least "
+                              f"{self.temporal_compression_ratio.bit_length()} widths in model.block_out_channels")
         if any(c % self.norm_num_groups for c in self.block_out_channels):
             raise ConfigError(f"model.block_out_channels {self.block_out_channels} must be multiples of "
                               f"norm_num_groups={self.norm_num_groups}")
