@@ -76,7 +76,12 @@ def test_detail_terms_and_three_levels():
     x = torch.zeros(1, 3, 9, 32, 48)
     assert tuple(vae3.encode(x).latent_dist.mean.shape) == (1, 16, 3, 8, 12)     # 4x spatial, 4x temporal
     with pytest.raises(ConfigError, match="4 widths"):
+        build_vae({**base, "block_out_channels": [8]})
+    # 2 levels halve time once at most: a 4x temporal ratio needs 3, a per-frame VAE may have 2 (2x spatial)
+    with pytest.raises(ConfigError, match="temporal_compression_ratio=4 needs at least 3 widths"):
         build_vae({**base, "block_out_channels": [8, 8]})
+    vae2 = build_vae({**base, "block_out_channels": [8, 8], "temporal_compression_ratio": 1})
+    assert tuple(vae2.encode(x).latent_dist.mean.shape) == (1, 16, 9, 16, 24)   # 2x spatial, per frame
 
 
 def test_spatial_crop_trains_on_a_window_of_the_frames(monkeypatch):
