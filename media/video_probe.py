@@ -19,6 +19,8 @@ from pathlib import Path
 
 import cv2
 
+from media.files import NotARegularFile, open_regular
+
 
 class VideoError(Exception):
     """A video that cannot be read or labelled: ``path`` and ``reason``."""
@@ -169,13 +171,11 @@ def _open(path: str, convert_rgb: bool = True) -> cv2.VideoCapture:
 def probe(path: str | Path) -> VideoInfo:
     """Open ``path`` and read its geometry; raises VideoError naming the file and the reason."""
     p = Path(path)
-    if not p.exists():
-        raise VideoError(p, "no such file")
-    if p.is_dir():
-        raise VideoError(p, "is a directory, not a video file")
-    try:
-        with open(p, "rb") as fh:
+    try:   # a FIFO named f.mp4 would block OpenCV's open forever; a directory, a device: refused by name
+        with open_regular(p) as fh:
             fh.read(1)
+    except NotARegularFile as e:
+        raise VideoError(p, e.reason) from None
     except OSError as e:
         raise VideoError(p, f"cannot be read ({e.strerror})") from None
     prev = cv2.utils.logging.getLogLevel()

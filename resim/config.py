@@ -268,8 +268,9 @@ def load(cls: type[T], path: str | Path | None = None, overrides: typing.Iterabl
     data: dict = json.loads(json.dumps(to_dict(dict(base or {}))))  # deep copy
     if path is not None:
         p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"config file {p} does not exist")
+        if not p.is_file():   # is_file() is a stat: it never blocks on a FIFO, as opening one would
+            what = "is not a regular file" if p.exists() else "does not exist"
+            raise ConfigError(f"config file {p} {what}")
         try:
             loaded = safe_yaml(p.read_text()) or {}
         except yaml.YAMLError as e:   # names the file, with the line and column YAML gives

@@ -29,12 +29,12 @@ import fcntl
 import hashlib
 import json
 import os
-import stat
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from media.files import NotARegularFile, open_regular
 from shards import layout, safejson
 from shards.confine import UnsafePathError, confined
 from shards.errors import ShardReadError
@@ -143,11 +143,13 @@ class PromptTable:
         that is read. :class:`PromptTableError` (OSError where the file is missing or unreadable)."""
         path = self.file_path(pid)
         nbytes = self.declared_bytes(pid)
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))   # a FIFO must not block the open
-        with os.fdopen(fd, "rb") as fh:
-            st = os.fstat(fd)
-            if not stat.S_ISREG(st.st_mode):
-                raise PromptTableError(f"prompt {pid}: file {path} is not a regular file")
+        try:
+            fh = open_regular(path)
+        except NotARegularFile as e:   # missing or unreadable stays an OSError, as the docstring says
+            err = PromptTableError if e.reason.startswith("is ") else OSError
+            raise err(f"prompt {pid}: file {e}") from None
+        with fh:
+            st = os.fstat(fh.fileno())
             if st.st_size != nbytes:
                 raise PromptTableError(f"prompt {pid}: file {path} holds {st.st_size} bytes, prompts.json says "
                                        f"{nbytes}")

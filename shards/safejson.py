@@ -13,13 +13,12 @@ into ``ShardReadError``, which training skips and the CLIs report in one line).
 from __future__ import annotations
 
 import json
-import os
 import re
-import stat
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from media.files import NotARegularFile, open_regular
 
 # A sample's meta.json is ~2 KB, an index lists a shard's keys (~100 KB for 1000s of samples), prompts.json a
 # handful of entries: 64 MiB is far above any of them and still a bounded read.
@@ -70,10 +69,11 @@ def load_file(path, max_bytes: int = MAX_JSON_BYTES, max_depth: int = MAX_JSON_D
 
     Opened non-blocking and checked to be a regular file first: a FIFO or device under a ``.json`` name would
     otherwise block the reader or never end."""
-    fd = os.open(Path(path), os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    with os.fdopen(fd, "rb") as fh:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise JSONLimitError("not a regular file")
+    try:
+        fh = open_regular(path)
+    except NotARegularFile as e:
+        raise JSONLimitError(e.reason) from None
+    with fh:
         raw = fh.read(max_bytes + 1)
     if len(raw) > max_bytes:
         raise JSONLimitError(f"file is larger than the limit of {max_bytes} bytes for JSON")

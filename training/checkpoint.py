@@ -42,6 +42,7 @@ from torch.distributed.checkpoint import DefaultLoadPlanner, FileSystemReader, F
 from torch.distributed.checkpoint._nested_dict import flatten_state_dict, set_element
 from torch.distributed.checkpoint.metadata import StorageMeta
 
+from media.files import NotARegularFile, check_regular, open_regular, read_text
 from shards.fsio import fsync_dir
 
 CHECKPOINTS = "checkpoints"
@@ -104,8 +105,16 @@ class SafeFileSystemReader(FileSystemReader):
     def read_metadata(self, *args: Any, **kwargs: Any):
         rank = kwargs.get("rank")
         path = self._get_metadata_path(rank)
-        with self.fs.create_stream(path, "rb") as f:
-            metadata = _MetadataUnpickler(f).load()
+        try:
+            f = open_regular(path)   # a FIFO named .metadata blocked --resume forever
+        except NotARegularFile as e:
+            raise CheckpointError(f"checkpoint metadata {e}") from None
+        with f:
+            try:
+                metadata = _MetadataUnpickler(f).load()
+            except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as e:
+                raise CheckpointError(f"checkpoint metadata {path} is truncated or corrupt ({type(e).__name__}: "
+                                      f"{e})") from None
         if getattr(metadata, "storage_meta", None) is None:
             metadata.storage_meta = StorageMeta()
         metadata.storage_meta.load_id = self.load_id
@@ -269,6 +278,11 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int,
     p = Path(path)
     if not (p / "meta.json").is_file():
         raise CheckpointError(f"{p} is not a complete checkpoint (no meta.json)")
+    for f in p.iterdir():   # DCP opens its shards by name: a FIFO or device among them would block or never end
+        try:
+            check_regular(f)
+        except NotARegularFile as e:
+            raise CheckpointError(f"checkpoint file {e}") from None
     reader = SafeFileSystemReader(p)
     saved = reader.read_metadata().state_dict_metadata  # refuse foreign pickles here, with our message
     target, back = state, {}
@@ -284,10 +298,23 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int,
         dcp.load(target, storage_reader=reader, planner=SafeLoadPlanner())
     if target is not state:   # tensors were filled in place; the optimizer's param_groups were replaced
         state.update(_renamed(target, lambda n: back.get(n, n)))
-    meta = json.loads((p / "meta.json").read_text())
+    meta = _read_json(p / "meta.json")
     rs_path = p / f"rank_{rank}.json"
-    rank_state = json.loads(rs_path.read_text()) if rs_path.is_file() else None
+    rank_state = _read_json(rs_path) if rs_path.is_file() else None
     return meta, rank_state
+
+
+def _read_json(path: Path) -> dict:
+    """A checkpoint's JSON object (``meta.json``, ``rank_<r>.json``); ``CheckpointError`` naming the file."""
+    try:
+        d = json.loads(read_text(path))
+    except NotARegularFile as e:
+        raise CheckpointError(f"checkpoint file {e}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"checkpoint file {path} is not valid JSON ({e})") from None
+    if not isinstance(d, dict):
+        raise CheckpointError(f"checkpoint file {path} holds {type(d).__name__}, not a JSON object")
+    return d
 
 
 def _renamed(obj: Any, name: Callable[[str], str]) -> Any:

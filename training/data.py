@@ -246,7 +246,7 @@ class StreamLoader:
             world_size=world_size, seed=cfg.seed, open_shards=cfg.open_shards_per_worker, strict=cfg.strict,
             max_consecutive_failures=cfg.max_consecutive_failures, load_frames=cfg.load_frames,
             load_dino=cfg.load_dino, mixing=share, max_shape_buckets=cfg.max_shape_buckets,
-            exclude_keys=duplicate_keys(root) if cfg.skip_duplicates else frozenset())
+            exclude_keys=duplicate_keys(root) if cfg.skip_duplicates else frozenset(), dataset=str(root))
         self.cfg, self.rank, self.world_size, self.pin_memory = cfg, rank, world_size, pin_memory
         self.epoch = 0
         self.batches_in_epoch = 0
@@ -276,6 +276,10 @@ class StreamLoader:
                 emb = self.prompts.get(pid, as_float32=True)
             except PromptTableError as e:   # an entry naming a file outside prompts/, of another size, ...
                 raise DataError(str(e)) from e
+            if not np.isfinite(emb).all():   # else the first loss is NaN and the message blames the learning rate
+                raise DataError(f"{self.prompts.root}: prompt {pid} ({self.prompts.info(pid).get('text', '?')!r}): "
+                                f"its embedding holds {int((~np.isfinite(emb)).sum())} NaN/inf values; re-encode the "
+                                "prompt table (`resim pipeline run` writes it) or drop the dataset")
             self._emb[pid] = torch.from_numpy(np.array(emb, dtype=np.float32, copy=True))
         return self._emb[pid]
 

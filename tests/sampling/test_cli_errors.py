@@ -1,5 +1,6 @@
 """User mistakes in `resim sample` / `resim plan`: a one-line error `resim <sub>: ...` naming the item and the
 reason, exit 2, never a traceback; command-line mistakes are found before any model is loaded."""
+import io
 import json
 import shutil
 import tarfile
@@ -224,3 +225,57 @@ def test_history_sample_with_a_link_or_missing_member_is_one_line(env, capsys, t
     _one_line_error(capsys, _base(env, "sample", "--shards", str(data), "--history", key, out=tmp_path / "o"),
                     f"history {key!r}: shard {data / 'shards' / shard} sample {key!r}: "
                     + reason.format(key=key, first=first))
+
+
+def test_non_finite_inputs_are_refused_in_one_line(env, capsys, tmp_path):
+    """NaN in a history's latents, a prompt embedding or the weights: refused by name, never a NaN rollout with
+    exit 0."""
+    from safetensors.torch import load_file, save_file
+
+    from shards.testing import add_dummy_prompts, make_dummy_sample
+    from shards.writer import ShardWriter
+
+    data = tmp_path / "shards"
+    add_dummy_prompts(data, seq_len=16, dim=64)
+    s = make_dummy_sample(item_id="nan0", seed=0, latent_channels=16, latent_hw=(4, 6), frames_hw=(32, 48))
+    with ShardWriter(data, "d", max_samples_per_shard=4, config_hash="dummy") as w:
+        w.write(s)
+    tar = next(data.glob("shards/*.tar"))   # the writer refuses NaN: plant it in the tar, same size
+    with tarfile.open(tar) as t:
+        members = [(m, t.extractfile(m).read()) for m in t.getmembers()]
+    with tarfile.open(tar, "w", format=tarfile.USTAR_FORMAT) as t:
+        for m, raw in members:
+            if m.name.endswith("latent.npy"):
+                arr = np.load(io.BytesIO(raw))
+                arr[1, 2] = np.nan
+                buf = io.BytesIO()
+                np.save(buf, arr)
+                raw = buf.getvalue()
+            t.addfile(m, io.BytesIO(raw))
+    argv = _base(env, "sample", out=tmp_path / "o1")
+    argv[argv.index("--shards") + 1], argv[argv.index("--history") + 1] = str(data), s["__key__"]
+    _one_line_error(capsys, argv, "latent.npy: 24 of")
+    assert not (tmp_path / "o1").exists()
+
+    run = tmp_path / "run"
+    shutil.copytree(env["run"], run)
+    w = load_file(str(run / "final" / "model.safetensors"))
+    name = sorted(w)[3]
+    w[name] = w[name].clone().fill_(float("inf"))
+    save_file(w, str(run / "final" / "model.safetensors"))
+    argv = _base(env, "sample", out=tmp_path / "o2")
+    argv[argv.index("--checkpoint") + 1] = str(run)
+    _one_line_error(capsys, argv, "1 weight tensors hold NaN or inf (first: ")
+
+    prompts = tmp_path / "p"
+    shutil.copytree(env["data"], prompts)
+    for entry in json.loads((prompts / "prompts" / "prompts.json").read_text())["prompts"].values():
+        f = prompts / "prompts" / entry["file"]
+        raw = bytearray(f.read_bytes())
+        raw[-64:] = b"\xff" * 64          # bfloat16 NaN bit patterns at the end of each embedding's payload
+        f.write_bytes(bytes(raw))
+    argv = _base(env, "sample", out=tmp_path / "o3")
+    argv[argv.index("--shards") + 1] = str(prompts)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "NaN or inf" in err and "Traceback" not in err, err

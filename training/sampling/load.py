@@ -28,6 +28,7 @@ import torch
 import yaml
 
 from media.encoders import TextEncoder
+from media.files import NotARegularFile, check_regular
 from media.frames import MIN_RATE_SLACK, cover_crop   # the pipeline's rules: a history is resampled and cropped as clips were
 from resim.config import from_dict, safe_yaml
 from resim.models import PLACEHOLDER_VAE, shipped_dir, shipped_model
@@ -43,6 +44,15 @@ from training.sampling.plan import CANDIDATE_NAMES, make_candidate
 
 class SamplingInputError(ValueError):
     """A checkpoint, history or prompt given to the sampler is missing or unusable (names it and why)."""
+
+
+def check_finite(x: torch.Tensor | np.ndarray, what: str) -> None:
+    """``SamplingInputError`` naming ``what`` where ``x`` holds NaN or inf: a rollout from it would be NaN (or
+    garbage) with exit 0, so every input of ``sample``/``plan``/``simulate`` passes here first."""
+    t = torch.as_tensor(x)
+    if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+        n = int((~torch.isfinite(t)).sum())
+        raise SamplingInputError(f"{what}: {n} of {t.numel()} values are NaN or inf; refusing to sample from it")
 
 
 # Video sources are cut into clips at 10 Hz (ReSim; OpenDV-YouTube toolkit; configs/pipeline/opendv.yaml
@@ -83,6 +93,12 @@ def load_world_model(ckpt: str | Path, device: str = "cpu", dtype: torch.dtype =
                            adapt_state=to_peft_layout)   # LoRA saved before peft: its keys renamed
     except ExportError as e:
         raise SamplingInputError(f"checkpoint {e}") from None
+    # once at load (a pass over the weights, ~1 ms per MB): NaN weights gave all-NaN rollouts with no warning
+    bad = [n for n, t in [*ex.model.named_parameters(), *ex.model.named_buffers()]
+           if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if bad:
+        raise SamplingInputError(f"checkpoint {ex.folder / ex.weights.name}: {len(bad)} weight tensors hold NaN or "
+                                 f"inf (first: {bad[0]}); the run that wrote it diverged or the file is corrupt")
     model = ex.model.to(device=device, dtype=dtype).eval().requires_grad_(False)
     return model, {"checkpoint": str(ex.folder), "weights": ex.weights.name, "builder": f"registry:{ex.model_name}",
                    "model_name": ex.model_name}
@@ -151,6 +167,7 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
         raise SamplingInputError(f"history {key!r}: {e}") from None
     meta = s["meta.json"]
     lat = np.asarray(s["latent.npy"], dtype=np.float32)
+    check_finite(lat, f"history {key!r} of {root}: latent.npy")
     tc = temporal_compression_of(int(meta["num_frames"]), lat.shape[0])   # the VAE that encoded this dataset
     h_meta = latent_frame_count(int(meta["num_history_frames"]), tc)
     if num_latent_frames > h_meta:
@@ -161,6 +178,8 @@ def history_from_shard(root: str | Path, key: str, num_latent_frames: int) -> Hi
     frames = s.get("frames")
     frames = frames[px - pixel_frame_count(num_latent_frames, tc):px] if frames is not None else None
     traj = s.get("traj.npy")
+    if traj is not None:
+        check_finite(np.asarray(traj, np.float32), f"history {key!r} of {root}: traj.npy")
     return History(torch.from_numpy(lat)[None], frames, float(meta["fps_hz"]), f"shard:{key}", Path(root), meta,
                    None if traj is None else np.asarray(traj, np.float32))
 
@@ -174,8 +193,10 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
     than the clip rate is refused: its missing frames would have to be invented."""
 
     p = Path(path)
-    if not p.is_file():
-        raise SamplingInputError(f"history {p}: no such file (give a video file or --shards ROOT with a sample key)")
+    try:
+        check_regular(p)
+    except NotARegularFile as e:
+        raise SamplingInputError(f"history {e} (give a video file or --shards ROOT with a sample key)") from None
     if not clip_fps_hz > 0:
         raise ValueError(f"clip_fps_hz must be > 0, got {clip_fps_hz}")  # our bug: the caller derives it
     cap = cv2.VideoCapture(str(p))
@@ -210,6 +231,7 @@ def history_from_video(path: str | Path, vae: Any, num_latent_frames: int, size_
     # is not squeezed into the training clips' shape
     clip = np.stack([cv2.cvtColor(cover_crop(buf[last - d], tuple(size_hw)), cv2.COLOR_BGR2RGB) for d in back])
     lat = vae.encode(clip[None], seeds=[0])
+    check_finite(lat, f"history {p}: its latents from the VAE")
     return History(torch.from_numpy(lat), clip, float(clip_fps_hz), f"video:{p.name}",
                    meta={"source_fps_hz": src_fps, "clip_fps_hz": float(clip_fps_hz)})
 
@@ -232,7 +254,9 @@ class PromptSource:
         try:
             if self.table is not None and pid in self.table.ids():
                 self.used[text] = "prompt_table"
-                return torch.from_numpy(np.array(self.table.get(pid, as_float32=True)))[None]
+                emb = torch.from_numpy(np.array(self.table.get(pid, as_float32=True)))[None]
+                check_finite(emb, f"prompt {text!r}: its embedding in {self.table.root}/prompts")
+                return emb
         except PromptTableError as e:   # prompts.json naming a file outside prompts/, a bad size, ...
             raise SamplingInputError(str(e)) from None
         if self.encoder_dir is None:
@@ -241,7 +265,9 @@ class PromptSource:
         if self._encoder is None:
             self._encoder = TextEncoder(self.encoder_dir, device=self.device, max_tokens=self.max_tokens)
         self.used[text] = f"t5:{self._encoder.info.encoder_id}"
-        return torch.from_numpy(self._encoder.encode([text]))
+        emb = torch.from_numpy(self._encoder.encode([text]))
+        check_finite(emb, f"prompt {text!r}: its T5 embedding from {self.encoder_dir}")
+        return emb
 
 
 def load_trajectory(spec: str | None) -> np.ndarray | None:

@@ -1,0 +1,113 @@
+"""Inputs that hung instead of failing, or failed naming the wrong cause: each now ends, within a limit, with one
+line naming the input.
+
+Each command runs in a subprocess with a timeout, so a regression fails here instead of hanging the suite.
+"""
+import io
+import os
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from media.files import NotARegularFile, check_regular, open_regular
+from shards.reader import iter_samples
+from training.testing import write_world_dataset
+
+REPO = Path(__file__).resolve().parents[2]
+TRAIN = ["train", "world", "--preset", "tiny", "--set", "trainer.progress_bar=false",
+         "--set", "trainer.tensorboard=false", "--set", "trainer.loss_curve_png=false"]
+
+
+def _resim(args: list[str], timeout_s: float, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, "-m", "resim", *args], env=env, cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout_s)
+
+
+def _one_line(r: subprocess.CompletedProcess) -> str:
+    lines = [ln for ln in r.stderr.strip().splitlines() if not ln.startswith("[resim")]
+    assert r.returncode != 0 and len(lines) == 1, (r.returncode, r.stderr[-3000:])
+    return lines[0]
+
+
+def test_the_file_helper_refuses_a_fifo_a_folder_a_device_and_a_dangling_link(tmp_path):
+    os.mkfifo(tmp_path / "f.mp4")
+    (tmp_path / "dir.mp4").mkdir()
+    (tmp_path / "dangling.mp4").symlink_to(tmp_path / "gone.mp4")
+    (tmp_path / "ok.mp4").write_bytes(b"x")
+    (tmp_path / "link.mp4").symlink_to(tmp_path / "ok.mp4")
+    for name, what in (("f.mp4", "named pipe"), ("dir.mp4", "directory"), ("dangling.mp4", "dangling"),
+                       ("none.mp4", "no such file")):
+        for check in (check_regular, open_regular):
+            with pytest.raises(NotARegularFile, match=what):
+                check(tmp_path / name)
+    with pytest.raises(NotARegularFile, match="character device"):
+        open_regular("/dev/zero")
+    assert check_regular(tmp_path / "link.mp4") == tmp_path / "link.mp4"
+    with open_regular(tmp_path / "link.mp4") as f:
+        assert f.read() == b"x"
+
+
+def test_label_on_a_fifo_is_one_line_not_a_hang(tmp_path):
+    os.mkfifo(tmp_path / "f.mp4")
+    line = _one_line(_resim(["label", str(tmp_path / "f.mp4")], 60, tmp_path))
+    assert "f.mp4" in line and "named pipe" in line
+
+
+def test_training_on_a_dataset_whose_every_clip_is_a_duplicate_stops_in_one_line(tmp_path):
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    keys = [s["__key__"] for s in iter_samples(ds)]
+    (ds / "dedup").mkdir(exist_ok=True)
+    pq.write_table(pa.table({"key": keys}), ds / "dedup" / "duplicates.parquet")
+    r = _resim([*TRAIN, "--steps", "2", "--shards", str(ds), "--out", str(tmp_path / "run")], 180, tmp_path)
+    line = _one_line(r)
+    assert "no usable sample" in line and "near-duplicate" in line and str(ds) in line, line
+
+
+def test_training_on_a_dataset_whose_every_latent_is_nan_stops_in_one_line(tmp_path):
+    bad = write_world_dataset(tmp_path / "ds", num_samples=12)
+    for tar in bad.glob("shards/*.tar"):   # every latent NaN, each member and so each tar the same size
+        with tarfile.open(tar) as t:
+            members = [(m, t.extractfile(m).read()) for m in t.getmembers()]
+        with tarfile.open(tar, "w", format=tarfile.USTAR_FORMAT) as t:
+            for m, data in members:
+                if m.name.endswith("latent.npy"):
+                    arr = np.load(io.BytesIO(data))
+                    buf = io.BytesIO()
+                    np.save(buf, np.full_like(arr, np.nan))
+                    assert len(buf.getvalue()) == len(data)
+                    data = buf.getvalue()
+                t.addfile(m, io.BytesIO(data))
+    r = _resim([*TRAIN, "--steps", "2", "--shards", str(bad), "--out", str(tmp_path / "run")], 180, tmp_path)
+    line = _one_line(r)
+    assert "no usable sample" in line and "corrupt" in line and "NaN" in line, line
+    assert r.stderr.count("skipping corrupt") <= 40     # the first 20 per worker, then one per 100
+
+
+def test_resume_from_a_checkpoint_whose_metadata_is_a_fifo_is_one_line(tmp_path):
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    common = [*TRAIN, "--shards", str(ds), "--out", str(tmp_path / "run")]
+    r = _resim([*common, "--steps", "1", "--checkpoint-every", "1"], 300, tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    meta = sorted((tmp_path / "run").glob("checkpoints/step_*/.metadata"))[-1]
+    meta.unlink()
+    os.mkfifo(meta)
+    line = _one_line(_resim([*common, "--steps", "2", "--resume"], 60, tmp_path))
+    assert ".metadata" in line and "named pipe" in line, line
+
+
+def test_training_on_a_nan_prompt_embedding_names_the_prompt_not_the_learning_rate(tmp_path):
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    for f in (ds / "prompts").glob("*.npy"):
+        raw = bytearray(f.read_bytes())
+        raw[-64:] = b"\xff" * 64      # bfloat16 NaN bit patterns in the payload
+        f.write_bytes(bytes(raw))
+    r = _resim([*TRAIN, "--steps", "2", "--shards", str(ds), "--out", str(tmp_path / "run")], 180, tmp_path)
+    line = _one_line(r)
+    assert "prompt" in line and "NaN" in line and "optim.lr" not in line, line
