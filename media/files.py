@@ -13,11 +13,18 @@ This module sits in ``media`` because every layer that opens files may import it
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import stat
 from pathlib import Path
 from typing import BinaryIO
+
+
+# errno values that say an output cannot be written: the machine's problem (disk full, quota, read-only mount),
+# never the input's. Pipelines, training and sampling report them in one line through this set. (EACCES is not
+# here: on an input it is the input's problem, so each writer says where it is the output's.)
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
 
 
 class NotARegularFile(ValueError):

@@ -246,10 +246,14 @@ def save(run_dir: str | Path, step: int, state: dict[str, Any], *, rank_state: d
             shutil.rmtree(tmp)  # left by a crash during an earlier save
         tmp.mkdir(parents=True)
     barrier()
-    with warnings.catch_warnings():  # single-process runs: DCP warns that it saves without a process group
-        warnings.filterwarnings("ignore", message="torch.distributed is disabled")
-        dcp.save(state, storage_writer=FileSystemWriter(tmp))
-    _write_json(tmp / f"rank_{rank}.json", rank_state)
+    try:
+        with warnings.catch_warnings():  # single-process runs: DCP warns that it saves without a process group
+            warnings.filterwarnings("ignore", message="torch.distributed is disabled")
+            dcp.save(state, storage_writer=FileSystemWriter(tmp))
+        _write_json(tmp / f"rank_{rank}.json", rank_state)
+    except OSError:   # a full disk: the half-written step must not go on filling it (the last good one stays)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     barrier()
     if rank == 0:
         if os.environ.get("RESIM_FAULT_KILL_IN_SAVE") == str(step):

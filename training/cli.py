@@ -6,10 +6,14 @@ models is imported inside the handler that uses it, to keep `resim --help` fast.
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import sys
+from pathlib import Path
 
 import yaml
 
+from media.files import OUTPUT_ERRNOS
 from resim.config import ConfigError, to_dict
 from training.launch import add_launch_arguments, main_launch
 from training.presets import PRESETS
@@ -31,7 +35,8 @@ trainer.steps has nothing to do and exits 0) or --overwrite (delete it, start ov
 another kind of run (e.g. `resim train reward`'s) or a dataset is always refused.
 The run folder gets config.yaml (resolved), metrics.jsonl (one JSON object per optimizer step),
 tensorboard/, checkpoints/step_XXXXXXXX/ (sharded, atomic), final/model.safetensors and loss_curve.png.
-Exit codes: 0 ok, 2 bad config or --out refused, 3 non-finite loss (message names the last good checkpoint), 4 bad data.
+Exit codes: 0 ok, 2 bad config or --out refused, 3 non-finite loss (message names the last good checkpoint), 4 bad data,
+5 a refused or unreadable checkpoint, 6 the run folder cannot be written (disk full, read-only), 130 Ctrl-C.
 """
 
 
@@ -110,7 +115,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except CheckpointError as e:   # a refused or unreadable checkpoint is input, not our bug: one line
         print(f"resim train {args.model_name}: checkpoint error: {e}", file=sys.stderr)
         return 5
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted (Ctrl-C); `--resume` continues from the last checkpoint in {args.out}",
+              file=sys.stderr)
+        return 130
+    except OSError as e:
+        if not output_error(e, args.out):   # anything else is a bug: the traceback says where
+            raise
+        print(f"{prog}: cannot write the run folder: {e.filename or args.out}: {e.strerror}; free space or give a "
+              f"writable --out, then `--resume` (the last complete checkpoint is kept)", file=sys.stderr)
+        return 6
     return 0
+
+
+def output_error(e: OSError, out: str | Path) -> bool:
+    """``e`` says the run folder cannot be written: disk full, quota, read-only mount (``OUTPUT_ERRNOS``), or no
+    permission on a path inside ``out``."""
+    if e.errno in OUTPUT_ERRNOS:
+        return True
+    inside = e.filename is not None and Path(os.path.abspath(e.filename)).is_relative_to(os.path.abspath(out))
+    return e.errno in (errno.EACCES, errno.EPERM) and inside
 
 
 def _cmd_launch(args: argparse.Namespace) -> int:

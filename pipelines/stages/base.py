@@ -21,11 +21,11 @@ Bad input is turned into quarantine rows here, once, for all stages:
 """
 from __future__ import annotations
 
-import errno
 import time
 
 import numpy as np
 
+from media.files import OUTPUT_ERRNOS
 from pipelines import quarantine
 from pipelines.config import PipelineConfig, config_from_dict
 from pipelines.sources.episode import SourceError
@@ -38,8 +38,6 @@ def source_error_reason(e, item_id: str) -> str:
     return e.reason if e.item == item_id else f"{e.item}: {e.reason}"
 
 
-# errno values that say the output cannot be written: the machine's problem, never the unit's bad input
-OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
 
 
 class OutputError(RuntimeError):

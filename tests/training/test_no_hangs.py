@@ -111,3 +111,48 @@ def test_training_on_a_nan_prompt_embedding_names_the_prompt_not_the_learning_ra
     r = _resim([*TRAIN, "--steps", "2", "--shards", str(ds), "--out", str(tmp_path / "run")], 180, tmp_path)
     line = _one_line(r)
     assert "prompt" in line and "NaN" in line and "optim.lr" not in line, line
+
+
+def _train_in_process(ds, out, *extra):
+    from resim.cli import main
+
+    return main([*TRAIN, "--steps", "2", "--checkpoint-every", "1", "--shards", str(ds), "--out", str(out), *extra])
+
+
+def _err_lines(capsys) -> list[str]:
+    return [ln for ln in capsys.readouterr().err.strip().splitlines() if not ln.startswith("[resim")]
+
+
+def test_a_full_disk_while_checkpointing_is_one_line_exit_6_and_leaves_no_partial_step(tmp_path, capsys,
+                                                                                     monkeypatch):
+    import errno
+
+    import training.checkpoint as ck
+
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    real = ck.dcp.save
+
+    def full_after_first(state, storage_writer):
+        if list((tmp_path / "run" / "checkpoints").glob("step_*[0-9]")):   # the first checkpoint fits
+            (Path(storage_writer.path) / "__0_0.distcp").write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device", str(storage_writer.path))
+        return real(state, storage_writer=storage_writer)
+    monkeypatch.setattr(ck.dcp, "save", full_after_first)
+    assert _train_in_process(ds, tmp_path / "run") == 6
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and "No space left on device" in lines[0] and "--resume" in lines[0], lines
+    left = sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir())
+    assert left == ["step_00000001"], left        # the good one kept, the half-written one gone
+
+
+def test_ctrl_c_in_training_is_one_line_exit_130(tmp_path, capsys, monkeypatch):
+    import training.checkpoint as ck
+
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(ck, "save", interrupted)
+    assert _train_in_process(ds, tmp_path / "run") == 130
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and "interrupted (Ctrl-C)" in lines[0], lines
