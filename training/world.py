@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict
@@ -163,7 +164,10 @@ def _load_init(model: torch.nn.Module, path: Path) -> None:
     output, so the loaded model computes what the previous stage did) may be missing; nothing may be unexpected."""
     if not path.is_file():
         raise ConfigError(f"model.init_weights={path} does not exist (expected RUN_DIR/final/model.safetensors)")
-    sd = to_peft_layout(load_file(str(path)), model)   # a stage-1 file, or LoRA in the pre-peft layout
+    try:
+        sd = to_peft_layout(load_file(str(path)), model)   # a stage-1 file, or LoRA in the pre-peft layout
+    except (SafetensorError, OSError) as e:   # a pickle or torch file: never unpickled, one line
+        raise ConfigError(f"model.init_weights={path}: not a readable safetensors file ({e})") from None
     own = model.state_dict()
     missing = [k for k in own if k not in sd and not is_lora_param(k)
                and not k.startswith(NEW_MODULE_PREFIXES)]

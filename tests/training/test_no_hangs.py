@@ -156,3 +156,20 @@ def test_ctrl_c_in_training_is_one_line_exit_130(tmp_path, capsys, monkeypatch):
     assert _train_in_process(ds, tmp_path / "run") == 130
     lines = _err_lines(capsys)
     assert len(lines) == 1 and "interrupted (Ctrl-C)" in lines[0], lines
+
+
+def test_init_weights_that_are_a_pickle_are_one_line_and_never_unpickled(tmp_path, capsys):
+    import pickle
+
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    marker = tmp_path / "pwned"
+
+    class Boom:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+    bad = tmp_path / "weights.safetensors"
+    bad.write_bytes(pickle.dumps(Boom()))
+    assert _train_in_process(ds, tmp_path / "run", "--set", f"model.init_weights={bad}") == 2
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and "not a readable safetensors file" in lines[0], lines
+    assert not marker.exists()
