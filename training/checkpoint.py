@@ -303,6 +303,10 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int,
     if target is not state:   # tensors were filled in place; the optimizer's param_groups were replaced
         state.update(_renamed(target, lambda n: back.get(n, n)))
     meta = _read_json(p / "meta.json")
+    named = p.name[len(_PREFIX):]
+    if named.isdigit() and meta.get("step") != int(named):   # a step of 10^18 resumed as "done, nothing to do"
+        raise CheckpointError(f"checkpoint {p / 'meta.json'}: step {meta.get('step')!r} is not the step in the "
+                              f"folder's name ({int(named)}); the checkpoint was edited or is corrupt")
     rs_path = p / f"rank_{rank}.json"
     rank_state = _read_json(rs_path) if rs_path.is_file() else None
     return meta, rank_state

@@ -34,6 +34,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from media.files import NotARegularFile, read_text
 from resim.config import ConfigError, safe_yaml, save as save_config, to_dict
 from resim.models import shipped_model
 from training import registry
@@ -93,10 +94,13 @@ def read_config(folder: str | Path, *, expect: str | None = None, label: str | N
     mapping."""
     path = Path(folder) / CONFIG_FILE
     try:
-        raw = safe_yaml(path.read_text())
+        raw = safe_yaml(read_text(path))
+    except NotARegularFile as e:
+        raise ExportError(str(e)) from None
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as e:
         raise ExportError(f"{path}: invalid YAML ({' '.join(str(e).split())})") from None
-    raw = {} if raw is None else raw
+    if raw is None:   # an empty file: the model it describes is unknown, and defaults would sample another one
+        raise ExportError(f"{path}: empty; a model folder's config.yaml names its model (model_name, model)")
     if not isinstance(raw, dict):
         raise ExportError(f"{path}: expected a mapping with model_name and model, got {type(raw).__name__}")
     name = raw.get("model_name", default_name)

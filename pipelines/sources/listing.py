@@ -45,12 +45,15 @@ def _raise_unless_skipped(e: OSError) -> None:
 
 
 def walk_files(root: str | Path, exclude: Iterable[str | Path] = (),
-               suffixes: Iterable[str] | None = None) -> list[Path]:
+               suffixes: Iterable[str] | None = None, special: bool = False) -> list[Path]:
     """Regular files (or links to one) under ``root``, recursively, as ``root / relative path``, sorted.
 
     Like ``root.rglob("*")`` filtered by ``is_file()`` (folders reached through a link are not entered),
     except that an excluded tree is pruned before it is entered: an OUT of 88 k shards is not walked.
     ``suffixes``: keep only these (lower-case, with the dot), compared case-insensitively.
+    ``special``: also list what carries a kept suffix but is no regular file (a FIFO, a device, a dangling link):
+    a source that opens them through ``media.files`` then quarantines each with its reason, instead of the walk
+    dropping them without a word.
     """
     root = Path(root)
     ex = Excluded(root, exclude)
@@ -66,7 +69,7 @@ def walk_files(root: str | Path, exclude: Iterable[str | Path] = (),
             if keep is not None and Path(name).suffix.lower() not in keep:
                 continue
             p = root / rel / name   # pathlib drops the "." of the root's own files
-            if p.is_file() and p not in ex:   # `in`: a link to a file inside OUT is excluded too
+            if p not in ex and (p.is_file() or (special and keep is not None)):   # `in`: links into OUT too
                 found.append(p)
     return sorted(found)
 

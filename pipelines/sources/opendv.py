@@ -33,6 +33,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from media.files import NotARegularFile, check_regular
 from media.frames import MIN_RATE_SLACK, resize_rgb
 from media.video_probe import first_stream_not_video
 from resim.config import ConfigError, from_dict
@@ -165,12 +166,15 @@ class OpenDVReader:
             raise SourceError(str(root), f"OpenDV root {problem}")
         self._metadata()   # an unreadable videos.csv makes the whole source unusable: fail at listing
         exts = {"." + e.lower().lstrip(".") for e in self.cfg.extensions}
-        return sorted(p.relative_to(root).as_posix() for p in walk_files(root, self.cfg.exclude, exts))
+        return sorted(p.relative_to(root).as_posix()
+                      for p in walk_files(root, self.cfg.exclude, exts, special=True))
 
     def open(self, item_id: str) -> Episode:
         path = self.cfg.root / item_id
-        if not path.is_file():
-            raise SourceError(item_id, f"video file {path} does not exist")
+        try:   # a FIFO would block OpenCV's open for ever; a device, a dangling link: quarantined, named
+            check_regular(path)
+        except NotARegularFile as e:
+            raise SourceError(item_id, f"video file {e}") from None
         _refuse_cover_first(path, item_id)
         cap = cv2.VideoCapture(str(path))
         try:

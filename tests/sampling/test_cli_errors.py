@@ -279,3 +279,12 @@ def test_non_finite_inputs_are_refused_in_one_line(env, capsys, tmp_path):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "NaN or inf" in err and "Traceback" not in err, err
+
+
+def test_an_out_that_is_a_file_or_inside_a_dataset_is_one_line(env, capsys, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    _one_line_error(capsys, _base(env, "sample", out=tmp_path / "afile"), "is a file, not a folder")
+    inside = env["data"] / "rollouts"
+    _one_line_error(capsys, _base(env, "sample", out=inside), f"lies inside the dataset {env['data']}")
+    assert not inside.exists()
+    _one_line_error(capsys, _base(env, "plan", out=inside), "lies inside the dataset", sub="plan")

@@ -121,3 +121,22 @@ def test_a_cover_picture_stored_before_the_video_is_quarantined_with_the_reason(
     # without the last-frame check the old reader opened the file and cut clips of the cover picture
     with pytest.raises(SourceError, match="cover picture"):
         reader(root, verify_last_frame=False).open(item)
+
+
+
+def test_a_fifo_a_device_link_and_a_dangling_link_are_quarantined_by_name_not_skipped_or_hung(tmp_path,
+                                                                                              opendv_root):
+    import os
+    import shutil
+
+    root = tmp_path / "opendv"
+    shutil.copytree(opendv_root, root, symlinks=True)
+    os.mkfifo(root / "chanA" / "pipe.mp4")
+    (root / "chanA" / "zero.mp4").symlink_to("/dev/zero")
+    (root / "chanA" / "gone.mp4").symlink_to(root / "nowhere.mp4")
+    good, problems = scan_items(reader(root, min_height_px=32))
+    assert good == ["chanA/good.mp4", "chanA/with_csv.mp4"]
+    reasons = {e.item: e.reason for e in problems}
+    assert "named pipe" in reasons["chanA/pipe.mp4"]
+    assert "character device" in reasons["chanA/zero.mp4"]
+    assert "dangling symbolic link" in reasons["chanA/gone.mp4"]

@@ -80,6 +80,7 @@ def test_missing_files_name_both_places(tmp_path):
     ("model_name: toy\nmodel: [1]\n", "config.yaml: model must be a mapping"),
     ("model_name: nosuch\n", "config.yaml: model_name 'nosuch' has no builder in training.registry"),
     ("model_name: toy\nmodel: {dim: 4, bogus: 1}\n", "config.yaml: "),
+    ("", "config.yaml: empty"),                       # was: sampled with every default
 ])
 def test_a_bad_config_is_one_line_naming_the_file(tmp_path, text, reason):
     run, _ = _run(tmp_path)

@@ -173,3 +173,16 @@ def test_init_weights_that_are_a_pickle_are_one_line_and_never_unpickled(tmp_pat
     lines = _err_lines(capsys)
     assert len(lines) == 1 and "not a readable safetensors file" in lines[0], lines
     assert not marker.exists()
+
+
+def test_resume_from_a_checkpoint_whose_meta_step_is_not_its_name_is_one_line(tmp_path, capsys):
+    import json
+
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    assert _train_in_process(ds, tmp_path / "run") == 0
+    meta = sorted((tmp_path / "run").glob("checkpoints/step_*/meta.json"))[-1]
+    meta.write_text(json.dumps({**json.loads(meta.read_text()), "step": 10 ** 18}))
+    capsys.readouterr()
+    assert _train_in_process(ds, tmp_path / "run", "--resume", "--steps", "3") == 5
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and "is not the step in the folder's name" in lines[0], lines

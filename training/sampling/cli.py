@@ -134,6 +134,24 @@ class UsageError(Exception):
     """A mistake on the command line, found before (or instead of) loading a model: one line, exit 2."""
 
 
+def make_out(out: str | Path) -> Path:
+    """Create ``--out`` and return it; :class:`UsageError` naming it when it is a file, lies inside a dataset (a
+    folder with ``shards/`` and ``index/``, itself or above: rollouts written there would sit among its shards),
+    or cannot be created (read-only, no permission, disk full)."""
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"--out {p} is a file, not a folder")
+    for d in (p.absolute(), *p.absolute().parents):
+        if (d / "shards").is_dir() and (d / "index").is_dir():
+            raise UsageError(f"--out {p} lies inside the dataset {d}; write rollouts outside it, so the dataset "
+                             "stays as `resim pipeline run` made it")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"--out {p}: cannot be created ({e.strerror})") from None
+    return p
+
+
 def resolve_device(device: str | None) -> str:
     """``--device`` (already spelt right, see ``resim.argtypes.torch_device``) → a device this torch build can use
     (``media.device``); :class:`UsageError` naming it otherwise."""
@@ -366,11 +384,10 @@ def _cmd_sample(args) -> int:
             if want is not None and tuple(t.shape) != want:
                 raise UsageError(f"--trajectory {spec if len(spec) < 60 else spec[:57] + '...'}: the model takes "
                                  f"{want[0]} waypoints of {want[1]} values, got shape {tuple(t.shape)}")
+        out = make_out(args.out)
     except (UsageError, SamplingInputError, ConfigError) as e:
         print(f"resim sample: {e}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     commands = args.command or [None]
     try:   # every prompt now, before the progress bar: an unusable prompt table (an entry outside prompts/, ...)
         texts = {c: s.text_for(c) for c in dict.fromkeys([None, *commands])}
@@ -453,12 +470,11 @@ def _cmd_plan(args) -> int:
         except CheckpointError as e:
             raise UsageError(f"--reward: {e}") from None
         s = _Setup(args, device, cfg)
+        out = make_out(args.out)
     except (UsageError, SamplingInputError, ConfigError) as e:
         print(f"resim plan: {e}", file=sys.stderr)
         return 2
     cands = default_candidates(args.speed_mps, names)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     total = rollout_num_steps_total(s.cfg, s.num_future, s.objective.schedule)
     try:   # every prompt now, before the progress bar: an unusable prompt table (an entry outside prompts/, ...)
         texts = {c: s.text_for(c) for c in dict.fromkeys([None, *(c.command for c in cands)])}
