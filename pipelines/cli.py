@@ -99,6 +99,8 @@ def _cmd_run(args) -> int:
     logging.basicConfig(level=logging.INFO, format="[pipeline] %(message)s")
     try:
         cfg = _load(args)
+        if Path(cfg.out).exists() and not Path(cfg.out).is_dir():
+            raise ConfigError(f"out: {cfg.out} is a file, not a folder; give a new or empty folder")
         shown = foreign_out(cfg.out)
         if shown and not args.force:
             raise ConfigError(f"out: {cfg.out} is not empty and is not a pipeline output (it holds {shown}); "

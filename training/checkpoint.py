@@ -40,6 +40,7 @@ import torch.distributed.checkpoint as dcp
 from torch.distributed.checkpoint import DefaultLoadPlanner, FileSystemReader, FileSystemWriter
 # the keys DCP saves a state under, and the helper DCP's own planner sets a loaded value with
 from torch.distributed.checkpoint._nested_dict import flatten_state_dict, set_element
+from torch.distributed.checkpoint.api import CheckpointException
 from torch.distributed.checkpoint.metadata import StorageMeta
 
 from media.files import NotARegularFile, check_regular, open_regular, read_text
@@ -299,7 +300,20 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int,
             target = old
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="torch.distributed is disabled")
-        dcp.load(target, storage_reader=reader, planner=SafeLoadPlanner())
+        try:
+            dcp.load(target, storage_reader=reader, planner=SafeLoadPlanner())
+        except CheckpointError:
+            raise
+        except (CheckpointException, RuntimeError, ValueError, EOFError, OSError, pickle.UnpicklingError) as e:
+            # torch's reader on a truncated .distcp: "PytorchStreamReader failed reading zip archive"; a tensor of
+            # another shape than this model's: a size mismatch. The checkpoint's problem, said in one line (DCP
+            # wraps each rank's error with its traceback: the underlying exception is what names the cause)
+            if isinstance(e, CheckpointException) and e.failures:
+                inner = next(iter(e.failures.values()))
+                e = getattr(inner, "exception", inner)
+            why = " ".join(str(e).split())[:300]
+            raise CheckpointError(f"checkpoint {p}: its tensors cannot be read into this model "
+                                  f"({type(e).__name__}: {why})") from None
     if target is not state:   # tensors were filled in place; the optimizer's param_groups were replaced
         state.update(_renamed(target, lambda n: back.get(n, n)))
     meta = _read_json(p / "meta.json")

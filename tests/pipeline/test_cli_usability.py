@@ -44,6 +44,15 @@ def test_run_refuses_a_non_empty_out_that_is_not_a_pipeline_output(tmp_path, cap
     assert not (tmp_path / "w").exists()            # refused before the synthetic world is generated
 
 
+def test_run_into_an_out_that_is_a_file_is_one_line(tmp_path, capsys):
+    out = tmp_path / "afile"
+    out.write_text("keep me")
+    assert main(["pipeline", "run", CONFIG, "--out", str(out),
+                 "--set", f"sources.synthetic.root={tmp_path / 'w'}"]) == 2
+    _one_line(capsys, "is a file, not a folder")
+    assert out.read_text() == "keep me"
+
+
 def test_a_pipeline_output_or_an_empty_folder_is_not_foreign(tmp_path):
     """Rerunning into OUT resumes: an earlier run's OUT (even an unfinished one) is not refused."""
     from pipelines.cli import foreign_out

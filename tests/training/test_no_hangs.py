@@ -186,3 +186,24 @@ def test_resume_from_a_checkpoint_whose_meta_step_is_not_its_name_is_one_line(tm
     assert _train_in_process(ds, tmp_path / "run", "--resume", "--steps", "3") == 5
     lines = _err_lines(capsys)
     assert len(lines) == 1 and "is not the step in the folder's name" in lines[0], lines
+
+
+@pytest.mark.parametrize("damage", ["truncate_distcp", "meta_json", "rank_json", "metadata_dev_zero"])
+def test_resume_from_a_damaged_checkpoint_is_one_line(tmp_path, capsys, damage):
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    assert _train_in_process(ds, tmp_path / "run") == 0
+    step = sorted((tmp_path / "run").glob("checkpoints/step_*"))[-1]
+    if damage == "truncate_distcp":
+        shard = next(step.glob("*.distcp"))
+        shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 2])
+    elif damage == "meta_json":
+        (step / "meta.json").write_text('{"step": ')
+    elif damage == "rank_json":
+        (step / "rank_0.json").write_text("not json")
+    else:
+        (step / ".metadata").unlink()
+        (step / ".metadata").symlink_to("/dev/zero")
+    capsys.readouterr()
+    assert _train_in_process(ds, tmp_path / "run", "--resume", "--steps", "3") == 5
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and lines[0].startswith("resim train world: checkpoint error:"), lines
