@@ -59,9 +59,18 @@ def build_working_dir(cfg: PipelineConfig, dest: Path) -> Path:
 
 
 def client(address: str):
+    """The Ray Jobs client of ``address``; it sends the token Ray's own CLI would (``RAY_AUTH_MODE=token`` and
+    ``RAY_AUTH_TOKEN`` / ``RAY_AUTH_TOKEN_PATH`` / ``~/.ray/auth_token``). A refused token is a one-line
+    ``RuntimeError`` (the CLI's job errors), not Ray's multi-line ``AuthenticationError``."""
+    from ray.exceptions import AuthenticationError
     from ray.job_submission import JobSubmissionClient   # ray takes seconds to import: only for a submission
 
-    return JobSubmissionClient(address)
+    try:
+        return JobSubmissionClient(address)
+    except AuthenticationError as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else "refused"
+        raise RuntimeError(f"{first}; the cluster uses token authentication: set RAY_AUTH_MODE=token and its token "
+                           f"in RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH, as for Ray's own CLI (docs/security.md)") from None
 
 
 def submit(cfg: PipelineConfig, address: str, job_id: str | None = None, agent_wait_s: float = 60.0) -> str:
