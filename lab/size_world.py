@@ -89,7 +89,8 @@ def train_arm(arm: str, a) -> None:
         t0 = time.time()
         _run(cmd + (["--resume"] if done.is_file() else []), log)
         metrics = [json.loads(x) for x in done.read_text().splitlines() if '"loss"' in x]
-        row = {"arm": arm, "segment": seg, "cpu_min": seg * a.segment_min, "step": metrics[-1]["step"],
+        row = {"arm": arm, "segment": seg, "cpu_min": round(seg * a.segment_min * a.cpu_share, 1),
+               "step": metrics[-1]["step"],
                "train_wall_s": round(time.time() - t0, 1),
                "loss": sum(m["loss"] for m in metrics[-50:]) / len(metrics[-50:]),
                "step_time_s": sum(m["step_time_s"] for m in metrics[-50:]) / len(metrics[-50:])}
@@ -131,6 +132,8 @@ def main() -> int:
     p.add_argument("--segments", type=int, default=4)
     p.add_argument("--segment-min", type=float, default=10.0)
     p.add_argument("--parallel", type=int, default=2)
+    p.add_argument("--cpu-share", type=float, default=1.0,
+                   help="cores per arm while the arms run (2 cores, 3 arms at once: 0.667); CPU minutes = wall x this")
     p.add_argument("--limit", type=int, default=12, help="fork clips of the commands reading")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps of the commands reading")
     p.add_argument("--set", action="append", default=[], help="extra config override for every arm")

@@ -163,9 +163,9 @@ WORLD_PRESETS["synth-fork-plan"]["trainer"]["steps"] = 1500
 # (trainer.max_wall_s, --resume), and a constant rate makes the segmented run the same run as an unbroken one.
 WORLD_PRESETS["synth-world"] = {
     "model_name": "world", "preset": "synth-world",
-    "model": {"preset": "synth", "trainable": "all", "latent_hw": [16, 24], "latent_frames": 23,
-              # the per-frame VAE's 8 x 16 x 24 latents in 4 x 4 patches: 24 tokens per frame, as 8x latents in 2 x 2
-              "overrides": {**_SYNTH_TEXT_POOL, "in_channels": 8, "out_channels": 8, "patch_size": 4},
+    "model": {"preset": "synth", "trainable": "all", "latent_hw": [32, 48], "latent_frames": 23,
+              # the per-frame VAE's 4 x 32 x 48 latents in 8 x 8 patches: 24 tokens per frame, as 8x latents in 2 x 2
+              "overrides": {**_SYNTH_TEXT_POOL, "in_channels": 4, "out_channels": 4, "patch_size": 8},
               "objective": {**_OBJECTIVE, "cond_aug_max_t": None, "text_drop_prob": 0.2, "trajectory_drop_prob": 0.5,
                             "trajectory_keep_sources": [], "action_drop_prob": 1.0, "latent_frame_dt_s": 0.2}},
     "data": {"batch_size_per_gpu": 8, "num_workers": 1},
@@ -195,13 +195,16 @@ VAE_PRESETS: dict[str, dict] = {
 }
 
 # the synthetic world's per-frame VAE (its candidate: lab/runs/synth-vae-frame; docs/lab/2026-12-07-representation.md): ratio
-# 1, so a turn is drawn frame by frame (no latent group to cross-fade), and 4x spatial (3 levels) with 8 channels:
-# at 8x (8 x 12 latents) the frames came back too blurred for the flow labeler to follow (0.50 of the heading kept;
-# docs/lab/2026-12-07-representation.md). 9-frame crops of the 5-Hz clips of configs/pipeline/synth-world.yaml.
+# 1, so a turn is drawn frame by frame (no latent group to cross-fade), and 2x spatial (2 levels) with 4 channels:
+# at 8x and 4x the frames came back too smooth for the flow labeler to follow the asphalt and the lane dashes
+# (0.50 and 0.85-0.88 of the heading kept, whatever the loss). 9-frame clips of the 5-Hz clips of
+# configs/pipeline/synth-world.yaml, cropped to 32 x 48 (the network is convolutional; CogVideoX trains its VAE on
+# crops too): the full-resolution first level costs 4x less a step.
 VAE_PRESETS["synth-frame"] = copy.deepcopy(VAE_PRESETS["synth"])
 VAE_PRESETS["synth-frame"].update(preset="synth-frame")
-VAE_PRESETS["synth-frame"]["model"].update(block_out_channels=[16, 32, 64], latent_channels=8,
+VAE_PRESETS["synth-frame"]["model"].update(block_out_channels=[32, 64], latent_channels=4, crop_hw=[32, 48],
                                            temporal_compression_ratio=1, clip_frames=9, gradient_weight=1.0)
+VAE_PRESETS["synth-frame"]["data"]["batch_size_per_gpu"] = 4
 VAE_PRESETS["synth-frame"]["trainer"]["steps"] = 1200
 
 # stage 1b of the shipped synthetic-world VAE (docs/models/synth-vae.md, "Stage 1b"): "synth"'s weights fine-tuned
