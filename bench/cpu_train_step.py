@@ -3,7 +3,7 @@ threads, as ratios against eager at 1 thread run in the same process.
 
 The step is the trainer's: the `synth-world` preset's model and objective (``training.world.build_world``), wrapped
 as the trainer wraps it on one process (``training.distributed.wrap_model``: compile per block when on), a full
-AdamW step with gradient clipping, on an in-memory batch of the preset's geometry (23 latent frames of 8 x 16 x 24,
+AdamW step with gradient clipping, on an in-memory batch of the preset's geometry (23 latent frames of 4 x 32 x 48,
 3 of history; 64 text tokens). Each configuration times ``--steps`` steps after 3 warm-up steps (the compile
 happens there; its cost is printed). On a shared machine run it twice: the ratios are what carries.
 

@@ -23,7 +23,7 @@ mkdir -p "$W"
 step() { echo "[train_synth_world] $(date +%H:%M:%S) $*"; }
 world=(configs/pipeline/synth-world.yaml --set sources.synthetic.root="$W/world")
 
-# 1. the VAE: per-frame, 4x spatial (3 levels), on the 5-Hz clips of the world model's own world (frames only)
+# 1. the VAE: per-frame, 2x spatial (2 levels, 4 channels), on the 5-Hz clips of the world model's own world (frames only)
 if [ -z "${VAE:-}" ]; then
   if [ ! -f "$W/vae_data/stats.json" ]; then
     step "pipeline: the VAE's clips (frames; the latents of the 4x placeholder are not used)"
@@ -37,7 +37,7 @@ EOF
     $R pipeline run "${world[@]}" --out "$W/vae_data" --set encode.vae="$W/placeholder-vae-frame"
   fi
   if [ ! -f "$W/vae/final/vae/config.json" ]; then
-    step "train vae (per-frame, 4x spatial)"
+    step "train vae (per-frame, 2x spatial)"
     $R train vae --preset synth-frame --shards "$W/vae_data" --out "$W/vae" --set trainer.progress_bar=false \
        $( [ -d "$W/vae/checkpoints" ] && echo --resume )
   fi
