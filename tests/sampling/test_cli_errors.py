@@ -1,6 +1,5 @@
 """User mistakes in `resim sample` / `resim plan`: a one-line error `resim <sub>: ...` naming the item and the
 reason, exit 2, never a traceback; command-line mistakes are found before any model is loaded."""
-import io
 import json
 import shutil
 import tarfile
@@ -11,6 +10,7 @@ import torch
 import yaml
 
 from resim.cli import main
+from tests.planting import plant_nan_latents
 
 
 @pytest.fixture(scope="module")
@@ -240,18 +240,7 @@ def test_non_finite_inputs_are_refused_in_one_line(env, capsys, tmp_path):
     s = make_dummy_sample(item_id="nan0", seed=0, latent_channels=16, latent_hw=(4, 6), frames_hw=(32, 48))
     with ShardWriter(data, "d", max_samples_per_shard=4, config_hash="dummy") as w:
         w.write(s)
-    tar = next(data.glob("shards/*.tar"))   # the writer refuses NaN: plant it in the tar, same size
-    with tarfile.open(tar) as t:
-        members = [(m, t.extractfile(m).read()) for m in t.getmembers()]
-    with tarfile.open(tar, "w", format=tarfile.USTAR_FORMAT) as t:
-        for m, raw in members:
-            if m.name.endswith("latent.npy"):
-                arr = np.load(io.BytesIO(raw))
-                arr[1, 2] = np.nan
-                buf = io.BytesIO()
-                np.save(buf, arr)
-                raw = buf.getvalue()
-            t.addfile(m, io.BytesIO(raw))
+    plant_nan_latents(next(data.glob("shards/*.tar")), (1, 2))   # the writer refuses NaN: planted, same size
     argv = _base(env, "sample", out=tmp_path / "o1")
     argv[argv.index("--shards") + 1], argv[argv.index("--history") + 1] = str(data), s["__key__"]
     _one_line_error(capsys, argv, "latent.npy: 24 of")

@@ -3,20 +3,18 @@ line naming the input.
 
 Each command runs in a subprocess with a timeout, so a regression fails here instead of hanging the suite.
 """
-import io
 import os
 import subprocess
 import sys
-import tarfile
 from pathlib import Path
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from media.files import NotARegularFile, check_regular, open_regular
 from shards.reader import iter_samples
+from tests.planting import plant_nan_latents
 from training.testing import write_world_dataset
 
 REPO = Path(__file__).resolve().parents[2]
@@ -72,18 +70,8 @@ def test_training_on_a_dataset_whose_every_clip_is_a_duplicate_stops_in_one_line
 
 def test_training_on_a_dataset_whose_every_latent_is_nan_stops_in_one_line(tmp_path):
     bad = write_world_dataset(tmp_path / "ds", num_samples=12)
-    for tar in bad.glob("shards/*.tar"):   # every latent NaN, each member and so each tar the same size
-        with tarfile.open(tar) as t:
-            members = [(m, t.extractfile(m).read()) for m in t.getmembers()]
-        with tarfile.open(tar, "w", format=tarfile.USTAR_FORMAT) as t:
-            for m, data in members:
-                if m.name.endswith("latent.npy"):
-                    arr = np.load(io.BytesIO(data))
-                    buf = io.BytesIO()
-                    np.save(buf, np.full_like(arr, np.nan))
-                    assert len(buf.getvalue()) == len(data)
-                    data = buf.getvalue()
-                t.addfile(m, io.BytesIO(data))
+    for tar in bad.glob("shards/*.tar"):   # every latent NaN (the writer refuses it: planted, same size)
+        plant_nan_latents(tar)
     r = _resim([*TRAIN, "--steps", "2", "--shards", str(bad), "--out", str(tmp_path / "run")], 180, tmp_path)
     line = _one_line(r)
     assert "no usable sample" in line and "corrupt" in line and "NaN" in line, line
