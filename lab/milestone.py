@@ -24,7 +24,7 @@ from safetensors.torch import load_file, save_file
 ROOT = Path(__file__).resolve().parent / "runs"
 
 
-def save(run: Path, name: str, threads: int, segment_wall_s: float | None, diag: Path | None) -> Path:
+def save(run: Path, name: str, threads: float, segment_wall_s: float | None, diag: Path | None) -> Path:
     dst = ROOT / name
     dst.mkdir(parents=True, exist_ok=True)
     final = run / "final"
@@ -62,7 +62,8 @@ def main() -> int:
     s = sub.add_parser("save")
     s.add_argument("run", type=Path)
     s.add_argument("--name", required=True)
-    s.add_argument("--threads", type=int, default=2, help="threads the run trained with (CPU-hours = wall x this)")
+    s.add_argument("--threads", type=float, default=2,
+                   help="cores the run had (CPU-hours = wall x this; 3 runs side by side on 2 cores: 0.667)")
     s.add_argument("--segment-wall-s", type=float)
     s.add_argument("--diag", type=Path, help="a jsonl of dev readings to keep with the weights")
     sh = sub.add_parser("show")
