@@ -309,7 +309,8 @@ def load(path: str | Path, state: dict[str, Any], *, rank: int,
             # another shape than this model's: a size mismatch. The checkpoint's problem, said in one line (DCP
             # wraps each rank's error with its traceback: the underlying exception is what names the cause)
             if isinstance(e, CheckpointException) and e.failures:
-                inner = next(iter(e.failures.values()))
+                inner = next(iter(e.failures.values()))   # (exception, traceback) or a wrapper holding it
+                inner = inner[0] if isinstance(inner, tuple) else inner
                 e = getattr(inner, "exception", inner)
             why = " ".join(str(e).split())[:300]
             raise CheckpointError(f"checkpoint {p}: its tensors cannot be read into this model "
