@@ -80,7 +80,10 @@ def diagnostics(run: Path, dev: Path, out: Path, limit: int, steps: int, log: Pa
 def train_arm(arm: str, a) -> None:
     run, log = a.out / arm, a.out / f"{arm}.log"
     rows = a.out / "sizing.jsonl"
-    for seg in range(1, a.segments + 1):
+    # a rerun with more --segments goes on after the milestones already read (the arm resumes from its checkpoint)
+    done_before = [json.loads(x) for x in rows.read_text().splitlines()] if rows.is_file() else []
+    start = 1 + max([r["segment"] for r in done_before if r["arm"] == arm], default=0)
+    for seg in range(start, a.segments + 1):
         done = run / "metrics.jsonl"
         cmd = RESIM + ["train", "world", "--preset", "synth-world", "--shards", str(a.data), "--out", str(run),
                        "--steps", "1000000", *_sets(arm, [f"trainer.max_wall_s={60 * a.segment_min}",
