@@ -39,21 +39,27 @@ def has_token() -> bool:
 
 
 def secure_embedded() -> str:
-    """Token authentication for the Ray this process is about to start; returns ``RAY_AUTH_MODE``.
+    """A Ray this process is about to start that only this machine can reach, and only with a token; returns
+    ``RAY_AUTH_MODE``. Call before ``import ray``: Ray reads both settings at import.
 
-    Call before ``import ray``: Ray reads the mode into its C++ config at import. The embedded Ray's gRPC
-    servers listen on every interface (Ray 2.60 has no setting to bind them to loopback; docs/security.md), so
-    the token is what keeps other machines out: without it anyone who reaches a port can run code here.
-    Without a token of the user's own, one is made for this process alone and handed to Ray's processes through
-    the environment they inherit; Ray would otherwise write ``~/.ray/auth_token``, a credential that outlives a
-    cluster that lives only as long as this run. An explicit ``RAY_AUTH_MODE=disabled`` is the user's choice,
-    said once on the console."""
+    * **Loopback only.** Ray binds every server it starts (GCS, raylet, workers, agents) to the node's IP address,
+      and takes the machine's network address as that IP unless clusters are off
+      (``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``, ``ray._private.services.get_node_ip_address``): then the node
+      IP is the loopback and nothing listens on another interface. (``_node_ip_address="127.0.0.1"`` does not
+      do it: ``ray.init`` turns a loopback address back into the machine's.) An embedded run is one machine by
+      definition; joining a cluster does not come through here.
+    * **A token** (Ray's ``RAY_AUTH_MODE=token``), so another user of this machine cannot use the run's Ray
+      either. Without a token of the user's own, one is made for this process alone and handed to Ray's
+      processes through the environment they inherit; Ray would otherwise write ``~/.ray/auth_token``, a
+      credential that outlives a cluster that lives only as long as this run. An explicit
+      ``RAY_AUTH_MODE=disabled`` is the user's choice, said once on the console."""
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     mode = os.environ.setdefault("RAY_AUTH_MODE", "token").lower()
     if mode == "token" and not has_token():
         os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
     elif mode == "disabled":
-        log.warning("RAY_AUTH_MODE=disabled: while this run lasts, anyone who can reach this machine's Ray ports "
-                    "can run code as you (docs/security.md); unset it to use a token")
+        log.warning("RAY_AUTH_MODE=disabled: while this run lasts, any user of this machine can run code as you "
+                    "through its Ray (docs/security.md); unset it to use a token")
     return mode
 
 
