@@ -2,7 +2,8 @@
 
 Each arm is `resim train world --preset synth-world` with its own model overrides, trained in segments of
 ``--segment-min`` minutes of wall clock (`trainer.max_wall_s`; one thread per arm, at most ``--parallel`` arms at
-once on their own cores, so wall time is CPU time). The preset's learning rate is constant after warm-up, so a
+once, sharing the cores alike). Each arm's CPU time is measured (its training processes' rusage), not assumed
+from the wall clock, and is the x axis: ``cpu_min``. The preset's learning rate is constant after warm-up, so a
 segmented run is the same run as an unbroken one (`--resume` is exact). After each segment the arm's EMA weights
 are read on the dev clips (never the held-out world):
 
@@ -37,14 +38,19 @@ ARMS = {
 RESIM = [sys.executable, "-m", "resim.cli"]
 
 
-def _run(cmd: list[str], log: Path) -> None:
+def _run(cmd: list[str], log: Path) -> float:
+    """Run ``cmd`` at one thread; returns the CPU seconds it used (user + system, its own rusage from wait4), so
+    arms that share the cores with each other or with anything else are compared by the CPU they really got."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     with open(log, "a") as f:
         f.write(f"$ {' '.join(cmd)}\n")
         f.flush()
-        rc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
-    if rc:
-        raise RuntimeError(f"{cmd[3:5]} exited {rc}: see {log}")
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode:
+        raise RuntimeError(f"{cmd[3:5]} exited {proc.returncode}: see {log}")
+    return usage.ru_utime + usage.ru_stime
 
 
 def _sets(arm: str, extra: list[str]) -> list[str]:
@@ -83,6 +89,7 @@ def train_arm(arm: str, a) -> None:
     # a rerun with more --segments goes on after the milestones already read (the arm resumes from its checkpoint)
     done_before = [json.loads(x) for x in rows.read_text().splitlines()] if rows.is_file() else []
     start = 1 + max([r["segment"] for r in done_before if r["arm"] == arm], default=0)
+    cpu_s = 60 * max([r.get("cpu_min", 0.0) for r in done_before if r["arm"] == arm], default=0.0)
     for seg in range(start, a.segments + 1):
         done = run / "metrics.jsonl"
         cmd = RESIM + ["train", "world", "--preset", "synth-world", "--shards", str(a.data), "--out", str(run),
@@ -90,9 +97,9 @@ def train_arm(arm: str, a) -> None:
                                                            "trainer.checkpoint_every_steps=1000000",
                                                            "trainer.progress_bar=false", *a.set])]
         t0 = time.time()
-        _run(cmd + (["--resume"] if done.is_file() else []), log)
+        cpu_s += _run(cmd + (["--resume"] if done.is_file() else []), log)
         metrics = [json.loads(x) for x in done.read_text().splitlines() if '"loss"' in x]
-        row = {"arm": arm, "segment": seg, "cpu_min": round(seg * a.segment_min * a.cpu_share, 1),
+        row = {"arm": arm, "segment": seg, "cpu_min": round(cpu_s / 60, 1),
                "step": metrics[-1]["step"],
                "train_wall_s": round(time.time() - t0, 1),
                "loss": sum(m["loss"] for m in metrics[-50:]) / len(metrics[-50:]),
@@ -135,8 +142,6 @@ def main() -> int:
     p.add_argument("--segments", type=int, default=4)
     p.add_argument("--segment-min", type=float, default=10.0)
     p.add_argument("--parallel", type=int, default=2)
-    p.add_argument("--cpu-share", type=float, default=1.0,
-                   help="cores per arm while the arms run (2 cores, 3 arms at once: 0.667); CPU minutes = wall x this")
     p.add_argument("--limit", type=int, default=12, help="fork clips of the commands reading")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps of the commands reading")
     p.add_argument("--set", action="append", default=[], help="extra config override for every arm")
