@@ -277,3 +277,22 @@ def test_an_out_that_is_a_file_or_inside_a_dataset_is_one_line(env, capsys, tmp_
     _one_line_error(capsys, _base(env, "sample", out=inside), f"lies inside the dataset {env['data']}")
     assert not inside.exists()
     _one_line_error(capsys, _base(env, "plan", out=inside), "lies inside the dataset", sub="plan")
+
+
+def test_a_rollout_that_overflows_is_said_and_not_written(env, capsys, tmp_path, monkeypatch):
+    from training.sampling import rollout as ro
+
+    real = ro.rollout
+
+    def overflowing(*a, **k):
+        res = real(*a, **k)
+        res.latents[..., 0] = float("nan")
+        return res
+    monkeypatch.setattr(ro, "rollout", overflowing)
+    out = tmp_path / "o"
+    assert main(_base(env, "sample", out=out)) == 1
+    err = capsys.readouterr().err.replace("\r", "\n")   # the progress bar's lines come before it
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("resim sample:")]
+    assert len(lines) == 1 and "NaN/inf values" in lines[0] and "nothing written" in lines[0], err[-2000:]
+    assert "Traceback" not in err
+    assert not list(out.glob("*.mp4")) and not list(out.glob("*.npy"))

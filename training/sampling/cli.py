@@ -411,6 +411,11 @@ def _cmd_sample(args) -> int:
         res = rollout(s.model, s.history.latents.to(s.device), cond_at, s.num_future, s.cfg, seed=args.seed,
                       policy=s.policy_for(traj_at), progress=bar, actions_from_trajectory=s.actions_from_trajectory,
                       schedule=s.objective.schedule)
+    if not bool(torch.isfinite(res.latents).all()):   # finite inputs and weights, and still: say so, write nothing
+        n = int((~torch.isfinite(res.latents)).sum())
+        print(f"resim sample: the rollout holds {n} NaN/inf values of {res.latents.numel()} (finite history, prompts "
+              f"and weights: the model overflowed); nothing written", file=sys.stderr)
+        return 1
     t_setup = t0 - t_start
     _say("sample")("decoding the rollout with the VAE, writing the video ...")
     frames = decode_rollout(s.vae, res.latents, res.num_history_frames, s.cfg.frames_per_round,
