@@ -296,3 +296,21 @@ def test_a_rollout_that_overflows_is_said_and_not_written(env, capsys, tmp_path,
     assert len(lines) == 1 and "NaN/inf values" in lines[0] and "nothing written" in lines[0], err[-2000:]
     assert "Traceback" not in err
     assert not list(out.glob("*.mp4")) and not list(out.glob("*.npy"))
+
+
+def test_a_plan_whose_rollouts_overflow_is_said_and_not_written(env, capsys, tmp_path, monkeypatch):
+    from training.sampling import plan as pl
+
+    real = pl.plan
+
+    def overflowing(*a, **k):
+        res = real(*a, **k)
+        res.rows[0].latents[..., 0] = float("nan")
+        return res
+    monkeypatch.setattr(pl, "plan", overflowing)
+    out = tmp_path / "o"
+    assert main(_base(env, "plan", "--candidates", "keep_lane", out=out)) == 1
+    err = capsys.readouterr().err.replace("\r", "\n")
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("resim plan:")]
+    assert len(lines) == 1 and "NaN/inf values" in lines[0] and "nothing written" in lines[0], err[-2000:]
+    assert not (out / "ranking.json").exists()

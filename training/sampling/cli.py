@@ -492,6 +492,11 @@ def _cmd_plan(args) -> int:
                    s.num_future, seed=args.seed, policy_for=policy_for, progress=bar,
                    actions_from_trajectory=args.actions_from_trajectory, log=_say("plan", bar),
                    schedule=s.objective.schedule)
+    bad = [r.name for r in res.rows if not (np.isfinite(r.latents).all() and np.isfinite(r.score))]
+    if bad:   # finite inputs and weights, and still: say so, write nothing
+        print(f"resim plan: the rollouts of {', '.join(bad)} hold NaN/inf values (finite history, prompts and "
+              f"weights: the model overflowed); nothing written", file=sys.stderr)
+        return 1
     table = res.table()
     (out / "ranking.md").write_text(table + "\n")
     (out / "ranking.json").write_text(json.dumps(
