@@ -314,3 +314,18 @@ def test_a_plan_whose_rollouts_overflow_is_said_and_not_written(env, capsys, tmp
     lines = [ln for ln in err.strip().splitlines() if ln.startswith("resim plan:")]
     assert len(lines) == 1 and "NaN/inf values" in lines[0] and "nothing written" in lines[0], err[-2000:]
     assert not (out / "ranking.json").exists()
+
+
+def test_an_out_on_a_read_only_mount_is_one_line(env, capsys, tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    out = tmp_path / "ro" / "o"
+    real = Path.mkdir
+
+    def read_only(self, *a, **k):   # as a read-only mount answers (root ignores permission bits, so not chmod)
+        if self == out:
+            raise OSError(errno.EROFS, "Read-only file system", str(self))
+        return real(self, *a, **k)
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    _one_line_error(capsys, _base(env, "sample", out=out), f"--out {out}: cannot be created (Read-only file system)")

@@ -195,3 +195,20 @@ def test_resume_from_a_damaged_checkpoint_is_one_line(tmp_path, capsys, damage):
     assert _train_in_process(ds, tmp_path / "run", "--resume", "--steps", "3") == 5
     lines = _err_lines(capsys)
     assert len(lines) == 1 and lines[0].startswith("resim train world: checkpoint error:"), lines
+
+
+def test_a_read_only_run_folder_is_one_line_exit_6(tmp_path, capsys, monkeypatch):
+    import errno
+
+    ds = write_world_dataset(tmp_path / "ds", num_samples=12)
+    out = tmp_path / "run"
+    real = Path.mkdir
+
+    def read_only(self, *a, **k):   # as a read-only mount answers (root ignores permission bits, so not chmod)
+        if self == out or out in self.parents:
+            raise OSError(errno.EROFS, "Read-only file system", str(self))
+        return real(self, *a, **k)
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    assert _train_in_process(ds, out) == 6
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and "Read-only file system" in lines[0], lines
