@@ -308,7 +308,8 @@ class WorkerStream:
                     _warn(f"skipping corrupt {where}: {e} (skipped on this worker: {n})")
                 self._unusable_sample("corrupt", shard, f"{where}: {e}")
                 continue
-            self._unusable = dict.fromkeys(self._unusable, 0)
+            if self._unusable["near-duplicate"] or self._unusable["corrupt"]:   # no dict built per sample
+                self._unusable = {"near-duplicate": 0, "corrupt": 0}
             yield sample, shard, rec
 
     def _unusable_sample(self, kind: str, shard: int, last: str) -> None:
