@@ -33,10 +33,10 @@ import torch
 import torch.nn.functional as F
 import yaml
 from diffusers import AutoencoderKLCogVideoX
-from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict, safe_yaml
+from training.exported import ExportError, read_weights
 from training.vae_gan import PatchDiscriminator3D, adversarial_losses
 from training.vae_motion import backward_flow, motion_l1
 
@@ -226,10 +226,10 @@ def build_vae(model_cfg: dict, *, device: str | torch.device = "cpu") -> Trainab
             raise ConfigError(f"model.init_weights={cfg.init_weights} does not exist")
         # a VAE folder's or a run's weights; a discriminator missing from them starts fresh, one in them that
         # this model does not have is left out: the VAE's own weights must all be there
-        try:
-            state = load_file(str(cfg.init_weights))
-        except (SafetensorError, OSError) as e:   # a pickle or torch file: never unpickled, one line
-            raise ConfigError(f"model.init_weights={cfg.init_weights}: not a readable safetensors file ({e})") from None
+        try:   # a pickle or torch file: never unpickled, one line
+            state = read_weights(cfg.init_weights)
+        except ExportError as e:
+            raise ConfigError(f"model.init_weights={e}") from None
         if model.discriminator is None:
             state = vae_weights(state)
         missing, unexpected = model.load_state_dict(state, strict=False)

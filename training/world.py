@@ -19,11 +19,10 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict
 from training.diffusion.config import ObjectiveConfig
+from training.exported import ExportError, read_weights
 from training.diffusion.losses import training_losses
 from training.models.blocks import LayerNormZero
 from training.models.config import check_noise_levels, preset as model_preset
@@ -164,10 +163,10 @@ def _load_init(model: torch.nn.Module, path: Path) -> None:
     output, so the loaded model computes what the previous stage did) may be missing; nothing may be unexpected."""
     if not path.is_file():
         raise ConfigError(f"model.init_weights={path} does not exist (expected RUN_DIR/final/model.safetensors)")
-    try:
-        sd = to_peft_layout(load_file(str(path)), model)   # a stage-1 file, or LoRA in the pre-peft layout
-    except (SafetensorError, OSError) as e:   # a pickle or torch file: never unpickled, one line
-        raise ConfigError(f"model.init_weights={path}: not a readable safetensors file ({e})") from None
+    try:   # a pickle or torch file: never unpickled, one line
+        sd = to_peft_layout(read_weights(path), model)   # a stage-1 file, or LoRA in the pre-peft layout
+    except ExportError as e:
+        raise ConfigError(f"model.init_weights={e}") from None
     own = model.state_dict()
     missing = [k for k in own if k not in sd and not is_lora_param(k)
                and not k.startswith(NEW_MODULE_PREFIXES)]
