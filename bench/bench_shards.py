@@ -7,6 +7,7 @@ Run: PYTHONPATH=. python bench/bench_shards.py [--samples 24]
 from __future__ import annotations
 
 import argparse
+import sys
 import shutil
 import tempfile
 import time
@@ -15,13 +16,15 @@ from pathlib import Path
 import numpy as np
 import webdataset as wds
 
-from shards.npy import float32_to_bf16_bits
-from shards.prompts import PromptTable
-from shards.reader import iter_samples, make_webdataset
-from shards.schema import COMMANDS, prompt_text
-from shards.stats import compute_stats
-from shards.testing import add_dummy_prompts, make_dummy_sample
-from shards.writer import ShardWriter, encode_member
+from resim.shards.npy import float32_to_bf16_bits
+from resim.shards.prompts import PromptTable
+from resim.shards.reader import iter_samples, make_webdataset
+from resim.shards.schema import COMMANDS, prompt_text
+from resim.shards.stats import compute_stats
+from resim.shards.writer import ShardWriter, encode_member
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the shared fixtures of tests/support
+from tests.support.shards import add_dummy_prompts, make_dummy_sample  # noqa: E402
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipelines.sources.synth.generate import SynthConfig, generate
+from resim.pipeline.sources.synth.generate import SynthConfig, generate
 
 
 def main():

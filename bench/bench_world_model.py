@@ -15,8 +15,8 @@ import time
 
 import torch
 
-from training.models.config import preset
-from training.models.dit import WorldModel
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
 
 
 def _time(fn, repeats: int) -> float:

@@ -27,8 +27,8 @@ import time
 
 import torch
 
-from training.models.blocks import DiTBlock
-from training.traffic import SavedActivations, Traffic
+from resim.models.world.blocks import DiTBlock
+from resim.train.traffic import SavedActivations, Traffic
 
 
 class _BeforeBlock(DiTBlock):

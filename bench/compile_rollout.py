@@ -1,4 +1,4 @@
-"""Eager against compiled blocks (``training/sampling/compile.py``), one rollout each, same process, same inputs.
+"""Eager against compiled blocks (``resim/sample/compile.py``), one rollout each, same process, same inputs.
 
 The baseline is the eager rollout; beside it the rollout with every transformer block ``torch.compile``d in
 place (a second copy of the same weights; the two alternate, rollout by rollout, so that a shared machine's
@@ -18,10 +18,10 @@ import time
 
 import torch
 
-from training.sampling.compile import COMPILE_MODES, compile_blocks
-from training.sampling.guidance import guidance_preset
-from training.sampling.load import load_world_model
-from training.sampling.rollout import ROLLOUT_PRESETS, Condition, RolloutConfig, rollout
+from resim.diffusion.guidance import guidance_preset
+from resim.sample.compile import COMPILE_MODES, compile_blocks
+from resim.sample.load import load_world_model
+from resim.sample.rollout import ROLLOUT_PRESETS, Condition, RolloutConfig, rollout
 
 
 def main() -> None:

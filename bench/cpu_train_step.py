@@ -1,8 +1,8 @@
 """The synthetic world model's training step on a CPU: eager against torch.compile (inductor) and 1 against 2
 threads, as ratios against eager at 1 thread run in the same process.
 
-The step is the trainer's: the `synth-world` preset's model and objective (``training.world.build_world``), wrapped
-as the trainer wraps it on one process (``training.distributed.wrap_model``: compile per block when on), a full
+The step is the trainer's: the `synth-world` preset's model and objective (``resim.train.tasks.world_model.build_world``), wrapped
+as the trainer wraps it on one process (``resim.train.distributed.wrap_model``: compile per block when on), a full
 AdamW step with gradient clipping, on an in-memory batch of the preset's geometry (23 latent frames of 4 x 32 x 48,
 3 of history; 64 text tokens). Each configuration times ``--steps`` steps after 3 warm-up steps (the compile
 happens there; its cost is printed). On a shared machine run it twice: the ratios are what carries.
@@ -16,10 +16,10 @@ import time
 
 import torch
 
-from training.data import Batch
-from training.distributed import init_distributed, wrap_model
-from training.presets import WORLD_PRESETS
-from training.world import build_world
+from resim.train.data import Batch
+from resim.train.distributed import init_distributed, wrap_model
+from resim.train.presets import WORLD_PRESETS
+from resim.train.tasks.world_model import build_world
 
 
 def batch_of(b: int, frames: int, chw: tuple[int, int, int], seq: int, dim: int) -> Batch:

@@ -16,10 +16,10 @@ import time
 
 import torch
 
-from training.eval.worldeval import eval_clips_from_dataset
-from training.sampling.guidance import guidance_preset
-from training.sampling.load import PromptSource, load_world_model, run_objective, sampling_defaults
-from training.sampling.rollout import Condition, RolloutConfig, rollout
+from resim.diffusion.guidance import guidance_preset
+from resim.eval.worldeval import eval_clips_from_dataset
+from resim.sample.load import PromptSource, load_world_model, run_objective, sampling_defaults
+from resim.sample.rollout import Condition, RolloutConfig, rollout
 
 
 def main() -> None:

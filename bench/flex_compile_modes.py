@@ -1,6 +1,6 @@
 """Static vs dynamic-shape ``torch.compile`` of ``flex_attention`` at the rollout's 512x896 geometries (CUDA).
 
-The flex backend (``training/models/flex.py``) compiles with torch's default ``dynamic=None``: the first shape
+The flex backend (``resim/models/world/flex.py``) compiles with torch's default ``dynamic=None``: the first shape
 compiles static, and after a shape change dynamo recompiles once with symbolic lengths (so frame-by-frame
 rollouts, one key length per round, do not hit dynamo's recompile limit). This measures what that costs per
 call: ``static`` compiles every geometry separately (``dynamic=False``); ``default`` is the model's setting.
@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 from torch.nn.attention.flex_attention import flex_attention
 
-from training.models.attention import block_causal_block_mask
+from resim.models.world.attention import block_causal_block_mask
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from rollout_gpu_cogvideox2b import _cuda_ms  # noqa: E402  (one CUDA-event timer for the bench scripts)

@@ -2,9 +2,9 @@
 
 (a) decode with OpenCV: grab every frame, retrieve (to BGR) the frames sampled at 10 Hz -- what
     any OpenCV reader of this video at 10 Hz must pay;
-(a') decode with PyAV the way the labeler does (media/video.py): luma plane only, non-reference
+(a') decode with PyAV the way the labeler does (resim/media/video.py): luma plane only, non-reference
     frames skipped where that still leaves >= 10 frames/s, the frames sampled at 10 Hz kept;
-(b) the full labeler: ``labeling.windows.label_video`` (decode, shrink, DIS flow, robust fit, windows),
+(b) the full labeler: ``resim.labeling.windows.label_video`` (decode, shrink, DIS flow, robust fit, windows),
     with the configured decoder (PyAV when installed), once per preset given (default: default, fast),
     all interleaved in one process.
 
@@ -36,10 +36,10 @@ import cv2
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from labeling.config import preset  # noqa: E402
-from labeling.windows import label_video  # noqa: E402
-from media.video import iter_samples  # noqa: E402
-from media.video_probe import probe  # noqa: E402
+from resim.labeling.config import preset  # noqa: E402
+from resim.labeling.windows import label_video  # noqa: E402
+from resim.media.video import iter_samples  # noqa: E402
+from resim.media.video_probe import probe  # noqa: E402
 
 
 def make_video(out: Path, fps: float) -> str:
@@ -98,7 +98,7 @@ def main() -> int:
     ap.add_argument("--fps", type=float, default=30.0, help="frame rate of the video to make (default 30)")
     ap.add_argument("--repeats", type=int, default=3, help="interleaved runs, best of each (>= 1)")
     ap.add_argument("--presets", default="default,fast",
-                    help="labeler presets to time, comma-separated (labeling.config.PRESETS; default: default,fast)")
+                    help="labeler presets to time, comma-separated (resim.labeling.config.PRESETS; default: default,fast)")
     ap.add_argument("--rig", metavar="AHEAD_M,HEIGHT_M",
                     help="also time every preset with a known camera rig (flow.camera_ahead_m, camera_height_m), "
                          "as '<preset>+rig'")

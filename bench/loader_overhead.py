@@ -1,4 +1,4 @@
-"""Loader overhead: samples/s of ``training.data.StreamLoader`` alone vs reading the same tar bytes in plain Python.
+"""Loader overhead: samples/s of ``resim.train.data.StreamLoader`` alone vs reading the same tar bytes in plain Python.
 
 Baselines (same process, same files, warm page cache, every member's bytes read, nothing decoded):
 
@@ -21,6 +21,7 @@ Default geometry is stage 2's (256x448 -> 13 x 16 x 32 x 56 fp16 latents, 0.75 M
 from __future__ import annotations
 
 import argparse
+import sys
 import platform
 import statistics
 import tarfile
@@ -31,11 +32,13 @@ from pathlib import Path
 import torch
 
 from resim.config import from_dict
-from shards.schema import COMMANDS
-from shards.testing import add_dummy_prompts, make_dummy_sample
-from shards.writer import ShardWriter
-from training.config import DataConfig
-from training.data import StreamLoader
+from resim.shards.schema import COMMANDS
+from resim.shards.writer import ShardWriter
+from resim.train.config import DataConfig
+from resim.train.data import StreamLoader
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the shared fixtures of tests/support
+from tests.support.shards import add_dummy_prompts, make_dummy_sample  # noqa: E402
 
 
 def write_dataset(root: Path, n: int, latent_hw: tuple[int, int], per_shard: int) -> None:

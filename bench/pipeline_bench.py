@@ -28,9 +28,9 @@ sys.path.insert(0, str(REPO))
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from pipelines import runner  # noqa: E402
-from pipelines.load import load_config  # noqa: E402
-from pipelines.sources.synth.generate import generate, preset  # noqa: E402
+from resim.pipeline import runner  # noqa: E402
+from resim.pipeline.load import load_config  # noqa: E402
+from resim.pipeline.sources.synth.generate import generate, preset  # noqa: E402
 
 SYNTH = REPO / "configs/pipeline/synthetic.yaml"
 # $RESIM_SHARED_DIR, else shared/ beside the checkout (main clone), else one level up (worktree wt/<x>)

@@ -22,9 +22,9 @@ import timeit
 import torch
 from diffusers import AutoencoderKLCogVideoX
 
-from training.models.config import preset
-from training.models.dit import WorldModel
-from training.vae import VaeTrainConfig, diffusers_config
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
+from resim.train.tasks.vae import VaeTrainConfig, diffusers_config
 
 # name: (VAE temporal ratio or None for pixels, pixel frames, latent frames, (C, h, w) per frame, patch, VAE widths)
 WIDE = (16, 32, 64, 64)

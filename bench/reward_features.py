@@ -12,6 +12,7 @@ Backbones are random-init placeholders (timing only; no pretrained weights are u
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 import tempfile
 import time
@@ -20,11 +21,13 @@ from pathlib import Path
 import torch
 
 from resim.config import from_dict
-from training.reward.config import RewardTrainConfig
-from training.reward.features import add_clip_features
-from training.reward.model import Video2Reward
-from training.reward.toy import toy_clips
-from training.reward.train import fit
+from resim.models.reward.config import RewardTrainConfig
+from resim.models.reward.model import Video2Reward
+from resim.train.tasks.reward.features import add_clip_features
+from resim.train.tasks.reward.train import fit
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the shared fixtures of tests/support
+from tests.support.reward_toy import toy_clips  # noqa: E402
 
 DINOV2_SMALL_SHAPE = {  # facebook/dinov2-small's architecture (ViT-S/14), random weights
     "model_type": "dinov2", "hidden_size": 384, "num_hidden_layers": 12, "num_attention_heads": 6,

@@ -22,7 +22,7 @@ warm-up's seconds are printed; they are not in the timed rollout).
 ``--smoke-cpu``: the same code paths with the tiny preset on the CPU at a small size (checks this script, times
 nothing meaningful), e.g. ``--smoke-cpu --height-px 64 --width-px 96 --steps 2 --repeats 1 --attention sdpa,flex``.
 
-``--sdpa-probe``: for the model's own attention module (``training.models.attention.Attention``, 30 heads x 64,
+``--sdpa-probe``: for the model's own attention module (``resim.models.world.attention.Attention``, 30 heads x 64,
 bf16, batch 2 = CFG) at 256x448 and 512x896 (13 latent frames + 226 text tokens), with no mask and with the
 block-causal mask, it (1) profiles one forward (and one forward+backward at 256x448) with the default SDPA
 dispatch and prints the CUDA kernels that ran, and (2) times ``F.scaled_dot_product_attention`` restricted to
@@ -41,13 +41,13 @@ import torch.nn.functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.profiler import ProfilerActivity, profile
 
-from training.models.attention import Attention, block_causal_block_mask, block_causal_mask
-from training.models.config import preset
-from training.models.dit import WorldModel
-from training.models.flex import flex_block_attention
-from training.sampling.compile import COMPILE_MODES, compile_blocks
-from training.sampling.guidance import guidance_preset
-from training.sampling.rollout import Condition, RolloutConfig, rollout
+from resim.diffusion.guidance import guidance_preset
+from resim.models.world.attention import Attention, block_causal_block_mask, block_causal_mask
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
+from resim.models.world.flex import flex_block_attention
+from resim.sample.compile import COMPILE_MODES, compile_blocks
+from resim.sample.rollout import Condition, RolloutConfig, rollout
 
 
 def main() -> None:
@@ -139,7 +139,7 @@ def main() -> None:
         return results
 
     results = {} if args.compile and not args.eager_baseline else time_all("eager")
-    if args.compile:   # what `resim sample` does on CUDA by default (training/sampling/compile.py)
+    if args.compile:   # what `resim sample` does on CUDA by default (resim/sample/compile.py)
         eager = results
         compile_blocks(model, mode=args.compile_mode)
         results = time_all(f"compiled, {args.compile_mode}")
@@ -291,7 +291,7 @@ def _flex_probe(q, k, v, mask, text_len: int, n: int, nf: int, base: float) -> N
 
 def flex_probe(dev: torch.device, preset_name: str = "cogvideox-2b") -> None:
     """The model's ``Attention`` module (30 heads x 64, bf16, batch 2) with the mask each backend builds:
-    the dense bool mask (sdpa) vs the cached ``BlockMask`` (flex, ``training.models.flex``'s compiled call), for
+    the dense bool mask (sdpa) vs the cached ``BlockMask`` (flex, ``resim.models.world.flex``'s compiled call), for
     the uncached ReSim geometry and the cached one (10 new frames against text + 13 frames), at 256x448 and
     512x896. The flex path compiles static for its first shape, then once with dynamic lengths (torch's
     default), so every row after the first times the dynamic-shape kernel (compare: the static compile in

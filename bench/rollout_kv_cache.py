@@ -17,10 +17,10 @@ import time
 
 import torch
 
-from training.models.config import preset
-from training.models.dit import WorldModel
-from training.sampling.guidance import guidance_preset
-from training.sampling.rollout import Condition, RolloutConfig, rollout
+from resim.diffusion.guidance import guidance_preset
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
+from resim.sample.rollout import Condition, RolloutConfig, rollout
 
 
 def main() -> None:

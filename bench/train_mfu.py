@@ -2,7 +2,7 @@
 
 For each resolution (256x448 and 512x896 pixels -> 32x56 and 64x112 latents, 49 frames -> 13 latent
 frames) and activation checkpointing off/on: builds the DiT (preset ``cogvideox-2b``), wraps it the
-way the trainer does (``training.distributed.wrap_model``: AC, then ``fully_shard`` per block + root
+way the trainer does (``resim.train.distributed.wrap_model``: AC, then ``fully_shard`` per block + root
 with bf16 params / fp32 reduction, in a one-rank process group), and times full optimizer steps of
 ``model.loss(batch)`` (the real diffusion objective) on an in-memory batch. MFU = model training FLOPs
 (``flops_per_sample``: 6 x block params x tokens + attention; recompute not counted) / step time /
@@ -40,10 +40,10 @@ import time
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from training.data import Batch
-from training.distributed import init_distributed, wrap_model
-from training.trainer import adamw_kernel
-from training.world import build_world
+from resim.train.data import Batch
+from resim.train.distributed import init_distributed, wrap_model
+from resim.train.tasks.world_model import build_world
+from resim.train.trainer import adamw_kernel
 
 
 def synthetic_batch(b: int, hw: tuple[int, int], device, seq: int = 226, dim: int = 4096):

@@ -16,8 +16,8 @@ import time
 import numpy as np
 import torch
 
-from media.encoders import VideoVAE
-from training.sampling.outputs import decode_latents
+from resim.media.encoders import VideoVAE
+from resim.sample.outputs import decode_latents
 
 
 def main() -> None:

@@ -5,7 +5,7 @@
 
 Builds ``AutoencoderKLCogVideoX`` with CogVideoX-2b's real architecture (block_out_channels
 128/256/256/512, 3 layers per block, 16 latent channels; ~215M params, of which the encoder runs here)
-and times ``media.encoders.VideoVAE.encode`` — the exact call the encode stage makes (posterior
+and times ``resim.media.encoders.VideoVAE.encode`` — the exact call the encode stage makes (posterior
 sample x scaling factor) — on 49-frame clips at 256x448 and 512x896, fp16/bf16, with and without
 slicing/tiling. Prints clips/s per GPU and the ratio against the first case measured in this process,
 plus the published anchor (ReSim/CogVideoX-class encode: ~0.6-1.6 clips/s per A800 at 49x288x512).
@@ -29,7 +29,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from media.encoders import VideoVAE  # noqa: E402
+from resim.media.encoders import VideoVAE  # noqa: E402
 
 COGVIDEOX_2B_VAE = dict(
     in_channels=3, out_channels=3, latent_channels=16, block_out_channels=(128, 256, 256, 512),

@@ -38,10 +38,13 @@ ARMS = {
 RESIM = [sys.executable, "-m", "resim.cli"]
 
 
+THREADS = 1   # torch threads of every command (--threads): 1 for arms side by side, 2 for the long run alone
+
+
 def _run(cmd: list[str], log: Path) -> float:
-    """Run ``cmd`` at one thread; returns the CPU seconds it used (user + system, its own rusage from wait4), so
+    """Run ``cmd`` at ``THREADS`` threads; returns the CPU seconds it used (user + system, its own rusage from wait4), so
     arms that share the cores with each other or with anything else are compared by the CPU they really got."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": str(THREADS), "MKL_NUM_THREADS": str(THREADS)}
     with open(log, "a") as f:
         f.write(f"$ {' '.join(cmd)}\n")
         f.flush()
@@ -145,7 +148,11 @@ def main() -> int:
     p.add_argument("--limit", type=int, default=12, help="fork clips of the commands reading")
     p.add_argument("--steps", type=int, default=20, help="DDIM steps of the commands reading")
     p.add_argument("--set", action="append", default=[], help="extra config override for every arm")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads per command (default 1; the long run, one arm alone on the machine: 2)")
     a = p.parse_args()
+    global THREADS
+    THREADS = a.threads
     a.out.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(a.parallel) as ex:
         for f in [ex.submit(train_arm, arm, a) for arm in a.arms]:

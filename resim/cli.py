@@ -16,17 +16,23 @@ from resim import __version__
 
 # (module defining register(subparsers)); order = order in --help
 COMMANDS: list[str] = [
-    "pipelines.sources.cli",
-    "labeling.cli",
-    "pipelines.cli",
-    "shards.cli",
-    "training.cli",
-    "training.reward.cli",
-    "training.sampling.cli",
-    "training.policy.cli",
-    "training.eval.cli",
-    "resim.demo",
+    "resim.pipeline.sources.cli",
+    "resim.labeling.cli",
+    "resim.pipeline.cli",
+    "resim.shards.cli",
+    "resim.train.cli",
+    "resim.train.tasks.reward.cli",
+    "resim.sample.cli",
+    "resim.eval.simulate_cli",
+    "resim.eval.cli",
+    "resim.demo.run",
 ]
+
+# commands that were renamed or retired: their old words answer with one line (exit 2) instead of argparse's
+# "invalid choice"; the value says what to use now
+RETIRED: dict[tuple[str, ...], str] = {
+    ("eval", "detail"): "a probe of one investigation, retired; its code is in git history (lab/detail_probe.py)",
+}
 
 EPILOG = """\
 typical flow (from the repository root, in this order; small settings that run on a CPU in minutes):
@@ -68,6 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     # quarantine it or stop with a one-line reason that names the file: quiet unless the user asked for it.
     # Set before cv2 opens its first video; Ray workers started by this process inherit it.
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    words = tuple(a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-"))
+    for old, now in RETIRED.items():
+        if words[:len(old)] == old:
+            print(f"resim {' '.join(old)}: {now}", file=sys.stderr)
+            return 2
     parser = build_parser()
     args = None
     try:

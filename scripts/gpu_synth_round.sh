@@ -8,7 +8,7 @@
 #        the small VAE is launch-bound on a GPU, so a larger batch costs little) from the shipped weights, one run
 #        for the whole lease
 #   V2   the same at batch 32, lr 3e-4
-#   W    the world model: the shipped weights + `--preset synth-command` (pooled text path, ReSim's full-range
+#   W    the world model: the shipped weights + `--preset synth-control` with the pooled text path (ReSim's full-range
 #        history noise, trajectory dropped half the time) on WORLD_DATA (latents of the shipped VAE), batch 32
 #   WC   the same with `--preset synth-fork` (the command the only condition)
 #
@@ -60,7 +60,7 @@ world=(train world --shards "$WORLD_DATA" "${common[@]}" --set data.batch_size_p
 declare -A args=(
   [V]=""
   [V2]="--set data.batch_size_per_gpu=32 --set optim.lr=3e-4"
-  [W]="--preset synth-command"
+  [W]="--preset synth-control --set model.overrides.text_pool.enabled=true"   # the pooled text path
   [WC]="--preset synth-fork"
 )
 

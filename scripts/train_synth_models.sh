@@ -194,6 +194,6 @@ $R eval control --checkpoint "$WORLD" --shards "$W/heldout" --idm "$W/idm" --all
 
 if [ "${INSTALL:-0}" = 1 ]; then
   step "installing into configs/models"
-  .venv/bin/python -m training.export_synth --vae "$VAE" --world "$WORLD" --out configs/models
+  .venv/bin/python -m lab.export_synth --vae "$VAE" --world "$WORLD" --out configs/models
 fi
 step "done: $W/eval/vae/vae.json, $W/eval/commands/commands.json, $W/eval/control/control.json"

@@ -14,10 +14,14 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-from pipelines.ray_connect import secure_embedded  # noqa: E402
+from resim.models import registry  # noqa: E402
+from resim.pipeline.ray_connect import secure_embedded  # noqa: E402
 
 # Ray as resim runs it: token authentication, one token for the session's Rays and the processes that join them
 secure_embedded()
+
+# the generic trainer's test model (tests/support/toy.py), registered for the tests only, not in the product
+registry.register("toy", "tests.support.toy:build_toy")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -26,8 +26,8 @@ def test_every_flow_line_parses():
 def test_the_pipeline_reads_the_world_synth_wrote_and_has_enough_episodes(tmp_path):
     """synth's world must be the config's (else: config error "not made with this config's episodes/seed/preset"),
     and `train reward` needs >= 12 episodes to split hazardous and clean held-out episodes."""
-    from pipelines.load import load_config
-    from pipelines.sources.synth.generate import SYNTH_PRESETS
+    from resim.pipeline.load import load_config
+    from resim.pipeline.sources.synth.generate import SYNTH_PRESETS
 
     cmds = flow_commands()
     synth = next(c for c in cmds if c[0] == "synth")

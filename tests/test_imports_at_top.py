@@ -1,7 +1,7 @@
 """Imports of our own packages go at the top of the file (the style rule: an import hidden in a function hides a
 dependency, and a cycle with it). The test parses the source, as tests/test_architecture.py does (nothing is
 imported), and counts, per file, the import statements inside functions that import one of our packages
-(``from shards... import``, ``import training...``, relative imports). A file may hold at most the number
+(``from resim... import``, ``import resim...``, relative imports). A file may hold at most the number
 ``ALLOWED`` gives it, with the reason; any other file none. A file below its number fails too, so the number is
 lowered as the imports move and the count only shrinks. Third-party imports are not counted: heavy optional
 ones (matplotlib, Ray, diffusers, ...) belong inside the function that needs them, with a comment saying why."""
@@ -10,31 +10,32 @@ from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-OURS = ("shards", "labeling", "pipelines", "training", "media", "synthworld", "resim", "bench", "scripts")
+OURS = ("resim", "bench", "scripts")
 
 # Every `resim` call imports the CLI modules to register their subcommands (resim/cli.py COMMANDS), so their
 # handlers import what they need (numpy, torch, the models) when they run: `resim --help` stays fast.
 CLI = "CLI module: the handlers import their command's modules lazily, so `resim --help` stays fast"
 TORCH_LATE = ("resolve_config and the run-folder checks answer `resim train` (--print-config, a bad config) "
               "before torch loads; run_training imports the trainer")
-ENCODERS_TORCH_LATE = ("media.device imports torch, which loads only where an encoder is built: the pipeline's driver "
+ENCODERS_TORCH_LATE = ("resim.media.device imports torch, which loads only where an encoder is built: the pipeline's driver "
                        "imports this module with the encode and prompt stages and stays torch-free")
 
 # file -> (most function-level imports of our packages, reason)
 ALLOWED = {
-    "shards/cli.py": (16, CLI),
-    "pipelines/cli.py": (12, CLI),
-    "pipelines/sources/cli.py": (2, CLI),
-    "labeling/cli.py": (4, CLI),
-    "training/cli.py": (5, CLI),
-    "training/launch.py": (3, CLI),
-    "training/eval/cli.py": (39, CLI),
-    "training/sampling/cli.py": (20, CLI),
-    "training/reward/cli.py": (20, CLI),
-    "training/policy/cli.py": (4, CLI),
-    "resim/demo.py": (1, CLI),
-    "training/run.py": (3, TORCH_LATE),
-    "media/encoders.py": (2, ENCODERS_TORCH_LATE),
+    "resim/shards/cli.py": (16, CLI),
+    "resim/pipeline/cli.py": (12, CLI),
+    "resim/pipeline/sources/cli.py": (2, CLI),
+    "resim/labeling/cli.py": (4, CLI),
+    "resim/train/cli.py": (5, CLI),
+    "resim/train/launch.py": (3, CLI),
+    "resim/eval/cli.py": (37, CLI),
+    "resim/sample/cli.py": (20, CLI),
+    "resim/train/tasks/reward/cli.py": (20, CLI),
+    "resim/train/tasks/policy_cli.py": (2, CLI),
+    "resim/eval/simulate_cli.py": (1, CLI),
+    "resim/demo/run.py": (1, CLI),
+    "resim/train/run.py": (3, TORCH_LATE),
+    "resim/media/encoders.py": (2, ENCODERS_TORCH_LATE),
 }
 
 
@@ -90,14 +91,14 @@ def test_every_allowance_says_why():
 
 
 def test_a_planted_function_import_is_caught(tmp_path):
-    (tmp_path / "shards").mkdir()
-    (tmp_path / "shards" / "a.py").write_text(
-        "import json\nfrom shards import schema\n\n\n"           # top level: fine
+    (tmp_path / "resim" / "shards").mkdir(parents=True)
+    (tmp_path / "resim" / "shards" / "a.py").write_text(
+        "import json\nfrom resim.shards import schema\n\n\n"           # top level: fine
         "def f():\n    import numpy\n    return numpy\n\n\n"      # third-party: not counted
-        "class C:\n    def m(self):\n        from shards.reader import iter_samples\n        return iter_samples\n\n\n"
+        "class C:\n    def m(self):\n        from resim.shards.reader import iter_samples\n        return iter_samples\n\n\n"
         "def g():\n    def h():\n        from . import layout\n        return layout\n    return h\n")
     found = counts(tmp_path)
-    assert found == {"shards/a.py": [(12, "shards.reader"), (18, ".")]}
+    assert found == {"resim/shards/a.py": [(12, "resim.shards.reader"), (18, ".")]}
     assert len(problems(found, {})) == 1
-    assert problems(found, {"shards/a.py": (2, "reason")}) == []
-    assert "lower its number" in problems(found, {"shards/a.py": (3, "reason")})[0]
+    assert problems(found, {"resim/shards/a.py": (2, "reason")}) == []
+    assert "lower its number" in problems(found, {"resim/shards/a.py": (3, "reason")})[0]

@@ -5,7 +5,7 @@ import pytest
 
 from resim.cli import main
 from resim.config import ConfigError
-from resim.demo import Step, StepRunner, check_fresh
+from resim.demo.run import Step, StepRunner, check_fresh
 
 
 def _steps(tmp_path, first_target):

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labeling.trajectory import trajectory_from_poses
-from pipelines.sources.synth.generate import preset, render_episode
-from shards.schema import ClipSpec
-from shards.testing import add_dummy_prompts, make_dummy_sample
-from shards.video import encode_mp4
-from shards.writer import ShardWriter
+from resim.labeling.trajectory import trajectory_from_poses
+from resim.pipeline.sources.synth.generate import preset, render_episode
+from resim.shards.schema import ClipSpec
+from tests.support.shards import add_dummy_prompts, make_dummy_sample
+from resim.shards.video import encode_mp4
+from resim.shards.writer import ShardWriter
 
 
 def road_world_clips(episodes: int, frames_per_episode: int, *, seed: int = 0, frames_hw: tuple[int, int] = (32, 48),

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from shards.schema import COMMANDS
-from training.eval.branches import (branch_matching, counterfactual_groups, format_branches, sibling_trajectory_requests,
+from resim.eval.branches import (branch_matching, counterfactual_groups, format_branches, sibling_trajectory_requests,
                                     trajectory_groups)
-from training.eval.commands import trajectory_branch_eval
-from training.eval.worldeval import EvalClip
+from resim.eval.command_following import trajectory_branch_eval
+from resim.eval.worldeval import EvalClip
+from resim.shards.schema import COMMANDS
 
 LEVEL = {c: float(k - 1) for k, c in enumerate(COMMANDS)}          # left -1, forward 0, right +1
 

@@ -9,7 +9,7 @@ import yaml
 
 from resim.cli import main
 from resim.config import ConfigError
-from shards.schema import ClipSpec
+from resim.shards.schema import ClipSpec
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +19,7 @@ def ds(tmp_path_factory, road_world):
     from safetensors.torch import save_file
 
     from resim.config import to_dict
-    from training.eval.idm import InverseDynamicsModel, idm_preset
+    from resim.models.idm import InverseDynamicsModel, idm_preset
 
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("evalinputs")
@@ -107,8 +107,8 @@ def test_idm_training_says_why_no_clip_is_usable(ds, tmp_path, capsys):
 
 
 def test_idm_configs_validate_without_dividing_by_zero():
-    from training.eval.idm import idm_preset
-    from training.eval.idm_train import IDMTrainConfig
+    from resim.models.idm import idm_preset
+    from resim.train.tasks.idm import IDMTrainConfig
 
     with pytest.raises(ConfigError, match="head_heads must be >= 1"):
         idm_preset("tiny", head_heads=0)
@@ -153,7 +153,7 @@ def _help(capsys, argv):
 
 
 def test_help_describes_each_command(capsys):
-    from training.eval.idm import IDM_PRESETS
+    from resim.models.idm import IDM_PRESETS
 
     assert "issue 10" not in _help(capsys, ["eval"])
     for sub in ("quality", "control", "planning"):
@@ -166,12 +166,8 @@ def test_help_describes_each_command(capsys):
     assert all(name in i for name in IDM_PRESETS), i                      # was: "tiny, small (default)"
 
 
-def test_detail_checks_its_inputs_before_loading_the_model(ds, tmp_path, capsys):
-    argv = ["eval", "detail", *_world(ds)]
-    with pytest.raises(SystemExit, match="give --heldout-from .* or --all-clips"):
-        main(argv)
-    with pytest.raises(SystemExit, match="--against .*nope.json"):
-        main([*argv, "--all-clips", "--against", str(tmp_path / "nope.json")])
-    with pytest.raises(SystemExit, match="--checkpoint"):           # the model folder does not exist
-        main([*argv, "--all-clips"])
-    _usage_error(capsys, [*argv, "--all-clips", "--limit", "0"], "--limit")
+def test_a_retired_command_answers_its_old_name_in_one_line(ds, capsys):
+    assert main(["eval", "detail", *_world(ds), "--all-clips"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("resim eval detail: ") and "retired" in err and "\n" not in err, err
+    assert "detail" not in _help(capsys, ["eval"])   # and it is no longer offered

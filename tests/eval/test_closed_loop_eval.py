@@ -1,4 +1,4 @@
-"""`resim eval closed-loop`'s parts (training/eval/closed_loop.py, idm_proxy.py, closed_loop_report.py): the IDM
+"""`resim eval closed-loop`'s parts (resim/eval/policy_ranking.py, idm_proxy.py, closed_loop_report.py): the IDM
 proxy chains 4-s windows into one path, a path scored on the map gives the expert 100 and a path off the lane
 less, the rank agreement reads Spearman's rho with a bootstrap over states, and the replay drives the world model
 with the true loop's plans."""
@@ -9,23 +9,23 @@ import pytest
 import torch
 
 from resim.config import from_dict
-from synthworld.drivers import simulate
-from synthworld.policies import ConstantVelocity, SteeringBias
-from media.encoders import VideoVAE
-from synthworld.closed_loop import Observation, drive
-from training.eval.closed_loop import (ClosedLoopConfig, ReplayPlans, closed_loop_eval, rank_agreement, reward_score,
+from resim.eval.drive import itinerary
+from resim.eval.idm_proxy import idm_path, path_score
+from resim.eval.policy_ranking import (ClosedLoopConfig, ReplayPlans, closed_loop_eval, rank_agreement, reward_score,
                                        starting_states)
-from training.eval.closed_loop_report import format_closed_loop
-from training.eval.idm_proxy import idm_path, path_score
-from training.eval.idm import IDMConfig
-from training.eval.simulate import reward_over_time
-from training.reward.config import RewardModelConfig
-from training.reward.model import Video2Reward
-from training.reward.score import score_videos
-from training.policy.drive import itinerary
-from training.sampling.rollout import RolloutConfig
-from training.sampling.simulate import WorldModelLoop
-from training.world import build_world
+from resim.eval.policy_ranking_report import format_closed_loop
+from resim.eval.simulate_policy import reward_over_time
+from resim.media.encoders import VideoVAE
+from resim.models.idm import IDMConfig
+from resim.models.reward.config import RewardModelConfig
+from resim.models.reward.model import Video2Reward
+from resim.sample.reward_score import score_videos
+from resim.sample.rollout import RolloutConfig
+from resim.sample.simulate import WorldModelLoop
+from resim.synthworld.closed_loop import Observation, drive
+from resim.synthworld.drivers import simulate
+from resim.synthworld.policies import ConstantVelocity, SteeringBias
+from resim.train.tasks.world_model import build_world
 
 VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogvideox-vae-tiny"
 TINY_REWARD = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from training.diffusion.schedule import alphas_cumprod
-from training.eval.command_loss import COMMANDS, clip_losses, command_loss_report, format_command_loss
-from training.eval.worldeval import EvalClip
+from resim.diffusion.schedule import alphas_cumprod
+from resim.eval.command_loss import COMMANDS, clip_losses, command_loss_report, format_command_loss
+from resim.eval.worldeval import EvalClip
 
 AC = alphas_cumprod()
 PATTERN = {c: float(k - 1) for k, c in enumerate(COMMANDS)}        # left -1, forward 0, right +1
@@ -82,7 +82,7 @@ def test_levels_outside_the_schedule_are_refused():
 
 
 def test_counterfactual_clips_are_those_sharing_a_history_with_another_command():
-    from training.eval.command_loss import counterfactual_clips
+    from resim.eval.command_loss import counterfactual_clips
 
     shared = _clips(6)                    # one (black) history under left / forward / right, twice
     shared[0].frames[-1] = 9              # futures differ: still one history

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from training.eval.commands import flow_commands, labeler_lean
+from resim.eval.command_following import flow_commands, labeler_lean
 
 
 class SideLabeler:

@@ -4,8 +4,8 @@ plumbing checked with random weights (real weights load from local files only)."
 import pytest
 import torch
 
-from training.eval.inception import FID_FEATURE_DIM, FIDInception
-from training.eval.lpips import LPIPS
+from resim.eval.inception import FID_FEATURE_DIM, FIDInception
+from resim.eval.lpips import LPIPS
 
 
 def _count(m):
@@ -55,7 +55,7 @@ def test_lpips_layout_and_identity(net, trunk_params, tmp_path):
 
 
 def test_i3d_shapes_and_state_dict_layout(tmp_path):
-    from training.eval.i3d import I3D
+    from resim.eval.i3d import I3D
 
     torch.manual_seed(0)
     net = I3D("logits")

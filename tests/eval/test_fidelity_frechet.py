@@ -5,8 +5,8 @@ import scipy.linalg
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from training.eval.fidelity import PSNR_CAP_DB, psnr, ssim
-from training.eval.frechet import FeatureStats, frechet_distance, frechet_from_stats
+from resim.eval.fidelity import PSNR_CAP_DB, psnr, ssim
+from resim.eval.frechet import FeatureStats, frechet_distance, frechet_from_stats
 
 
 def _videos(seed=0, shape=(2, 3, 3, 32, 40)):

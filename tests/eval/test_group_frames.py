@@ -1,11 +1,11 @@
-"""The group-end reading (training/eval/group_frames.py): frames inside each latent group redrawn by optical-flow
+"""The group-end reading (resim/eval/group_frames.py): frames inside each latent group redrawn by optical-flow
 interpolation between the group ends. It keeps the group ends, restores a pan's in-between frames, and turns a
 cross-fade between group ends (what the synthetic world's decoder draws) back into motion."""
 import cv2
 import numpy as np
 import pytest
 
-from training.eval.group_frames import redraw_all, redraw_inside_groups
+from resim.eval.group_frames import redraw_all, redraw_inside_groups
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -1,15 +1,15 @@
 """IDM: windows, loss masking, the Batch path, trajectory metrics and baselines in closed form, and the synthetic
-world's waypoints against an independent closed form (shards.testing). The split by episode, the epoch batches and
+world's waypoints against an independent closed form (tests.support.shards). The split by episode, the epoch batches and
 the batched prediction are the shared harness's: tests/training/test_smallfit.py."""
 import numpy as np
 import pytest
 import torch
 
 from resim.config import ConfigError
-from shards.testing import dummy_trajectory
-from training.eval.idm import InverseDynamicsModel, idm_preset
-from training.eval.idm_train import TrajClip, constant_velocity, load_idm, trajectory_errors
-from labeling.trajectory import trajectory_from_poses
+from tests.support.shards import dummy_trajectory
+from resim.labeling.trajectory import trajectory_from_poses
+from resim.models.idm import InverseDynamicsModel, idm_preset
+from resim.train.tasks.idm import TrajClip, constant_velocity, load_idm, trajectory_errors
 
 
 def test_windows():
@@ -23,7 +23,7 @@ def test_windows():
 
 
 def test_loss_masks_samples_without_trajectory_and_accepts_a_batch():
-    from training.data import Batch
+    from resim.train.data import Batch
 
     torch.manual_seed(0)
     m = InverseDynamicsModel(idm_preset("tiny-history"))
@@ -59,7 +59,7 @@ def test_trajectory_errors_and_constant_velocity_closed_form():
 
 def test_pose_waypoints_match_the_dummy_trajectorys_closed_form():
     """The shards' trajectories (labeling.trajectory_from_poses, as the pipeline and the road-world fixture make
-    them) and shards.testing.dummy_trajectory agree on a constant-curvature drive."""
+    them) and tests.support.shards.dummy_trajectory agree on a constant-curvature drive."""
     v, yaw_total_deg, fps = 8.0, 24.0, 10.0
     rate = np.deg2rad(yaw_total_deg) / 4.0
     t = np.arange(0, 50) / fps
@@ -84,7 +84,7 @@ def test_road_world_clips_render_and_move(road_world):
 def test_odometry_head_integrates_constant_curvature_exactly():
     """SE(2) composition of equal chord steps reproduces the circular arc (closed form), and the waypoints are
     read at their window positions (2.5 window frames per 0.5 s at frame_step 2)."""
-    from training.eval.idm import OdometryHead
+    from resim.models.idm import OdometryHead
 
     cfg = idm_preset("tiny")
     assert cfg.head == "odometry" and cfg.waypoint_positions() == [2.5 * k for k in range(1, 9)]
@@ -119,7 +119,7 @@ def test_odometry_head_needs_the_future_window_and_trains():
 
 
 def test_mirror_augmentation_flips_frames_and_negates_y_and_yaw():
-    from training.eval.idm_train import collate
+    from resim.train.tasks.idm import collate
 
     cfg = idm_preset("tiny")
     rng = np.random.default_rng(0)
@@ -137,7 +137,7 @@ def test_early_stopping_keeps_the_best_validation_epoch(tmp_path, road_world):
     final/) are the best epoch's, not the last one's."""
     from safetensors.torch import load_file
 
-    from training.eval.idm_train import IDMTrainConfig, collate, fit, load_idm, predict
+    from resim.train.tasks.idm import IDMTrainConfig, collate, fit, load_idm, predict
 
     clips = [{"item_id": c["item_id"], "frames": c["frames"], "traj": c["traj"]}
              for c in road_world.clips(3, 59, seed=4)]

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from resim.config import ConfigError
-from shards.testing import dummy_trajectory
-from training.eval.idm import idm_preset
-from training.eval.idm_train import (IDMDataError, IDMTrainConfig, TrajClip, attach_decoded, augment_draws, collate,
+from tests.support.shards import dummy_trajectory
+from resim.models.idm import idm_preset
+from resim.train.tasks.idm import (IDMDataError, IDMTrainConfig, TrajClip, attach_decoded, augment_draws, collate,
                                      prepare_idm_data)
 
 HELDOUT = Path(__file__).resolve().parents[1] / "data" / "synth-heldout"

@@ -7,16 +7,16 @@ import pytest
 import torch
 
 from resim.config import from_dict
-from shards.manifest import read_manifest
-from shards.schema import COMMANDS
-from synthworld.closed_loop import Observation
-from training.policy.drive import PixelPolicy, itinerary
-from training.policy.model import DrivingPolicy, policy_preset
-from training.policy.train import (MIRROR, PolicyClip, PolicyTrainConfig, clips_from_shards, collate, load_policy,
+from resim.eval.drive import PixelPolicy, itinerary
+from resim.models.policy.model import DrivingPolicy, policy_preset
+from resim.models.reward.checkpoint import save_checkpoint
+from resim.models.reward.config import RewardTrainConfig
+from resim.models.reward.model import Video2Reward
+from resim.shards.manifest import read_manifest
+from resim.shards.schema import COMMANDS
+from resim.synthworld.closed_loop import Observation
+from resim.train.tasks.policy import (MIRROR, PolicyClip, PolicyTrainConfig, clips_from_shards, collate, load_policy,
                                    run_policy_training)
-from training.reward.checkpoint import save_checkpoint
-from training.reward.config import RewardTrainConfig
-from training.reward.model import Video2Reward
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SMALL = dict(input_hw=(32, 48), channels=(8, 16, 24), hidden=64, frame_hw=(64, 96))
@@ -75,7 +75,7 @@ def test_behaviour_cloning_on_road_world_shards_learns_the_turns(tmp_path, road_
 
 
 def test_no_usable_clips_is_one_clear_error(tmp_path, road_world):
-    from training.policy.train import PolicyDataError
+    from resim.train.tasks.policy import PolicyDataError
 
     root = tmp_path / "shards"
     road_world.write_shards(root, episodes=1, frames_per_episode=60, frames_hw=(64, 96))
@@ -84,7 +84,7 @@ def test_no_usable_clips_is_one_clear_error(tmp_path, road_world):
 
 
 def test_the_itinerary_turns_where_the_expert_does():
-    from synthworld.fork import build_fork_world
+    from resim.synthworld.fork import build_fork_world
 
     for branch, cmd in (("left", "Turning left"), ("right", "Turning right"), ("straight", "Moving forward")):
         world = build_fork_world(np.random.default_rng([3, 0, 3]), 16.0, 8.0, branch)

@@ -3,9 +3,9 @@ PSNR_CAP_DB), overall, per horizon and per frame, so a mean that includes capped
 import pytest
 import torch
 
-from training.eval.fidelity import PSNR_CAP_DB, psnr
-from training.eval.quality import Networks, QualityConfig, VideoQualityEvaluator
-from training.eval.report import format_quality
+from resim.eval.fidelity import PSNR_CAP_DB, psnr
+from resim.eval.quality import Networks, QualityConfig, VideoQualityEvaluator
+from resim.eval.report import format_quality
 
 
 def _evaluator():

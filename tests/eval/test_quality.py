@@ -8,10 +8,11 @@ import torch
 from torch import nn
 
 from resim.config import ConfigError
-from training.eval.fidelity import PSNR_CAP_DB, psnr, ssim
-from training.eval.lpips import LPIPS
-from training.eval.quality import Networks, QualityConfig, VideoQualityEvaluator, build_networks, horizon_bins
-from training.eval.report import format_quality, plot_quality, write_json
+from resim.eval.fidelity import PSNR_CAP_DB, psnr, ssim
+from resim.eval.lpips import LPIPS
+from resim.eval.quality import Networks, QualityConfig, VideoQualityEvaluator, build_networks, horizon_bins
+from resim.eval.report import format_quality, plot_quality
+from resim.shards.safejson import write_json
 
 
 class FrameFeat(nn.Module):

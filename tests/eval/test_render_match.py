@@ -1,4 +1,4 @@
-"""scripts/render_match.py: reading how far a video drove by re-rendering the synthetic world it shows."""
+"""lab/render_match.py: reading how far a video drove by re-rendering the synthetic world it shows."""
 import importlib.util
 from pathlib import Path
 
@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines.sources.synth.generate import generate, preset
+from resim.pipeline.sources.synth.generate import generate, preset
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "render_match.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "lab" / "render_match.py"
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from resim.models import PLACEHOLDER_T5, SYNTH_VAE, SYNTH_WORLD, shipped_dir
+from resim.shipped import PLACEHOLDER_T5, SYNTH_VAE, SYNTH_WORLD, shipped_dir
 
 REPO = Path(__file__).resolve().parents[2]
 HELDOUT = REPO / "tests" / "data" / "synth-heldout"
@@ -37,15 +37,15 @@ def _threads():
 
 
 def _clips():
-    from training.eval.worldeval import eval_clips_from_dataset
+    from resim.eval.worldeval import eval_clips_from_dataset
 
     return eval_clips_from_dataset(HELDOUT, need_trajectory=False)
 
 
 def test_vae_reconstructs_heldout_clips():
-    from media.encoders import VideoVAE
-    from training.eval.fidelity import psnr
-    from training.sampling.outputs import decode_latents
+    from resim.media.encoders import VideoVAE
+    from resim.eval.fidelity import psnr
+    from resim.sample.outputs import decode_latents
 
     vae = VideoVAE(shipped_dir(SYNTH_VAE), device="cpu")
     assert not vae.info.placeholder
@@ -60,12 +60,12 @@ def test_vae_reconstructs_heldout_clips():
 
 def test_vae_puts_each_latent_group_where_the_turn_took_the_original():
     """The flow labeler on the fork clips' reconstructions with the frames inside each latent group redrawn from
-    the group ends (training/eval/group_frames.py). The shipped decoder draws those inside frames as a cross-fade,
+    the group ends (resim/eval/group_frames.py). The shipped decoder draws those inside frames as a cross-fade,
     so as decoded it keeps only part of a turn; its group ends must carry all of it."""
-    from media.encoders import VideoVAE
-    from training.eval.branches import counterfactual_groups
-    from training.eval.vae_eval import vae_eval
-    from training.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
+    from resim.media.encoders import VideoVAE
+    from resim.eval.branches import counterfactual_groups
+    from resim.eval.vae_eval import vae_eval
+    from resim.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
 
     every = eval_clips_from_dataset(FORKS, need_trajectory=False)
     clips = [every[i] for g in counterfactual_groups(every) for i in g]      # the two forks: 2 left, 2 right, 2 ahead
@@ -81,12 +81,12 @@ def test_vae_puts_each_latent_group_where_the_turn_took_the_original():
 
 
 def _runner(data: Path = HELDOUT):
-    from media.encoders import VideoVAE
+    from resim.media.encoders import VideoVAE
     from resim.config import from_dict
-    from training.eval.worldeval import WorldRollouts
-    from training.sampling.guidance import guidance_preset
-    from training.sampling.load import PromptSource, encoded_with, load_world_model, run_objective
-    from training.sampling.rollout import ROLLOUT_PRESETS, RolloutConfig
+    from resim.eval.worldeval import WorldRollouts
+    from resim.diffusion.guidance import guidance_preset
+    from resim.sample.load import PromptSource, encoded_with, load_world_model, run_objective
+    from resim.sample.rollout import ROLLOUT_PRESETS, RolloutConfig
 
     ckpt = shipped_dir(SYNTH_WORLD)
     model, _ = load_world_model(ckpt, "cpu", torch.float32)
@@ -98,7 +98,7 @@ def _runner(data: Path = HELDOUT):
 
 
 def test_world_model_rollouts_look_like_the_heldout_future():
-    from training.eval.commands import fidelity_per_horizon
+    from resim.eval.command_following import fidelity_per_horizon
 
     clips = _clips()
     videos = _runner().generate(clips, [None] * len(clips), [c.command for c in clips])
@@ -114,10 +114,10 @@ def test_world_model_rollouts_look_like_the_heldout_future():
 def test_world_model_rolls_a_fork_out_to_the_commanded_branch():
     """ReSim's controllability where only the command decides: the two forks' shared histories rolled out under
     left / forward / right (and the null prompt), each rollout scored by the sibling recorded future it lands
-    nearest to (training.eval.branches). A model or sampler that ignores the command lands at chance, 1/3."""
-    from shards.schema import COMMANDS
-    from training.eval.branches import branch_matching, counterfactual_groups
-    from training.eval.worldeval import eval_clips_from_dataset
+    nearest to (resim.eval.branches). A model or sampler that ignores the command lands at chance, 1/3."""
+    from resim.shards.schema import COMMANDS
+    from resim.eval.branches import branch_matching, counterfactual_groups
+    from resim.eval.worldeval import eval_clips_from_dataset
 
     every = eval_clips_from_dataset(FORKS, need_trajectory=False)
     clips = [every[i] for g in counterfactual_groups(every) for i in g]
@@ -144,8 +144,8 @@ def test_world_model_rolls_a_fork_out_to_the_commanded_branch():
                                        "-2.4 deg, where a turn is 15.5 deg); strict: an XPASS means a new model "
                                        "turns clearly, so this mark and the card must be updated")
 def test_world_model_turns_where_it_is_told():
-    from training.eval.commands import flow_commands
-    from training.eval.worldeval import flow_labeler_status
+    from resim.eval.command_following import flow_commands
+    from resim.eval.worldeval import flow_labeler_status
 
     runner = _runner()
     clips = _clips()[:3]

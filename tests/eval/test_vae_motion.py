@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from resim.cli import main
-from training.eval.vae_eval import format_vae_difference, format_vae_eval, motion_through, paired_vae_difference
-from training.eval.worldeval import flow_labeler_status
+from resim.eval.vae_eval import format_vae_difference, format_vae_eval, motion_through, paired_vae_difference
+from resim.eval.worldeval import flow_labeler_status
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -82,7 +82,7 @@ def test_heading_kept_by_place_in_the_latent_group(drives):
 
 
 def test_heading_by_place_refuses_clips_that_do_not_match():
-    from training.eval.vae_eval import heading_kept_by_group_place
+    from resim.eval.vae_eval import heading_kept_by_group_place
     with pytest.raises(ValueError, match="one of each per clip"):
         heading_kept_by_group_place([np.zeros(40)], [np.zeros(40)] * 2, 9, np.array([True]))
     assert heading_kept_by_group_place([np.ones(40)], [np.ones(40)], 9, np.array([False])) == [None] * 4

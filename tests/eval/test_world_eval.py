@@ -8,7 +8,7 @@ import torch
 import yaml
 
 from resim.cli import main
-from shards.schema import ClipSpec
+from resim.shards.schema import ClipSpec
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +23,7 @@ def world(tmp_path_factory, road_world):
     # a world-model "run" in the trainer's export layout (random init: plumbing, not quality)
     from safetensors.torch import save_file
 
-    from training import registry
+    from resim.models import registry
     torch.manual_seed(0)
     wm = registry.build("world", {"preset": "tiny"})
     (root / "wm" / "final").mkdir(parents=True)
@@ -103,7 +103,7 @@ def test_rollouts_report_progress_at_most_every_log_every_s(monkeypatch):
     most every log_every_s (60 s by default): a 50-step evaluation on a CPU was silent for a quarter of an hour."""
     from types import SimpleNamespace
 
-    from training.eval import worldeval
+    from resim.eval import worldeval
 
     monkeypatch.setattr(worldeval, "rollout", lambda model, hist, cond, n, cfg, seed, schedule:
                         SimpleNamespace(latents=torch.zeros(hist.shape[0], 4, 1, 1, 1)))
@@ -130,7 +130,7 @@ def test_drift_command_rolls_out_past_the_clip(world, capsys):
 
 
 def test_drift_is_zero_for_real_frames_and_large_for_grey_blur():
-    from training.eval.drift import drift_curve, real_reference
+    from resim.eval.drift import drift_curve, real_reference
 
     rng = np.random.default_rng(0)
     real = [rng.integers(0, 256, (20, 16, 24, 3), dtype=np.uint8) for _ in range(3)]
@@ -142,7 +142,7 @@ def test_drift_is_zero_for_real_frames_and_large_for_grey_blur():
 
 
 def test_mixed_geometries_keep_the_most_common_one(capsys):
-    from training.eval.worldeval import EvalClip, _one_geometry
+    from resim.eval.worldeval import EvalClip, _one_geometry
 
     def clip(key, t_lat, hist, fps):
         return EvalClip(key, key, np.zeros((t_lat, 4, 2, 2), np.float32), None, None, None, hist, fps, True)
@@ -156,7 +156,7 @@ def test_mixed_geometries_keep_the_most_common_one(capsys):
 def test_limit_spreads_clips_over_episodes():
     """--limit takes clips round-robin over episodes: the first N keys would often be one episode, leaving
     no other episode for non-expert trajectories."""
-    from training.eval.worldeval import EvalClip, spread_over_episodes
+    from resim.eval.worldeval import EvalClip, spread_over_episodes
 
     clips = [EvalClip(f"{ep}_{i}", ep, np.zeros((1, 1, 1, 1), np.float32), None, None, None, 1, 10.0, True)
              for ep in ("a", "b", "c") for i in range(3 if ep != "c" else 1)]
@@ -166,7 +166,7 @@ def test_limit_spreads_clips_over_episodes():
 
 
 def _eval_clip(i, ep, frames=21):
-    from training.eval.worldeval import EvalClip
+    from resim.eval.worldeval import EvalClip
 
     return EvalClip(f"k{i}", ep, np.zeros((4, 1, 1, 1), np.float32),
                     np.random.default_rng(i).integers(0, 255, (frames, 32, 48, 3), dtype=np.uint8),
@@ -176,8 +176,8 @@ def _eval_clip(i, ep, frames=21):
 def test_quality_eval_batches_get_the_seeds_of_one_generate_call():
     """quality_eval rolls out one batch at a time; each batch used to restart at seed + 0 (the same starting
     noise for every batch: correlated samples behind FID/FVD)."""
-    from training.eval.quality import QualityConfig
-    from training.eval.worldeval import WorldRollouts, quality_eval
+    from resim.eval.quality import QualityConfig
+    from resim.eval.worldeval import WorldRollouts, quality_eval
 
     seen = []
 
@@ -203,8 +203,8 @@ def test_idm_window_and_non_expert_pairs_are_checked_before_any_rollout():
     clip set (e.g. --limit 1) failed with a bare ValueError traceback."""
     from types import SimpleNamespace
 
-    from training.eval.idm import idm_preset
-    from training.eval.worldeval import WorldRollouts, control_eval, non_expert_pairs, planning_eval
+    from resim.models.idm import idm_preset
+    from resim.eval.worldeval import WorldRollouts, control_eval, non_expert_pairs, planning_eval
 
     class NoRollouts(WorldRollouts):
         def _batch(self, *a, **k):
@@ -227,7 +227,7 @@ def test_idm_window_and_non_expert_pairs_are_checked_before_any_rollout():
 
 def test_limit_zero_is_an_error_not_all_clips(tmp_path):
     """`if limit:` made limit=0 mean "every clip"; None is "every clip", < 1 is an error."""
-    from training.eval.worldeval import eval_clips_from_dataset
+    from resim.eval.worldeval import eval_clips_from_dataset
 
     with pytest.raises(ValueError, match="limit must be >= 1"):
         eval_clips_from_dataset(tmp_path, limit=0)
@@ -264,7 +264,7 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
 
 
 def test_protocol_text_gives_a_count_not_a_dump_of_records():
-    from training.eval.report import format_protocol
+    from resim.eval.report import format_protocol
 
     skipped = [{"key": f"clip{i}", "reason": "window 'future' needs frames 0..40 of a 9-frame clip"} for i in range(40)]
     text = format_protocol({"skipped": skipped, "samples": 221})
@@ -305,7 +305,7 @@ class _MeanIDM(torch.nn.Module):
     """Reads x of every waypoint as the mean pixel of the window / 10: a function of the video alone."""
 
     def __init__(self):
-        from training.eval.idm import idm_preset
+        from resim.models.idm import idm_preset
 
         super().__init__()
         self.cfg = idm_preset("tiny", future_frames=12, num_frames=7)
@@ -323,7 +323,7 @@ class _MeanIDM(torch.nn.Module):
 def test_control_floor_through_the_vae_reads_the_decoded_recorded_latents():
     """``idm_on_recorded_through_vae`` is the IDM on the clips' own latents decoded as a rollout is (not on the
     recorded frames, which give ``idm_on_recorded_video``): a VAE that smears the motion shows in it."""
-    from training.eval.worldeval import WorldRollouts, control_eval
+    from resim.eval.worldeval import WorldRollouts, control_eval
 
     class Fake(WorldRollouts):
         def generate(self, clips, trajs, commands):
@@ -348,7 +348,7 @@ def test_second_bound_tells_a_model_that_follows_its_trajectory_from_one_that_ig
     """The second Trajectory Difference bound compares the expert rollouts with the trajectory they were given and
     with one they were not (another episode's): a model that draws the given path exactly reads 0, one that draws
     the same video whatever it is given reads ~1."""
-    from training.eval.worldeval import WorldRollouts, control_eval
+    from resim.eval.worldeval import WorldRollouts, control_eval
 
     class Follows(WorldRollouts):
         def generate(self, clips, trajs, commands):
@@ -376,7 +376,7 @@ def test_second_bound_tells_a_model_that_follows_its_trajectory_from_one_that_ig
 
 
 def test_end_point_slopes_tell_followed_from_ignored():
-    from training.eval.worldeval import end_point_slopes
+    from resim.eval.worldeval import end_point_slopes
 
     given = np.zeros((6, 8, 3))
     given[:, -1, 0] = [10, 14, 18, 22, 26, 30]       # speeds

@@ -1,6 +1,6 @@
 """Fixtures for labeling tests: a tiny pinhole renderer of a textured ground plane with posts.
 
-The renderer is deliberately independent of labeling/flow.py: it ray-casts the ground
+The renderer is deliberately independent of resim/labeling/flow.py: it ray-casts the ground
 plane per pixel (x forward, y left world frame, yaw left +) and paints posts as
 depth-ordered strips, so a sign or scale error in the estimator cannot cancel here.
 """

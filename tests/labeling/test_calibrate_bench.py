@@ -1,4 +1,4 @@
-"""bench/calibrate_labeler.py end to end on a tiny synthetic world: it makes the world, labels it, calibrates the
+"""lab/calibrate_labeler.py end to end on a tiny synthetic world: it makes the world, labels it, calibrates the
 threshold on the even episodes, reports the odd ones, and writes its numbers, the resolved config and the plot."""
 import json
 import subprocess
@@ -13,7 +13,7 @@ REPO = Path(__file__).resolve().parents[2]
 def test_calibration_bench_reports_held_out_windows_and_plots(tmp_path):
     pytest.importorskip("matplotlib")
     out, png = tmp_path / "cal.json", tmp_path / "held_out.png"
-    r = subprocess.run([sys.executable, "bench/calibrate_labeler.py", "--episodes", "4", "--seed", "3", "--preset",
+    r = subprocess.run([sys.executable, "lab/calibrate_labeler.py", "--episodes", "4", "--seed", "3", "--preset",
                         "fast", "--json-out", str(out), "--plot", str(png)],
                        cwd=REPO, capture_output=True, text=True, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
     assert r.returncode == 0, r.stderr[-2000:]

@@ -98,7 +98,7 @@ def test_bad_override_is_a_config_error(left_turn_video, capsys):
 
 
 def test_progress_bar_reports_video_seconds_and_changes_nothing(left_turn_video, capsys):
-    from labeling.windows import label_video
+    from resim.labeling.windows import label_video
 
     quiet = label_video(left_turn_video)
     assert capsys.readouterr().err == ""                     # the library is silent unless asked
@@ -139,7 +139,7 @@ def test_window_length_comes_from_the_config_unless_given(left_turn_video, capsy
 def test_a_window_between_samples_sums_its_own_length_of_pairs(left_turn_video):
     """Pairs count in the window holding their midpoint: [0.25, 4.25] at 10 Hz sums 40 pairs (4 s), as [0, 4]
     does; both ends inclusive summed 41 (4.1 s, +2.5 % on every such window)."""
-    from labeling.windows import label_video
+    from resim.labeling.windows import label_video
 
     aligned = label_video(left_turn_video, window_s=4.0, stride_s=1.0)
     offset = label_video(left_turn_video, window_s=4.0, stride_s=0.25)

@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from labeling.commands import command_from_trajectory, command_from_yaw
-from labeling.config import CommandConfig, LabelerConfig, preset
-from labeling.trajectory import trajectory_from_poses
 from resim.config import ConfigError, from_dict
+from resim.labeling.commands import command_from_trajectory, command_from_yaw
+from resim.labeling.config import CommandConfig, LabelerConfig, preset
+from resim.labeling.trajectory import trajectory_from_poses
 
 L, F, R = "Turning left", "Moving forward", "Turning right"
 
@@ -30,7 +30,7 @@ def test_command_from_yaw_thresholds_and_confidence():
 def test_turn_threshold_is_a_rate_a_steady_curve_is_a_turn_at_any_window():
     """A steady 6.5 deg/s curve: 13 deg over 2 s was "Moving forward" against 15.5 deg per window; the threshold
     now scales with the window (15.5 deg per 4 s = 3.875 deg/s), so it is a turn at 2 s and at 4 s."""
-    from labeling.flow import FlowLabeler
+    from resim.labeling.flow import FlowLabeler
 
     fps = 10.0
     for window_s in (2.0, 4.0):

@@ -3,10 +3,10 @@ import cv2
 import numpy as np
 import pytest
 
-from labeling.config import FlowConfig, LabelerConfig
-from labeling.flow import FlowLabeler
 from resim.config import ConfigError
-from shards.schema import COMMANDS
+from resim.labeling.config import FlowConfig, LabelerConfig
+from resim.labeling.flow import FlowLabeler
+from resim.shards.schema import COMMANDS
 
 FPS = 10.0
 

@@ -4,7 +4,7 @@ What the clips show (frames viewed every 0.5 s, docs/labeling.md): solidWhiteRig
 straight freeway; challenge follows a gentle right-hand freeway curve (distant hills drift
 left, the barrier ahead bends right) with no lane change or turn.
 """
-from labeling.windows import label_video
+from resim.labeling.windows import label_video
 
 
 def test_solid_white_right_is_straight(dashcam_dir):

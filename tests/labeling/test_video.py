@@ -1,4 +1,4 @@
-"""The labeler's two decoder paths (media/video.py, read through labeling.flow_sampling.iter_grey_samples) on an
+"""The labeler's two decoder paths (resim/media/video.py, read through resim.labeling.flow_sampling.iter_grey_samples) on an
 H.264 stream with B-frames."""
 import shutil
 import subprocess
@@ -7,11 +7,11 @@ import sys
 import numpy as np
 import pytest
 
-from labeling.config import FlowConfig, LabelerConfig
-from labeling.flow_sampling import iter_grey_samples, prepare_frame
-from labeling.windows import label_video
-from media.video import _iter_pyav, _pyav_samples, iter_samples
-from media.video_probe import VideoError, probe
+from resim.labeling.config import FlowConfig, LabelerConfig
+from resim.labeling.flow_sampling import iter_grey_samples, prepare_frame
+from resim.labeling.windows import label_video
+from resim.media.video import _iter_pyav, _pyav_samples, iter_samples
+from resim.media.video_probe import VideoError, probe
 
 pytest.importorskip("av")
 
@@ -267,7 +267,7 @@ def test_pyav_keeps_every_tick_when_reference_frames_thin_out_after_the_check(re
 
 @pytest.mark.parametrize("decoder", ["pyav", "opencv"])
 def test_the_media_reader_yields_stored_frames_and_the_labeler_shrinks_them(refs_thin_out_after_3s, decoder):
-    """media/video.py knows nothing of the labeler: without ``prepare`` it yields each sample as decoded (the luma
+    """resim/media/video.py knows nothing of the labeler: without ``prepare`` it yields each sample as decoded (the luma
     plane at the stored size); the labeler's grey samples are exactly those, shrunk by ``prepare_frame``."""
     path = refs_thin_out_after_3s["mp4"]
     info = probe(path)

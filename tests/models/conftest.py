@@ -37,7 +37,7 @@ def randomize_new_modules(model, std=0.1):
 
 @pytest.fixture
 def tiny_model():
-    from training.models.config import preset
-    from training.models.dit import WorldModel
+    from resim.models.world.config import preset
+    from resim.models.world.dit import WorldModel
     torch.manual_seed(1)
     return randomize_new_modules(WorldModel(preset("tiny"))).eval()

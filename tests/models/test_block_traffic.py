@@ -1,13 +1,13 @@
-"""The block's memory traffic outside matmul and attention (training/traffic.py): per-frame AdaLN costs no more
-than diffusers' per-sample block. Before the gate and cast changes of training/models/blocks.py the block wrote
+"""The block's memory traffic outside matmul and attention (resim/train/traffic.py): per-frame AdaLN costs no more
+than diffusers' per-sample block. Before the gate and cast changes of resim/models/world/blocks.py the block wrote
 X
 these tests would have caught."""
 import pytest
 import torch
 from diffusers.models.transformers.cogvideox_transformer_3d import CogVideoXBlock
 
-from training.models.blocks import DiTBlock, gated_add
-from training.traffic import SavedActivations, Traffic
+from resim.models.world.blocks import DiTBlock, gated_add
+from resim.train.traffic import SavedActivations, Traffic
 
 D, HEADS, TDIM, T, N, L = 128, 2, 64, 4, 48, 16
 

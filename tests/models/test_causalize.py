@@ -4,7 +4,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from training.models.causalize import (CausalConv, CausalTemporalAttention, causal_kernel, causalize,
+from resim.models.world.causalize import (CausalConv, CausalTemporalAttention, causal_kernel, causalize,
                                        extrapolation_coefficients)
 
 

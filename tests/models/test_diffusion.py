@@ -1,4 +1,4 @@
-"""training.diffusion: schedule vs diffusers, v closed forms, noise-level modes, dropout, the loss."""
+"""resim.diffusion: schedule vs diffusers, v closed forms, noise-level modes, dropout, the loss."""
 import dataclasses
 import math
 
@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from resim.config import ConfigError
-from training.diffusion import ObjectiveConfig, training_losses
-from training.diffusion.noise_levels import sample_noise_levels
-from training.diffusion.schedule import add_noise, alphas_cumprod, v_target
-from training.sampling.ddim import v_to_x0_eps
+from resim.diffusion import ObjectiveConfig, training_losses
+from resim.diffusion.ddim import v_to_x0_eps
+from resim.diffusion.noise_levels import sample_noise_levels
+from resim.diffusion.schedule import add_noise, alphas_cumprod, v_target
 
 
 def test_schedule_equals_diffusers_cogvideox_ddim():
@@ -25,7 +25,7 @@ def test_schedule_equals_diffusers_cogvideox_ddim():
 
 def test_schedule_closed_form_first_step():
     # without rescale, step 0: ᾱ0 = 1 - β_start, then SNR / 3: ᾱ0 / (3 - 2 ᾱ0)
-    from training.diffusion.config import ScheduleConfig
+    from resim.diffusion.config import ScheduleConfig
     ac = alphas_cumprod(ScheduleConfig(rescale_zero_terminal_snr=False))
     a0 = 1 - 0.00085
     assert math.isclose(float(ac[0]), a0 / (3 - 2 * a0), rel_tol=1e-12)
@@ -141,8 +141,8 @@ def test_actions_are_derived_only_when_the_caller_says_the_model_takes_them():
     """The objective does not look inside the network: without ``ego_motion_actions`` a trajectory gives no
     actions (a model without an ego-motion encoder gets none), with it they are derived; TrainableWorldModel
     says so from its own config."""
-    from training.models.config import ActionConfig, preset
-    from training.world import TrainableWorldModel
+    from resim.models.world.config import ActionConfig, preset
+    from resim.train.tasks.world_model import TrainableWorldModel
 
     spy = _Spy()
     training_losses(spy, _batch(8), ObjectiveConfig(), torch.Generator().manual_seed(0))
@@ -184,7 +184,7 @@ def test_missing_null_text_is_named():
 def test_world_model_loss_trains(tiny_model):
     """training_losses(model, batch, objective) → finite loss with logs; a few Adam steps on one batch lower it. The
     trainer's entry point is TrainableWorldModel.loss (the network bound to its objective)."""
-    from training.world import TrainableWorldModel
+    from resim.train.tasks.world_model import TrainableWorldModel
 
     torch.manual_seed(0)
     model = tiny_model.train()
@@ -212,7 +212,7 @@ def test_world_model_loss_trains(tiny_model):
 def test_batch_clip_geometry_overrides_config():
     """Mixed datasets: a NAVSIM-style batch (T=3 latent frames, 1 of history, 2 s each) under a config
     written for OpenDV (3 history latent frames, 0.4 s) takes its history and frame duration from the batch."""
-    from training.models.conditioning import actions_from_trajectory
+    from resim.models.world.conditioning import actions_from_trajectory
     cfg = ObjectiveConfig(noise_mode="resim_cond_aug", num_history_frames=3, text_drop_prob=0.0,
                           trajectory_drop_prob=0.0, action_drop_prob=0.0)
     batch = {**_batch(8, 3), "num_history_latent_frames": 1, "latent_frame_dt_s": 2.0}
@@ -268,8 +268,8 @@ def test_objective_durations_must_be_positive(make, match):
 def test_action_input_scale_must_be_positive(scale):
     """Actions are divided by input_scale: a zero made the loss NaN, a negative flipped the action's sign."""
     from resim.config import ConfigError
-    from training.models.config import preset
-    from training.world import build_world
+    from resim.models.world.config import preset
+    from resim.train.tasks.world_model import build_world
     with pytest.raises(ConfigError, match="actions.input_scale"):
         preset("tiny", actions=dict(input_scale=scale))
     with pytest.raises(ConfigError, match="actions.input_scale"):   # the training entry point (--set overrides)

@@ -2,8 +2,8 @@
 import pytest
 import torch
 
-from training.models.config import preset
-from training.models.dit import WorldModel
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
 
 
 def _inputs(b=2, t=4, h=8, w=12, seed=0):
@@ -38,7 +38,7 @@ def test_from_saved_folder(cogvideox, tmp_path):
 
 def test_refuses_unsupported_variant(cogvideox):
     from resim.config import ConfigError
-    from training.models.config import config_from_cogvideox
+    from resim.models.world.config import config_from_cogvideox
     with pytest.raises(ConfigError, match="use_rotary_positional_embeddings"):
         config_from_cogvideox({**dict(cogvideox.config), "use_rotary_positional_embeddings": True})
 
@@ -167,7 +167,7 @@ def test_gradient_checkpointing_same_gradients():
 
 
 def test_block_causal_mask_layout():
-    from training.models.attention import block_causal_mask
+    from resim.models.world.attention import block_causal_mask
     m = block_causal_mask(text_len=2, tokens_per_frame=2, num_frames=2)
     expect = torch.tensor([[1, 1, 0, 0, 0, 0],   # text sees text only
                            [1, 1, 0, 0, 0, 0],

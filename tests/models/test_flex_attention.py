@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from resim.config import ConfigError, from_dict
-from training.models.config import WorldModelConfig, preset
-from training.models.dit import WorldModel
+from resim.models.world.config import WorldModelConfig, preset
+from resim.models.world.dit import WorldModel
 
 from .conftest import randomize_new_modules
 
@@ -57,9 +57,9 @@ def test_flex_kv_cache_matches_sdpa_uncached():
 
 
 def test_flex_rollout_step_equals_sdpa():
-    """A short guided rollout (KV cache on) through training.sampling gives the same frames with both backends."""
-    from training.sampling.guidance import guidance_preset
-    from training.sampling.rollout import Condition, RolloutConfig, rollout
+    """A short guided rollout (KV cache on) through resim.sample gives the same frames with both backends."""
+    from resim.diffusion.guidance import guidance_preset
+    from resim.sample.rollout import Condition, RolloutConfig, rollout
 
     sdpa, flex = _pair()
     g = torch.Generator().manual_seed(0)
@@ -97,7 +97,7 @@ def test_flex_under_autocast():
 
 
 def test_block_mask_is_cached_and_matches_dense():
-    from training.models.attention import block_causal_block_mask, block_causal_mask
+    from resim.models.world.attention import block_causal_block_mask, block_causal_mask
     bm = block_causal_block_mask(3, 4, 2, prefix_frames=1, with_text_queries=False)
     assert block_causal_block_mask(3, 4, 2, prefix_frames=1, with_text_queries=False) is bm  # built once
     assert block_causal_block_mask(3, 4, 3, prefix_frames=1, with_text_queries=False) is not bm
@@ -124,7 +124,7 @@ def test_config_validation():
 
 
 def test_build_world_override():
-    from training.world import build_world
+    from resim.train.tasks.world_model import build_world
     model = build_world({"preset": "tiny", "overrides": {"attention_backend": "flex"}})
     assert model.cfg.attention_backend == "flex"
 

@@ -4,11 +4,11 @@ import math
 import pytest
 import torch
 
-from training.models.conditioning import actions_from_trajectory
-from training.models.config import config_from_cogvideox, preset
-from training.models.dit import NEW_MODULE_PREFIXES, WorldModel
-from training.models.lora import add_lora, is_lora_param, merge_lora
-from training.world import build_world
+from resim.models.world.conditioning import actions_from_trajectory
+from resim.models.world.config import config_from_cogvideox, preset
+from resim.models.world.dit import NEW_MODULE_PREFIXES, WorldModel
+from resim.models.world.lora import add_lora, is_lora_param, merge_lora
+from resim.train.tasks.world_model import build_world
 
 from .conftest import randomize_new_modules
 

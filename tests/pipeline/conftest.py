@@ -47,7 +47,7 @@ def ray_session():
 @pytest.fixture(scope="session")
 def synth_world(tmp_path_factory) -> Path:
     """A tiny synthetic world (6 episodes: two per layout, one hazardous CARLA run; 8 s, 64x112), made once."""
-    from pipelines.sources.synth.generate import generate, preset
+    from resim.pipeline.sources.synth.generate import generate, preset
 
     root = tmp_path_factory.mktemp("synth") / "world"
     generate(root, 6, 0, preset("tiny"), progress=False)
@@ -55,7 +55,7 @@ def synth_world(tmp_path_factory) -> Path:
 
 
 def make_config(out: Path, overrides=(), base: str = "configs/pipeline/synthetic.yaml"):
-    from pipelines.load import load_config
+    from resim.pipeline.load import load_config
 
     return load_config(REPO / base, [*FAST, *overrides], out=out)
 

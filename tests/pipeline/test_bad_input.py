@@ -21,12 +21,12 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines import quarantine, resume, runner
-from pipelines.runner import EnumerateStage
-from pipelines.stages.base import Stage
-from pipelines.stages.cut import CutStage
-from pipelines.sources.safe_pickle import load_restricted
 from resim.config import ConfigError
+from resim.pipeline import quarantine, resume, runner
+from resim.pipeline.runner import EnumerateStage
+from resim.pipeline.sources.safe_pickle import load_restricted
+from resim.pipeline.stages.base import Stage
+from resim.pipeline.stages.cut import CutStage
 
 from .conftest import make_config
 
@@ -84,8 +84,8 @@ def test_quarantine_reason_names_the_file_and_frame_the_reader_named(part, tmp_p
 
 
 def test_reason_is_not_prefixed_twice_when_the_reader_names_the_item_itself():
-    from pipelines.sources.episode import SourceError
-    from pipelines.stages.base import source_error_reason
+    from resim.pipeline.sources.episode import SourceError
+    from resim.pipeline.stages.base import source_error_reason
 
     assert source_error_reason(SourceError("a.mp4", "too short"), "a.mp4") == "too short"
     e = SourceError("r/anno/00002.json.gz", "malformed")
@@ -236,7 +236,7 @@ def test_carla_results_file_read_error_is_retried(part, tmp_path, monkeypatch, f
 
 # ---------------------------------------------------------------------------------- episode warnings
 def test_episode_warnings_are_saved_as_warning_rows(part, tmp_path):
-    from pipelines import report
+    from resim.pipeline import report
 
     root = part("carla")
     route = sorted(p for p in root.iterdir() if (p / "anno").is_dir())[0]
@@ -301,8 +301,8 @@ def test_opendv_csv_row_without_video_id_still_quarantines_the_source(part, tmp_
 
 # --------------------------------------------------------------------------------------- frame rates
 def test_navsim_frame_rate_comes_from_the_timestamps(part, tmp_path):
-    from pipelines.sources.episode import SourceError
-    from pipelines.sources.navsim import NavsimConfig, NavsimReader
+    from resim.pipeline.sources.episode import SourceError
+    from resim.pipeline.sources.navsim import NavsimConfig, NavsimReader
 
     root = part("navsim")
     log = _navsim_log(root)
@@ -388,7 +388,7 @@ def test_opendv_video_with_a_variable_or_absurd_frame_rate_is_quarantined_with_t
 @pytest.mark.parametrize("name,rate", [("ntsc.mkv", Fraction(30000, 1001)), ("fast.mkv", 120), ("ntsc.mp4", 29.97)])
 def test_a_constant_frame_rate_is_not_taken_for_a_variable_one(tmp_path, name, rate):
     """Matroska's 1 ms ticks round a 29.97 fps file's intervals to 33 or 34 ms, a 120 fps file's to 8 or 9 ms."""
-    from pipelines.sources.frame_timing import frame_timing_problem
+    from resim.pipeline.sources.frame_timing import frame_timing_problem
 
     rate = Fraction(rate).limit_denominator(1001)
     _pyav_video(tmp_path / name, range(30), rate)
@@ -413,7 +413,7 @@ def test_failed_run_with_nothing_committed_does_not_lock_out(config_for, tmp_pat
 
     fixed = config_for("out", "shards.max_samples_per_shard=8")
     runner.prepare_out(fixed)                                         # was: "a different config"
-    from pipelines.stages.encode import data_config_hash
+    from resim.pipeline.stages.encode import data_config_hash
 
     assert (out / "config_hash.txt").read_text().strip() == data_config_hash(fixed)
     assert not any((out / sub).exists() for sub in ("prompts", "shards", "_staging"))

@@ -55,7 +55,7 @@ def test_run_into_an_out_that_is_a_file_is_one_line(tmp_path, capsys):
 
 def test_a_pipeline_output_or_an_empty_folder_is_not_foreign(tmp_path):
     """Rerunning into OUT resumes: an earlier run's OUT (even an unfinished one) is not refused."""
-    from pipelines.cli import foreign_out
+    from resim.pipeline.cli import foreign_out
 
     assert foreign_out(tmp_path / "absent") is None and foreign_out(tmp_path) is None
     (tmp_path / "shards").mkdir()

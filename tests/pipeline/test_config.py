@@ -4,9 +4,9 @@ from pathlib import Path
 
 import pytest
 
-from pipelines.config import PipelineConfig, config_from_dict, to_dict
-from pipelines.load import load_config
 from resim.config import ConfigError, from_dict
+from resim.pipeline.config import PipelineConfig, config_from_dict, to_dict
+from resim.pipeline.load import load_config
 
 from .conftest import REPO
 
@@ -97,8 +97,8 @@ def test_a_root_that_is_a_file_is_named_a_file_not_a_missing_folder(tmp_path, ca
 
 
 def test_a_reader_whose_root_became_a_file_says_so(tmp_path):
-    from pipelines.sources.episode import SourceError
-    from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
+    from resim.pipeline.sources.episode import SourceError
+    from resim.pipeline.sources.opendv import OpenDVConfig, OpenDVReader
 
     f = tmp_path / "videos"
     f.write_bytes(b"")
@@ -127,7 +127,7 @@ def test_reader_options_are_checked_at_load(tmp_path, capsys):
 
 
 def test_reused_synthetic_world_must_match_the_config(synth_world, tmp_path):
-    from pipelines import runner
+    from resim.pipeline import runner
 
     root = f"sources.synthetic.root={synth_world}"                    # made with episodes 6, seed 0, tiny
     assert _load(root).sources.synthetic.episodes == 6
@@ -161,8 +161,8 @@ def test_reused_synthetic_world_must_match_the_config(synth_world, tmp_path):
 
 def test_fork_fraction_at_its_default_leaves_the_data_hash_as_it_was(tmp_path):
     """Datasets made before the field existed keep their hash (a rerun resumes them); forks change it."""
-    from pipelines.config import absolute_paths
-    from pipelines.stages.encode import _without_new_defaults, data_config_hash
+    from resim.pipeline.config import absolute_paths
+    from resim.pipeline.stages.encode import _without_new_defaults, data_config_hash
     from resim.config import config_hash
 
     cfg = _load()
@@ -184,8 +184,8 @@ def test_fork_fraction_at_its_default_leaves_the_data_hash_as_it_was(tmp_path):
 def test_paths_are_saved_absolute_and_a_rerun_from_the_saved_config_resumes(tmp_path, monkeypatch):
     import yaml
 
-    from pipelines import runner
-    from pipelines.stages.encode import data_config_hash
+    from resim.pipeline import runner
+    from resim.pipeline.stages.encode import data_config_hash
 
     work = tmp_path / "work"
     (work / "routes").mkdir(parents=True)
@@ -216,8 +216,8 @@ def test_paths_are_saved_absolute_and_a_rerun_from_the_saved_config_resumes(tmp_
 
 # ---------------------------------------------------------------------------------- sample keys
 def test_two_sources_whose_samples_would_share_keys_are_refused_at_enumerate(synth_world, tmp_path):
-    from pipelines import runner
-    from pipelines.runner import EnumerateStage
+    from resim.pipeline import runner
+    from resim.pipeline.runner import EnumerateStage
 
     world = f"sources.synthetic.root={synth_world}"
     opendv = [f"sources.opendv.root={synth_world / 'opendv'}", "sources.opendv.min_height_px=32"]

@@ -1,8 +1,8 @@
-"""Near-duplicate grouping (pipelines/dedup.py): copies across videos are found and one of each group kept;
+"""Near-duplicate grouping (resim/pipeline/dedup.py): copies across videos are found and one of each group kept;
 overlapping windows of one video are never "copies"; other footage is far."""
 import numpy as np
 
-from pipelines.dedup import clip_signature, distance_bits, find_duplicates
+from resim.pipeline.dedup import clip_signature, distance_bits, find_duplicates
 
 
 def _video(seed, t=49, hw=(64, 96)):

@@ -7,7 +7,7 @@ from .conftest import make_config
 
 
 def test_a_finished_dataset_is_rerun_without_ray(tmp_path, synth_world, monkeypatch, capsys):
-    from pipelines import runner
+    from resim.pipeline import runner
 
     over = [f"sources.synthetic.root={synth_world}", "sources.synthetic.layouts=[opendv,carla]"]
     first = runner.run(make_config(tmp_path / "out", [*over, "ray.executor=local"]))
@@ -22,7 +22,7 @@ def test_a_finished_dataset_is_rerun_without_ray(tmp_path, synth_world, monkeypa
     assert again.ran == 0 and again.skipped == first.ran == 4
     assert again.stats["clips"] == first.stats["clips"] and again.stats["units"] == first.stats["units"]
 
-    from pipelines.report import format_summary
+    from resim.pipeline.report import format_summary
     assert "nothing to run" in format_summary(again.stats, again.out, again.report_png)
 
     # anything left to do is not "finished"

@@ -17,7 +17,7 @@ import json
 import numpy as np
 import pytest
 
-from pipelines.stages.base import OutputError, Stage
+from resim.pipeline.stages.base import OutputError, Stage
 
 from .conftest import REPO, make_config
 
@@ -34,7 +34,7 @@ def _cfg(tmp_path, synth_world, name):
 
 def _full_for(monkeypatch, calls: int | None):
     """ShardWriter.write raises ENOSPC on its first ``calls`` calls (None: always)."""
-    from shards.writer import ShardWriter
+    from resim.shards.writer import ShardWriter
 
     real, seen = ShardWriter.write, {"n": 0}
 
@@ -56,7 +56,7 @@ def _state(out):
 
 
 def test_a_moment_of_full_disk_costs_a_pause_not_clips(tmp_path, synth_world, monkeypatch):
-    from pipelines import runner
+    from resim.pipeline import runner
 
     ref = runner.run(_cfg(tmp_path, synth_world, "ref"))
     seen = _full_for(monkeypatch, calls=2)         # the first unit's first two tries fail, the third succeeds
@@ -67,7 +67,7 @@ def test_a_moment_of_full_disk_costs_a_pause_not_clips(tmp_path, synth_world, mo
 
 
 def test_a_full_disk_stops_the_run_loudly_and_a_rerun_completes_it(tmp_path, synth_world, monkeypatch, capsys):
-    from pipelines import runner
+    from resim.pipeline import runner
     from resim.cli import main
 
     ref = runner.run(_cfg(tmp_path, synth_world, "ref"))
@@ -75,7 +75,7 @@ def test_a_full_disk_stops_the_run_loudly_and_a_rerun_completes_it(tmp_path, syn
     out = cfg.out
 
     # the disk fills up after the first unit's samples: that unit is committed, the next one cannot be
-    from shards.writer import ShardWriter
+    from resim.shards.writer import ShardWriter
 
     real, state = ShardWriter.write, {"first": None}
 
@@ -117,7 +117,7 @@ def test_a_full_disk_stops_the_run_loudly_and_a_rerun_completes_it(tmp_path, syn
 
 
 def test_a_unit_without_its_commit_marker_fails_the_run(tmp_path, synth_world, monkeypatch):
-    from pipelines import resume, runner
+    from resim.pipeline import resume, runner
 
     monkeypatch.setattr(resume, "write_marker", lambda out, state: None)    # a writer that "forgets" to commit
     with pytest.raises(runner.IncompleteRun, match=r"units ran but did not commit"):
@@ -127,7 +127,7 @@ def test_a_unit_without_its_commit_marker_fails_the_run(tmp_path, synth_world, m
 def test_an_unfinished_mp4_is_an_io_error_and_enospc_when_the_temp_folder_is_full(monkeypatch, tmp_path):
     import cv2
 
-    from shards import video
+    from resim.shards import video
 
     class Mute:                       # what OpenCV does on a full disk: opens, accepts frames, writes nothing
         def __init__(self, path, *a):
@@ -158,13 +158,13 @@ def test_an_unfinished_mp4_is_an_io_error_and_enospc_when_the_temp_folder_is_ful
 
 
 def test_ray_passes_a_stage_output_error_as_text_and_the_driver_finds_it():
-    from pipelines.runner import output_error
+    from resim.pipeline.runner import output_error
 
     class RayLike(Exception):         # Ray Data's UserCodeException keeps the stage's exception as text only
         pass
 
     text = ("ray::MapWorker(MapBatches(EncodeStage)).submit()\n  File \"base.py\", line 104, in run_one\n"
-            "pipelines.stages.base.OutputError: encode of unit u1: cannot write after 4 attempts: [Errno 28] x\n"
+            "resim.pipeline.stages.base.OutputError: encode of unit u1: cannot write after 4 attempts: [Errno 28] x\n"
             "The above exception was the direct cause of the following exception:\nUserCodeException")
     err = output_error(RayLike(text))
     assert isinstance(err, OutputError) and str(err) == "encode of unit u1: cannot write after 4 attempts: [Errno 28] x"

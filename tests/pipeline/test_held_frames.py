@@ -12,11 +12,11 @@ import shutil
 import numpy as np
 import pytest
 
-from pipelines import quarantine, resume, runner
-from pipelines.sources.episode import Episode
 from resim.config import ConfigError, config_hash
-from shards.reader import iter_samples
-from shards.video import decode_mp4
+from resim.pipeline import quarantine, resume, runner
+from resim.pipeline.sources.episode import Episode
+from resim.shards.reader import iter_samples
+from resim.shards.video import decode_mp4
 
 from .conftest import make_config
 
@@ -104,8 +104,8 @@ def test_max_held_frames_is_validated_on_load(tmp_path, value):
 
 
 def test_the_default_leaves_the_data_hash_as_it_was(tmp_path):
-    from pipelines.config import absolute_paths
-    from pipelines.stages.encode import data_config_hash
+    from resim.pipeline.config import absolute_paths
+    from resim.pipeline.stages.encode import data_config_hash
     from resim.config import to_dict
 
     cfg = make_config(tmp_path / "o", ["sources.carla.clip={stride_frames: 10}"])
@@ -121,7 +121,7 @@ def test_the_default_leaves_the_data_hash_as_it_was(tmp_path):
 
 
 def test_the_reward_config_loads_and_cuts_a_whole_synthetic_route_into_one_clip(tmp_path):
-    from pipelines.load import load_config
+    from resim.pipeline.load import load_config
 
     from .conftest import REPO
 

@@ -1,11 +1,11 @@
 """The laptop config for a folder of one's own videos (configs/pipeline/my_videos.yaml), and `resim pipeline check`'s
-warnings about videos a config would make nothing from (pipelines/video_preflight.py)."""
+warnings about videos a config would make nothing from (resim/pipeline/video_preflight.py)."""
 import numpy as np
 import pytest
 
-from pipelines.load import load_config
-from pipelines.runner import pool_names
 from resim.cli import main
+from resim.pipeline.load import load_config
+from resim.pipeline.runner import pool_names
 
 from .conftest import REPO
 
@@ -43,7 +43,7 @@ def test_laptop_config_reads_a_folder_of_videos_and_check_accepts_it(tmp_path, c
     o = cfg.sources.opendv
     assert cfg.ray.address is None and cfg.ray.executor == "ray"                       # embedded, no cluster
     assert o.start_discard_s + o.end_discard_s <= 10 and o.min_height_px <= 480
-    # one actor of every pool fits 2 cores at once (pipelines/stage_fit.py: else a pool may never start)
+    # one actor of every pool fits 2 cores at once (resim/pipeline/stage_fit.py: else a pool may never start)
     pools = [n for n in pool_names(cfg) if n != "prompts"]
     assert sum(getattr(cfg.ray.stages, n).num_cpus for n in pools) <= 2
     assert all(getattr(cfg.ray.stages, n).num_cpus <= 2 for n in pool_names(cfg))

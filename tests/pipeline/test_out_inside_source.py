@@ -1,4 +1,4 @@
-"""An OUT inside an input root is not read back as input (``pipelines/sources/listing.py``).
+"""An OUT inside an input root is not read back as input (``resim/pipeline/sources/listing.py``).
 
 The attack: ``--out`` inside the OpenDV root; a rerun after a kill listed the first attempt's
 ``OUT/_staging/<unit>/*.frames.mp4`` (a real, decodable preview) as a video and cut a clip from it. Here the
@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines.runner import EnumerateStage
-from pipelines.sources.listing import walk_files
-from pipelines.units import out_trees, spec_from_state
+from resim.pipeline.runner import EnumerateStage
+from resim.pipeline.sources.listing import walk_files
+from resim.pipeline.units import out_trees, spec_from_state
 
 from .conftest import make_config
 

@@ -1,4 +1,4 @@
-"""The run lock on OUT (``pipelines/out_lock.py``).
+"""The run lock on OUT (``resim/pipeline/out_lock.py``).
 
 The attack: two ``resim pipeline run`` with different configs at once into one OUT wrote a dataset of two
 data hashes (51 + 12 samples) that ``resim shards verify`` passed. Here a real run of one config is paused in
@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from pipelines import out_lock, runner
 from resim.cli import main
 from resim.config import ConfigError
+from resim.pipeline import out_lock, runner
 
 from .conftest import REPO, make_config
 
@@ -29,8 +29,8 @@ CONFIG = str(REPO / "configs/pipeline/synthetic.yaml")
 # generated): the first of two concurrent runs, frozen at the moment the second one starts.
 HOLDER = """
 import sys, time
-from pipelines import runner
-from pipelines.load import load_config
+from resim.pipeline import runner
+from resim.pipeline.load import load_config
 cfg = load_config(sys.argv[1], [f"sources.synthetic.root={sys.argv[3]}", "shards.max_samples_per_shard=7"],
                   out=sys.argv[2])
 def pause(cfg):

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from media.frames import center_crop, cover_size, rate_step, sliding_windows
-from pipelines.stages.balance import select_windows
+from resim.media.frames import center_crop, cover_size, rate_step, sliding_windows
+from resim.pipeline.stages.balance import select_windows
 
 from .conftest import REPO
 
@@ -49,7 +49,7 @@ def test_balance_is_denser_in_turns_never_copies():
 def test_placeholder_encoders_are_deterministic_and_flagged():
     import torch
 
-    from media.encoders import TextEncoder, VideoVAE
+    from resim.media.encoders import TextEncoder, VideoVAE
 
     torch.set_num_threads(1)
     vae_dir = REPO / "configs/models/placeholder-cogvideox-vae-tiny"
@@ -73,9 +73,9 @@ def test_placeholder_encoders_are_deterministic_and_flagged():
 
 def test_prompt_table_records_each_prompts_unpadded_token_count(tmp_path):
     """num_tokens is the prompt's own token count (attention-mask sum), not the padded length (226)."""
-    from pipelines.stages.prompts import PromptStage, all_prompts
-    from shards.prompts import PromptTable
-    from shards.schema import prompt_id
+    from resim.pipeline.stages.prompts import PromptStage, all_prompts
+    from resim.shards.prompts import PromptTable
+    from resim.shards.schema import prompt_id
 
     from .conftest import make_config
 
@@ -95,7 +95,7 @@ def test_prompt_table_records_each_prompts_unpadded_token_count(tmp_path):
 
 
 def test_quarantine_table_roundtrip(tmp_path):
-    from pipelines import quarantine
+    from resim.pipeline import quarantine
 
     st = {"item_id": "a/b.mp4", "unit_id": "u1", "origin": "opendv", "attempts": 1, "quarantine": [],
           "status": "ok"}

@@ -1,12 +1,12 @@
-"""Per-clip quality columns (pipelines/quality.py): each measure moves the way its name says on frames built to
+"""Per-clip quality columns (resim/pipeline/clip_quality.py): each measure moves the way its name says on frames built to
 differ in that one property, the filters name the column that failed, and bad bounds are refused on load."""
 import cv2
 import numpy as np
 import pytest
 
-from pipelines.config import QualityConfig
-from pipelines.quality import clip_quality, quality_problem
 from resim.config import ConfigError
+from resim.pipeline.clip_quality import clip_quality, quality_problem
+from resim.pipeline.config import QualityConfig
 
 
 def _drive(T=17, h=64, w=96, seed=0, gain=1.0, offset=0.0) -> np.ndarray:

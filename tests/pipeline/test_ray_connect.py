@@ -1,12 +1,12 @@
 """Joining a cluster that is not there, or not compatible, is one line naming the address and the fix
-(pipelines/ray_connect.py), never Ray's traceback; nothing is written to OUT."""
+(resim/pipeline/ray_connect.py), never Ray's traceback; nothing is written to OUT."""
 import os
 import socket
 import subprocess
 import sys
 import textwrap
 
-from pipelines.ray_connect import ClusterError, describe_address, explain, probe
+from resim.pipeline.ray_connect import ClusterError, describe_address, explain, probe
 
 from .conftest import REPO
 

@@ -1,6 +1,6 @@
 """The Ray that `resim pipeline run` starts on this machine: who else can use it.
 
-One driver process starts Ray exactly as the pipeline does (``pipelines.runner.init_ray`` on the synthetic
+One driver process starts Ray exactly as the pipeline does (``resim.pipeline.runner.init_ray`` on the synthetic
 config) and holds it while the tests look at it from outside: the listening sockets of every Ray process are read
 with psutil (a Ray dependency), and a second process tries to run code through it from the machine's network
 address and from the loopback, with and without the run's token.
@@ -20,8 +20,8 @@ REPO = Path(__file__).resolve().parents[2]
 
 DRIVER = """
 import json, sys
-from pipelines.load import load_config
-from pipelines.runner import init_ray
+from resim.pipeline.load import load_config
+from resim.pipeline.runner import init_ray
 init_ray(load_config(sys.argv[1], ["ray.num_cpus=1"]))
 import ray
 print(json.dumps({"gcs": ray.get_runtime_context().gcs_address}), flush=True)

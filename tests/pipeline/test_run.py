@@ -70,7 +70,7 @@ def test_bad_videos_are_quarantined_and_the_job_goes_on(ray_session, synth_world
     printed = capsys.readouterr().out
     assert "quarantine rows   4" in printed
 
-    from pipelines.quarantine import read_table
+    from resim.pipeline.quarantine import read_table
 
     rows = {r["item"]: r for r in read_table(out)}
     assert set(rows) == {"corrupt.mp4", "zero.mp4", "short.mp4", "lowres.mp4"}
@@ -125,7 +125,7 @@ def _stable_count(commits: Path, quiet_s: float) -> int:
 
 
 def test_kill_driver_then_rerun_equals_uninterrupted_run(ray_session, synth_world, tmp_path):
-    from pipelines import runner
+    from resim.pipeline import runner
 
     overrides = [*FAST, f"sources.synthetic.root={synth_world}"]
     # reference: an uninterrupted run with the sequential local executor (same stage classes, no Ray)

@@ -1,4 +1,4 @@
-"""Scene cuts (labeling/cuts.py): an edited video from two real dashcam clips joined by a hard cut goes through
+"""Scene cuts (resim/labeling/cuts.py): an edited video from two real dashcam clips joined by a hard cut goes through
 `resim pipeline run` with the OpenDV-style source; the cut is found within one frame, no clip spans it, and the
 windows across it are recorded as dropped. The detector itself: hard cuts, fades and dissolves of the labelled
 set are found, and continuous driving gives none."""
@@ -11,10 +11,10 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from labeling.config import CutConfig
-from labeling.cut_set import KINDS, build_cut_video, score
-from labeling.cuts import CutDetector, detect_cuts
 from resim.cli import main
+from resim.labeling.config import CutConfig
+from resim.labeling.cut_set import KINDS, build_cut_video, score
+from resim.labeling.cuts import CutDetector, detect_cuts
 
 from .conftest import FAST, REPO
 
@@ -88,7 +88,7 @@ def _run(tmp_path, root, name, *extra):
 
 def _starts(out):
     """{clip start (10-Hz frame): meta} of every written clip."""
-    from shards.reader import iter_samples
+    from resim.shards.reader import iter_samples
 
     return {s["meta.json"]["start_frame"]: s["meta.json"] for s in iter_samples(out, decode_video=False,
                                                                                    attach_prompts=False)}
@@ -126,7 +126,7 @@ def test_an_edited_drive_with_a_cut_and_a_stop_is_curated(dashcam, tmp_path):
         assert m["balance_weight"] == 1.0 and s % 10 == 0
     moving = [m for s, m in clips.items() if s + 48 < still[0]]
     assert moving and all(m["stopped"] is False and m["ego_motion_pct_s"] > 2.0 for m in moving)
-    from shards.manifest import read_manifest
+    from resim.shards.manifest import read_manifest
     man = read_manifest(out).to_pydict()
     tagged = sorted(m["key"] for m in clips.values() if m["stopped"])   # inside, or mostly inside, the stop
     assert sorted(k for k, st in zip(man["key"], man["stopped"]) if st) == tagged
@@ -138,14 +138,14 @@ def test_an_edited_drive_with_a_cut_and_a_stop_is_curated(dashcam, tmp_path):
     first_a = {m["key"] for s, m in clips.items() if s + 48 < cuts[0]}
     assert dups and {d["key"] for d in dups} <= late_a and {d["duplicate_of"] for d in dups} <= first_a, dups
     assert stats["duplicates"]["clips_left_out"] == len(dups)
-    from training.config import DataConfig
-    from training.data import StreamLoader
+    from resim.train.config import DataConfig
+    from resim.train.data import StreamLoader
     from resim.config import from_dict
     loader = StreamLoader(from_dict(DataConfig, {"shards": str(out), "batch_size_per_gpu": 1, "num_workers": 0,
                                                  "samples_per_epoch": 3 * len(clips)}), verbose=False)
     seen = {k for b in loader for k in b.keys}
     assert seen and not seen & {d["key"] for d in dups} and seen <= set(m["key"] for m in clips.values())
-    # per-clip quality columns (pipelines/quality.py): the frozen frames' edges stand still and the flow's fit
+    # per-clip quality columns (resim/pipeline/clip_quality.py): the frozen frames' edges stand still and the flow's fit
     # finds nothing to hold; driving clips of the same video have few static edges and a fully kept fit
     for m in clips.values():
         assert 90 < m["luma_mean_8bit"] < 140 and 30 < m["luma_std_8bit"] < 60 and m["sharpness_lapvar"] > 500, m

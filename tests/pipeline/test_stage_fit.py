@@ -1,12 +1,12 @@
-"""Stage resources against the cluster before any work (pipelines/stage_fit.py): a request no node can run is one
+"""Stage resources against the cluster before any work (resim/pipeline/stage_fit.py): a request no node can run is one
 line on a cluster and clamped on an embedded run, which then finishes instead of waiting forever."""
 import logging
 
 import pytest
 
-from pipelines import runner
-from pipelines.config import StageResources, StagesResources
-from pipelines.stage_fit import NodeResources, Request, StageTooBig, check_cluster, clamp_to_machine
+from resim.pipeline import runner
+from resim.pipeline.config import StageResources, StagesResources
+from resim.pipeline.stage_fit import NodeResources, Request, StageTooBig, check_cluster, clamp_to_machine
 
 GIB = float(1 << 30)
 LAPTOP = NodeResources(cpus=2, gpus=0, memory_bytes=4 * GIB)

@@ -8,11 +8,11 @@ import yaml
 
 from tests.pipeline.conftest import REPO
 
-from pipelines import runner
 from resim.cli import main
-from shards.reader import iter_samples
-from shards.schema import latent_frame_count, pixel_frame_count
-from shards.video import encode_mp4
+from resim.pipeline import runner
+from resim.shards.reader import iter_samples
+from resim.shards.schema import latent_frame_count, pixel_frame_count
+from resim.shards.video import encode_mp4
 
 # one geometry for both ratios: 2.5 Hz, 3 history + 10 future frames (13 = 1 + 4 x 3 = 1 + 1 x 12)
 CLIP = ["clip.fps_hz=2.5", "labels.labeler.flow.sample_hz=2.5", "clip.num_history_frames=3",
@@ -71,7 +71,7 @@ def test_a_dataset_of_either_temporal_ratio_encodes_trains_and_samples(config_fo
 
 def test_the_clip_length_is_checked_against_the_vaes_own_ratio(tmp_path):
     """23 frames (3 + 20 at 5 Hz) suit a per-frame VAE; a 4x VAE cannot encode them (22 is not 4k) and says so."""
-    from pipelines.load import load_config
+    from resim.pipeline.load import load_config
     from resim.config import ConfigError
 
     five_hz = ["clip.fps_hz=5", "labels.labeler.flow.sample_hz=5", "clip.num_history_frames=3",

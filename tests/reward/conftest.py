@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from resim.config import from_dict
-from training.reward.config import RewardModelConfig, RewardTrainConfig
+from resim.models.reward.config import RewardModelConfig, RewardTrainConfig
 
 torch.set_num_threads(1)
 
@@ -22,6 +22,6 @@ def tiny_train_cfg() -> RewardTrainConfig:
 
 @pytest.fixture(scope="module")
 def toy():
-    from training.reward.toy import toy_clips
+    from tests.support.reward_toy import toy_clips
 
     return toy_clips(12, 2, 8, seed=0)

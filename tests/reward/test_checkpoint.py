@@ -1,4 +1,4 @@
-"""Reward runs in the shared export layout (RUN/final/, training.exported) and runs of the layout before it
+"""Reward runs in the shared export layout (RUN/final/, resim.models.exported) and runs of the layout before it
 (tests/data/reward-v1-run: RUN/config.yaml a RewardTrainConfig + RUN/reward.safetensors, made by the code of
 that time): both load and score as they were saved."""
 import dataclasses
@@ -12,10 +12,10 @@ import yaml
 from safetensors.torch import load_file
 
 from resim import config as rconfig
-from training.reward.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from training.reward.config import RewardTrainConfig
-from training.reward.model import Video2Reward
-from training.run import REWARD_RUN_FILES, check_out_dir, remove_run
+from resim.models.reward.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from resim.models.reward.config import RewardTrainConfig
+from resim.models.reward.model import Video2Reward
+from resim.train.run import REWARD_RUN_FILES, check_out_dir, remove_run
 
 OLD_RUN = Path(__file__).resolve().parents[1] / "data" / "reward-v1-run"
 

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from resim.cli import main
-from training.reward.toy import toy_episode_frames
+from tests.support.reward_toy import toy_episode_frames
 
 TINY = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
 TINY_SETS = [a for k, v in TINY.items() for a in ("--set", f"model.{k}={v}")]
@@ -20,9 +20,9 @@ def ckpt(tmp_path_factory):
     import cv2
 
     from resim.config import from_dict
-    from training.reward.checkpoint import save_checkpoint
-    from training.reward.config import RewardTrainConfig
-    from training.reward.model import Video2Reward
+    from resim.models.reward.checkpoint import save_checkpoint
+    from resim.models.reward.config import RewardTrainConfig
+    from resim.models.reward.model import Video2Reward
 
     root = tmp_path_factory.mktemp("ck")
     tc = from_dict(RewardTrainConfig, {"epochs": 1, "model": TINY})
@@ -38,10 +38,10 @@ def ckpt(tmp_path_factory):
 @pytest.fixture(scope="module")
 def two_episodes(tmp_path_factory):
     """Shards of two labelled episodes, one hazardous and one clean: no held-out split possible."""
-    from shards.schema import ClipSpec
-    from shards.testing import make_dummy_sample
-    from shards.video import encode_mp4
-    from shards.writer import ShardWriter
+    from resim.shards.schema import ClipSpec
+    from tests.support.shards import make_dummy_sample
+    from resim.shards.video import encode_mp4
+    from resim.shards.writer import ShardWriter
 
     root = tmp_path_factory.mktemp("two")
     spec = ClipSpec(num_history_frames=1, num_future_frames=8)
@@ -124,8 +124,8 @@ def test_score_corrupt_checkpoints_name_the_file(ckpt, tmp_path, capsys, layout)
 
 def test_score_stride_zero_is_refused(ckpt, capsys):
     """--stride 0 used to score with the default stride (`stride or default`) and exit 0."""
-    from training.reward.checkpoint import load_checkpoint
-    from training.reward.score import ScoreError, score_videos
+    from resim.models.reward.checkpoint import load_checkpoint
+    from resim.sample.reward_score import ScoreError, score_videos
 
     ck, vid = ckpt
     with pytest.raises(SystemExit) as e:

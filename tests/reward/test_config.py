@@ -2,7 +2,7 @@
 import pytest
 
 from resim.config import ConfigError, load
-from training.reward.config import RewardTrainConfig
+from resim.models.reward.config import RewardTrainConfig
 
 
 @pytest.mark.parametrize("override, match", [

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from training.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
+from resim.train.tasks.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
 
 
 def _clips(n_eps, per):
@@ -40,10 +40,10 @@ def test_collate_video_shapes(tiny_cfg, toy):
 
 
 def test_clips_from_episode_record():
-    from pipelines.sources.episode import Episode, Outcome, SourceError
+    from resim.pipeline.sources.episode import Episode, Outcome, SourceError
 
-    from training.reward.data import clips_from_episode
-    from training.reward.toy import toy_episode_frames
+    from resim.train.tasks.reward.data import clips_from_episode
+    from tests.support.reward_toy import toy_episode_frames
 
     frames = toy_episode_frames(0.3, 30, 16, 24, np.random.default_rng(0))
 
@@ -68,10 +68,10 @@ def test_clips_from_episode_record():
 
 def test_clips_from_short_episode_hold_last():
     """An episode shorter than a clip (ended early after a crash) gives no clip, or one with its last frame held."""
-    from pipelines.sources.episode import Episode, Outcome
+    from resim.pipeline.sources.episode import Episode, Outcome
 
-    from training.reward.data import clips_from_episode
-    from training.reward.toy import toy_episode_frames
+    from resim.train.tasks.reward.data import clips_from_episode
+    from tests.support.reward_toy import toy_episode_frames
 
     frames = toy_episode_frames(0.3, 9, 16, 24, np.random.default_rng(0))
     ep = Episode(source="carla", item_id="carla/r2", fps_hz=10.0, num_frames=9, frame_size_hw=(16, 24),

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from training.reward.features import add_clip_features, features_for_frames
-from training.reward.model import Video2Reward
-from training.reward.train import fit, predict
+from resim.models.reward.model import Video2Reward
+from resim.train.tasks.reward.features import add_clip_features, features_for_frames
+from resim.train.tasks.reward.train import fit, predict
 
 
 def test_stored_features_are_float16_window_features(tiny_cfg, toy):

@@ -19,7 +19,7 @@ def test_features_refuses_a_non_empty_unrelated_out(two_episodes, tmp_path, caps
 
 
 def test_an_earlier_output_or_an_empty_folder_is_accepted(tmp_path):
-    from training.reward.cli import _check_features_out
+    from resim.train.tasks.reward.cli import _check_features_out
 
     _check_features_out(tmp_path / "absent")
     _check_features_out(tmp_path)

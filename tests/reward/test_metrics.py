@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from training.reward.metrics import auc, mae, rankdata, reward_metrics, spearman
+from resim.train.tasks.reward.metrics import auc, mae, rankdata, reward_metrics, spearman
 
 
 def test_rankdata_and_spearman_match_scipy():

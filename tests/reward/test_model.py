@@ -3,8 +3,8 @@ import dataclasses
 import pytest
 import torch
 
-from training.reward.backbone import BackboneError, load_backbone, num_tokens
-from training.reward.model import FeatureMismatchError, Video2Reward
+from resim.models.reward.backbone import BackboneError, load_backbone, num_tokens
+from resim.models.reward.model import FeatureMismatchError, Video2Reward
 
 
 def test_shapes_and_placeholder_metadata(tiny_cfg):
@@ -72,7 +72,7 @@ def test_loss_accepts_attribute_batches_and_checks_feature_id(tiny_cfg):
 
 
 def test_loss_reads_the_common_stream_batch(tiny_cfg):
-    """training.data.Batch style: whole-clip uint8 frames + meta dicts; the model takes the last window."""
+    """resim.train.data.Batch style: whole-clip uint8 frames + meta dicts; the model takes the last window."""
     m = Video2Reward(tiny_cfg)
     frames = torch.randint(0, 256, (2, 9, 3, 24, 24), dtype=torch.uint8)
     meta = [{"infraction_score": 0.3, "dino_id": None}, {"infraction_score": 1.0, "dino_id": None}]
@@ -128,7 +128,7 @@ def test_old_checkpoint_without_output_activation_loads_raw(tiny_train_cfg, tmp_
 
     import yaml
 
-    from training.reward.checkpoint import load_checkpoint, save_checkpoint
+    from resim.models.reward.checkpoint import load_checkpoint, save_checkpoint
 
     m = Video2Reward(dataclasses.replace(tiny_train_cfg.model, output_activation="none"))
     save_checkpoint(m, tmp_path, dataclasses.replace(tiny_train_cfg, model=m.cfg))

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from training.reward.model import Video2Reward
-from training.reward.score import ScoreError, read_video_file, score_videos, window_starts
+from resim.models.reward.model import Video2Reward
+from resim.sample.reward_score import ScoreError, read_video_file, score_videos, window_starts
 
 
 def test_window_starts():

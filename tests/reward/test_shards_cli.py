@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 
 from resim.cli import main
-from shards.reader import iter_samples
-from shards.schema import ClipSpec
-from shards.testing import make_dummy_sample
-from shards.writer import ShardWriter
-from training.reward.data import clips_from_samples
-from training.reward.features import add_features_to_dataset
-from training.reward.model import Video2Reward
-from training.reward.toy import toy_episode_frames
+from resim.shards.reader import iter_samples
+from resim.shards.schema import ClipSpec
+from tests.support.shards import make_dummy_sample
+from resim.models.reward.model import Video2Reward
+from resim.shards.writer import ShardWriter
+from resim.train.tasks.reward.data import clips_from_samples
+from resim.train.tasks.reward.features import add_features_to_dataset
+from tests.support.reward_toy import toy_episode_frames
 
 TINY_SETS = ["--set", "model.num_frames=4", "--set", "model.frame_step=2", "--set", "model.head_dim=32",
              "--set", "model.num_heads=2", "--set", "model.mlp_hidden_dim=32"]
@@ -21,7 +21,7 @@ TINY_SETS = ["--set", "model.num_frames=4", "--set", "model.frame_step=2", "--se
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     """8 labelled episodes x 2 clips (toy frames whose content follows the score), 1 unlabelled, 1 too short."""
-    from shards.video import encode_mp4
+    from resim.shards.video import encode_mp4
 
     root = tmp_path_factory.mktemp("ds")
     spec = ClipSpec(num_history_frames=1, num_future_frames=8)  # 9 frames
@@ -80,7 +80,7 @@ def test_cli_features_train_score(dataset, tmp_path, capsys):
     import yaml
 
     from resim.config import from_dict
-    from training.config import RunConfig
+    from resim.train.config import RunConfig
 
     exported = from_dict(RunConfig, yaml.safe_load((run / "final" / "config.yaml").read_text()))
     assert exported.model_name == "reward" and exported.trainer.steps == 12

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from resim.config import from_dict
-from training.reward.config import RewardTrainConfig
-from training.reward.toy import toy_clips
-from training.reward.train import SplitError, prepare_training, train_reward
+from resim.models.reward.config import RewardTrainConfig
+from tests.support.reward_toy import toy_clips
+from resim.train.tasks.reward.train import SplitError, prepare_training, train_reward
 
 TINY_MODEL = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
 
@@ -26,7 +26,7 @@ def _strict_json(path):
 def test_unsplittable_episodes_are_refused_before_training(monkeypatch):
     """One hazardous + one clean episode: the stratified split holds nothing out. The error says why (it
     used to say "need at least 2 episodes" with 2 episodes given), and no training step runs."""
-    import training.reward.train as train_mod
+    import resim.train.tasks.reward.train as train_mod
 
     monkeypatch.setattr(train_mod, "fit", lambda *a, **k: pytest.fail("trained before the split was checked"))
     clips = toy_clips(2, 1, 8, seed=0)
@@ -52,13 +52,13 @@ def test_one_heldout_clip_still_writes_the_checkpoint_with_null_metrics(tmp_path
     assert meta["notes"] == r["notes"]
     for name in ("heldout_predictions.json", "history.json"):
         _strict_json(tmp_path / name)
-    from training.reward.checkpoint import load_checkpoint
+    from resim.models.reward.checkpoint import load_checkpoint
 
     load_checkpoint(tmp_path)   # a meta.json with nulls loads
 
 
 def test_json_safe_maps_non_finite_to_null():
-    from training.reward.checkpoint import json_safe
+    from resim.models.reward.checkpoint import json_safe
 
     got = json_safe({"a": float("nan"), "b": np.float32("inf"), "c": [np.float64(0.5), np.int64(3)], "d": np.bool_(1)})
     assert got == {"a": None, "b": None, "c": [0.5, 3], "d": True}

@@ -4,7 +4,7 @@
 return_kv_cache=False)``: tokens = [text | frame 0 | frame 1 | …] (one token per latent pixel), per-frame
 noise-level embedding + action added to the frame's tokens, trajectory embedding added to every video token,
 block-causal attention (text sees text; frame f sees text and frames <= f). It is the sampler's independent
-check of the protocol; the real ``training.models.WorldModel`` is exercised by the same tests where present.
+check of the protocol; the real ``resim.models.world.WorldModel`` is exercised by the same tests where present.
 """
 from __future__ import annotations
 

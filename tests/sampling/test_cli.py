@@ -14,14 +14,14 @@ def setup(tmp_path_factory):
     torch.set_num_threads(1)
     from safetensors.torch import save_file
 
-    from shards.schema import COMMANDS
-    from shards.testing import add_dummy_prompts, make_dummy_sample
-    from shards.writer import ShardWriter
-    from training.models.config import preset
-    from training.models.dit import WorldModel
-    from training.reward.checkpoint import save_checkpoint
-    from training.reward.config import RewardTrainConfig
-    from training.reward.model import Video2Reward
+    from resim.shards.schema import COMMANDS
+    from tests.support.shards import add_dummy_prompts, make_dummy_sample
+    from resim.shards.writer import ShardWriter
+    from resim.models.world.config import preset
+    from resim.models.world.dit import WorldModel
+    from resim.models.reward.checkpoint import save_checkpoint
+    from resim.models.reward.config import RewardTrainConfig
+    from resim.models.reward.model import Video2Reward
 
     root = tmp_path_factory.mktemp("sampling_cli")
     data = root / "shards"
@@ -110,8 +110,8 @@ def test_plan_cli(setup, capsys):
 def test_sample_cli_video_history_vid2world(setup):
     """A video file as history (encoded by the VAE), prompts from the T5 placeholder, frame by frame with
     actions derived from the trajectory and causal action guidance."""
-    from shards.testing import dummy_frames
-    from shards.video import encode_mp4
+    from tests.support.shards import dummy_frames
+    from resim.shards.video import encode_mp4
 
     video = setup["root"] / "clip.mp4"
     video.write_bytes(encode_mp4(dummy_frames(12, 48, 64, yaw_deg=10.0), 10.0))
@@ -128,7 +128,7 @@ def test_sample_cli_video_history_vid2world(setup):
 
 def _coded_video(path, fps, n, bits=8):
     """n frames whose index is written in binary as 8-px-wide black/white columns (survives mp4 compression)."""
-    from shards.video import encode_mp4
+    from resim.shards.video import encode_mp4
     frames = np.zeros((n, 32, 8 * bits, 3), np.uint8)
     for i in range(n):
         for b in range(bits):
@@ -150,7 +150,7 @@ def test_video_history_is_resampled_to_the_clip_rate(tmp_path, fps, expected_bac
     of a 30 fps clip), and the history reports the clip rate (--seconds is converted with it)."""
     import types
 
-    from training.sampling.load import history_from_video
+    from resim.sample.load import history_from_video
     vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32),
                                 info=types.SimpleNamespace(temporal_compression=4))
     n = 60
@@ -162,7 +162,7 @@ def test_video_history_is_resampled_to_the_clip_rate(tmp_path, fps, expected_bac
 def test_video_history_slower_than_the_clip_rate_is_refused(tmp_path):
     import types
 
-    from training.sampling.load import SamplingInputError, history_from_video
+    from resim.sample.load import SamplingInputError, history_from_video
     vae = types.SimpleNamespace(encode=lambda clip, seeds: np.zeros((1, 3, 16, 4, 8), np.float32),
                                 info=types.SimpleNamespace(temporal_compression=4))
     with pytest.raises(SamplingInputError, match="5 fps is below the 10 Hz"):
@@ -191,13 +191,13 @@ def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, 
     """--actions-from-trajectory on a 5 Hz shard history (latent frame = 0.8 s): the actions are those training
     derives for the same clip geometry (Batch.latent_frame_dt_s), frames past the 4-s trajectory get the null
     action, and the rollout is told they are derived (guidance drops them with the trajectory)."""
-    from shards.schema import ClipSpec
-    from shards.testing import add_dummy_prompts, make_dummy_sample
-    from shards.writer import ShardWriter
-    from training.data import Batch
-    from training.models.conditioning import actions_from_trajectory
-    from training.sampling import rollout as rollout_mod
-    from training.sampling.plan import make_candidate
+    from resim.shards.schema import ClipSpec
+    from tests.support.shards import add_dummy_prompts, make_dummy_sample
+    from resim.shards.writer import ShardWriter
+    from resim.train.data import Batch
+    from resim.models.world.conditioning import actions_from_trajectory
+    from resim.sample import rollout as rollout_mod
+    from resim.sample.plan import make_candidate
 
     data = tmp_path / "shards5"
     add_dummy_prompts(data, seq_len=16, dim=64)
@@ -241,8 +241,8 @@ def test_video_history_takes_the_training_clips_size_and_crop(setup, tmp_path, c
     import shutil
     import types
 
-    from shards.video import encode_mp4
-    from training.sampling.load import history_from_video, trained_size_hw
+    from resim.shards.video import encode_mp4
+    from resim.sample.load import history_from_video, trained_size_hw
 
     run = tmp_path / "run"
     shutil.copytree(setup["run"], run)

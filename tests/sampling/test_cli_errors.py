@@ -20,15 +20,15 @@ def env(tmp_path_factory):
     torch.set_num_threads(1)
     from safetensors.torch import save_file
 
-    from shards.schema import ClipSpec
-    from shards.testing import add_dummy_prompts, dummy_frames, make_dummy_sample
-    from shards.video import encode_mp4
-    from shards.writer import ShardWriter
-    from training.models.config import preset
-    from training.models.dit import WorldModel
-    from training.reward.checkpoint import save_checkpoint
-    from training.reward.config import RewardTrainConfig
-    from training.reward.model import Video2Reward
+    from resim.shards.schema import ClipSpec
+    from tests.support.shards import add_dummy_prompts, dummy_frames, make_dummy_sample
+    from resim.shards.video import encode_mp4
+    from resim.shards.writer import ShardWriter
+    from resim.models.world.config import preset
+    from resim.models.world.dit import WorldModel
+    from resim.models.reward.checkpoint import save_checkpoint
+    from resim.models.reward.config import RewardTrainConfig
+    from resim.models.reward.model import Video2Reward
 
     root = tmp_path_factory.mktemp("sampling_errors")
     data = root / "shards"
@@ -56,7 +56,7 @@ def env(tmp_path_factory):
 @pytest.fixture
 def no_model_load(monkeypatch):
     """Fail loudly if a command gets as far as loading the world model."""
-    from training.sampling import load
+    from resim.sample import load
 
     def boom(*a, **k):
         raise AssertionError("the world model was loaded before the command line was checked")
@@ -162,7 +162,7 @@ def test_model_dependent_checks_are_one_line(env, capsys, tmp_path):
 
 
 def test_trajectory_json_file(env, tmp_path):
-    from training.sampling.plan import make_candidate
+    from resim.sample.plan import make_candidate
 
     p = tmp_path / "traj.json"
     p.write_text(json.dumps(make_candidate("turn_left").trajectory.tolist()))
@@ -187,7 +187,7 @@ def test_help_says_what_works_and_what_is_written(capsys):
 def test_hostile_shard_dataset_is_one_line(env, capsys, tmp_path):
     """A JSON bomb as the history's meta.json (was a RecursionError traceback) and a prompt entry naming /dev/zero
     (was read until MemoryError), each next to good samples and entries: one line, exit 2."""
-    from shards.testing import insert_raw_sample
+    from tests.support.shards import insert_raw_sample
 
     data = tmp_path / "data"
     shutil.copytree(env["data"], data)
@@ -213,7 +213,7 @@ def test_hostile_shard_dataset_is_one_line(env, capsys, tmp_path):
 ])
 def test_history_sample_with_a_link_or_missing_member_is_one_line(env, capsys, tmp_path, ext, member, reason):
     """Each was a KeyError traceback (the reader dropped the member; history_from_shard indexed it)."""
-    from shards.testing import NotRegular, insert_raw_sample
+    from tests.support.shards import NotRegular, insert_raw_sample
 
     data = tmp_path / "data"
     shutil.copytree(env["data"], data)
@@ -232,8 +232,8 @@ def test_non_finite_inputs_are_refused_in_one_line(env, capsys, tmp_path):
     exit 0."""
     from safetensors.torch import load_file, save_file
 
-    from shards.testing import add_dummy_prompts, make_dummy_sample
-    from shards.writer import ShardWriter
+    from tests.support.shards import add_dummy_prompts, make_dummy_sample
+    from resim.shards.writer import ShardWriter
 
     data = tmp_path / "shards"
     add_dummy_prompts(data, seq_len=16, dim=64)
@@ -280,7 +280,7 @@ def test_an_out_that_is_a_file_or_inside_a_dataset_is_one_line(env, capsys, tmp_
 
 
 def test_a_rollout_that_overflows_is_said_and_not_written(env, capsys, tmp_path, monkeypatch):
-    from training.sampling import rollout as ro
+    from resim.sample import rollout as ro
 
     real = ro.rollout
 
@@ -299,7 +299,7 @@ def test_a_rollout_that_overflows_is_said_and_not_written(env, capsys, tmp_path,
 
 
 def test_a_plan_whose_rollouts_overflow_is_said_and_not_written(env, capsys, tmp_path, monkeypatch):
-    from training.sampling import plan as pl
+    from resim.sample import plan as pl
 
     real = pl.plan
 

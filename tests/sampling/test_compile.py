@@ -1,15 +1,15 @@
-"""Compiled sampling (training/sampling/compile.py): a rollout with compiled blocks equals the eager one, the
+"""Compiled sampling (resim/sample/compile.py): a rollout with compiled blocks equals the eager one, the
 compiled code is what runs, and --compile reaches the model from the command line."""
 import argparse
 
 import pytest
 import torch
 
-from training.models.config import preset
-from training.models.dit import WorldModel
-from training.sampling.compile import add_compile_args, compile_blocks, is_compiled, maybe_compile, wants_compile
-from training.sampling.guidance import guidance_preset
-from training.sampling.rollout import Condition, RolloutConfig, rollout
+from resim.diffusion.guidance import guidance_preset
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
+from resim.sample.compile import add_compile_args, compile_blocks, is_compiled, maybe_compile, wants_compile
+from resim.sample.rollout import Condition, RolloutConfig, rollout
 
 B, C, H, W, L, D = 2, 16, 4, 6, 16, 64   # the tiny WorldModel preset's channels, text length and width
 

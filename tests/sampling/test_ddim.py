@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from training.sampling.ddim import DDIMSchedule, cogvideox_alphas_cumprod, ddim_step, ddim_timesteps, forward_noise
+from resim.diffusion.ddim import DDIMSchedule, cogvideox_alphas_cumprod, ddim_step, ddim_timesteps, forward_noise
 
 diffusers = pytest.importorskip("diffusers")
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from resim.config import ConfigError
-from training.sampling.guidance import (GuidanceConfig, cfg_combine, combine_branches, guidance_preset,
+from resim.diffusion.guidance import (GuidanceConfig, cfg_combine, combine_branches, guidance_preset,
                                         guidance_scales, rescale_guidance)
 
 
@@ -93,7 +93,7 @@ def test_guidance_schedule_flag_reaches_the_rollout_config(schedule, expect):
     """`resim sample --guidance-schedule` (and `resim eval` through the same preset override) sets the per-step
     scales: the default stays ReSim's linear 7.5 -> 1."""
     from resim.cli import build_parser
-    from training.sampling.cli import _rollout_config
+    from resim.sample.cli import _rollout_config
 
     argv = ["sample", "--checkpoint", "x", "--history", "h.mp4", "--out", "o"]
     if schedule:
@@ -106,7 +106,7 @@ def test_guidance_schedule_flag_reaches_the_rollout_config(schedule, expect):
 
 def test_guidance_from_cli_is_shared_by_eval_and_sample():
     """One place turns --guidance-scale/--guidance-schedule into a GuidanceConfig, for `resim eval` too."""
-    from training.sampling.guidance import guidance_from_cli
+    from resim.diffusion.guidance import guidance_from_cli
 
     assert guidance_from_cli("resim").scales(3) == pytest.approx([7.5, 4.25, 1.0])
     assert guidance_from_cli("resim", 4.0, "constant").scales(2) == [4.0, 4.0]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from training.sampling.outputs import contact_sheet, decode_latents, decode_rollout, write_rollout
+from resim.sample.outputs import contact_sheet, decode_latents, decode_rollout, write_rollout
 
 VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogvideox-vae-tiny"
 
@@ -13,7 +13,7 @@ VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogv
 @pytest.fixture(scope="module")
 def vae():
     torch.set_num_threads(1)
-    from media.encoders import VideoVAE
+    from resim.media.encoders import VideoVAE
     return VideoVAE(VAE_DIR, device="cpu")
 
 
@@ -44,7 +44,7 @@ def test_write_rollout(tmp_path):
         assert p[k].is_file() and p[k].stat().st_size > 0
     from PIL import Image
     assert Image.open(p["gif"]).n_frames == 21
-    from shards.video import decode_mp4
+    from resim.shards.video import decode_mp4
     assert decode_mp4(p["mp4"].read_bytes()).shape[0] == 21
     sheet = contact_sheet(frames, 9, 10.0, title="t", trajectory=traj, count=8)
     assert sheet.width > 8 * 160

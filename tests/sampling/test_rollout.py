@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from resim.config import ConfigError
-from training.sampling.guidance import guidance_preset
-from training.sampling.rollout import Condition, RolloutConfig, rollout, rollout_num_future_frames
+from resim.diffusion.guidance import guidance_preset
+from resim.sample.rollout import Condition, RolloutConfig, rollout, rollout_num_future_frames
 
 B, C, H, W, L, D = 2, 4, 2, 3, 5, 8
 
@@ -135,8 +135,8 @@ def test_errors(tiny_model):
 
 
 def _real_tiny_world_model(seed=0):
-    from training.models.config import preset
-    from training.models.dit import WorldModel
+    from resim.models.world.config import preset
+    from resim.models.world.dit import WorldModel
     torch.manual_seed(seed)
     m = WorldModel(preset("tiny")).eval()
     with torch.no_grad():  # the new encoders start at zero output; make them matter for this test

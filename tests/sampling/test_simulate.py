@@ -1,4 +1,4 @@
-"""The closed loop inside a world model (training/sampling/simulate.py), on the tiny causal model and the tiny
+"""The closed loop inside a world model (resim/sample/simulate.py), on the tiny causal model and the tiny
 placeholder VAE: each decision's plan is what the world model is conditioned on, the policy sees the frames the
 world model made, and the loop grows the video by one decision's frames at a time."""
 from pathlib import Path
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from media.encoders import VideoVAE
-from synthworld.closed_loop import PolicyError
-from training.sampling.rollout import RolloutConfig
-from training.sampling.simulate import NULL_PROMPT_GUIDANCE_START, WorldModelLoop, loop_guidance_start
+from resim.media.encoders import VideoVAE
+from resim.sample.rollout import RolloutConfig
+from resim.sample.simulate import NULL_PROMPT_GUIDANCE_START, WorldModelLoop, loop_guidance_start
+from resim.synthworld.closed_loop import PolicyError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogvideox-vae-tiny"

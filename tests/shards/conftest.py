@@ -3,9 +3,9 @@ import shutil
 
 import pytest
 
-from shards.schema import COMMANDS
-from shards.testing import add_dummy_prompts, make_dummy_sample
-from shards.writer import ShardWriter
+from resim.shards.schema import COMMANDS
+from tests.support.shards import add_dummy_prompts, make_dummy_sample
+from resim.shards.writer import ShardWriter
 
 
 def mixed_samples(n: int = 10):

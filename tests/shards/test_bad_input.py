@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from resim.cli import main
-from shards import layout, safejson
-from shards.confine import UnsafePathError, confined
-from shards.npy import NpyError, decode_npy, encode_npy
-from shards.reader import ShardReadError, decode_sample, find_sample, iter_raw_shard, iter_samples
-from shards.tario import open_records
-from shards.testing import NotRegular, insert_raw_sample, make_dummy_sample
-from shards.validate import sample_problems, meta_problems
-from shards.verify import verify
+from resim.shards import layout, safejson
+from resim.shards.confine import UnsafePathError, confined
+from resim.shards.npy import NpyError, decode_npy, encode_npy
+from resim.shards.reader import ShardReadError, decode_sample, find_sample, iter_raw_shard, iter_samples
+from resim.shards.tario import open_records
+from tests.support.shards import NotRegular, insert_raw_sample, make_dummy_sample
+from resim.shards.validate import sample_problems, meta_problems
+from resim.shards.verify import verify
 
 SHARD = "unitA-00000.tar"
 
@@ -106,7 +106,7 @@ def test_validator_treats_none_members_as_missing_and_always_names_a_schema_vers
 
 
 def test_older_samples_without_the_later_fields_are_read_and_a_current_one_needs_them():
-    from shards.schema import QUALITY_META
+    from resim.shards.schema import QUALITY_META
 
     meta = make_dummy_sample()["meta.json"]
     v2 = {k: v for k, v in meta.items() if k not in QUALITY_META}
@@ -120,7 +120,7 @@ def test_older_samples_without_the_later_fields_are_read_and_a_current_one_needs
 
 
 def test_writer_keeps_shards_within_max_bytes_including_tar_record_padding(tmp_path):
-    from shards.writer import ShardWriter
+    from resim.shards.writer import ShardWriter
 
     samples = [make_dummy_sample(item_id=f"b/{i}", seed=i) for i in range(6)]
     multi = 0
@@ -236,7 +236,7 @@ def test_manifest_naming_a_shard_outside_the_dataset_is_not_read(dataset, capsys
 
 def _set_prompt_entry(root, **changes):
     """Change the null prompt's entry of prompts.json (the table is dataset input); returns its id."""
-    from shards.prompts import PromptTable
+    from resim.shards.prompts import PromptTable
 
     table = PromptTable(root)
     data = json.loads(table.json_path.read_text())
@@ -253,7 +253,7 @@ def _set_prompt_entry(root, **changes):
     ("evil.npy", "leads through a symbolic link"),        # a link inside prompts/ to a file outside
 ])
 def test_prompt_entry_naming_a_file_outside_prompts_is_refused(dataset, capsys, file, reason):
-    from shards.prompts import PromptTable, PromptTableError
+    from resim.shards.prompts import PromptTable, PromptTableError
 
     if file == "evil.npy":
         (layout.prompts_dir(dataset) / file).symlink_to("/etc/passwd")
@@ -270,7 +270,7 @@ def test_prompt_entry_naming_a_file_outside_prompts_is_refused(dataset, capsys, 
 
 
 def test_prompt_file_size_is_checked_against_the_entry_before_reading(dataset):
-    from shards.prompts import PromptTable, PromptTableError
+    from resim.shards.prompts import PromptTable, PromptTableError
 
     pid = _set_prompt_entry(dataset, bytes=10**12)                        # a shape of 16 x 32 bf16 cannot be 1 TB
     with pytest.raises(PromptTableError, match=f"prompt {pid}: bytes 1000000000000 does not fit shape"):

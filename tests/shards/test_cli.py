@@ -9,8 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from resim.cli import main
-from shards import layout
-from shards.manifest import read_indexes
+from resim.shards import layout
+from resim.shards.manifest import read_indexes
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -111,8 +111,8 @@ def test_preview_writes_png(dataset, tmp_path, capsys):
 
 def test_light_import_and_help():
     """`shards` and its CLI import without torch, ray or cv2."""
-    code = ("import sys, shards.cli, shards.reader, shards.writer, shards.verify, shards.stats, shards.prompts, "
-            "shards.video, shards.preview; from resim.cli import build_parser; build_parser(); "
+    code = ("import sys, resim.shards.cli, resim.shards.reader, resim.shards.writer, resim.shards.verify, resim.shards.stats, resim.shards.prompts, "
+            "resim.shards.video, resim.shards.preview; from resim.cli import build_parser; build_parser(); "
             "bad = [m for m in ('torch', 'ray', 'cv2', 'matplotlib') if m in sys.modules]; print(bad)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True,
                        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
@@ -123,7 +123,7 @@ def test_light_import_and_help():
 
 
 def test_format_doc_covers_schema():
-    from shards.schema import MANIFEST_COLUMNS, MEMBERS, META_FIELDS, make_key
+    from resim.shards.schema import MANIFEST_COLUMNS, MEMBERS, META_FIELDS, make_key
 
     doc = (REPO / "docs" / "data_format.md").read_text()
     for f in META_FIELDS:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from resim.cli import build_parser, main
-from shards.manifest import read_manifest
+from resim.shards.manifest import read_manifest
 
 REPO = Path(__file__).resolve().parents[2]
 PY = [sys.executable, "-m", "resim"]

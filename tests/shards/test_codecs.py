@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from shards.npy import (NpyError, bf16_bits_to_float32, decode_npy, encode_npy, float32_to_bf16_bits,
+from resim.shards.npy import (NpyError, bf16_bits_to_float32, decode_npy, encode_npy, float32_to_bf16_bits,
                         stored_to_float32)
-from shards.video import VideoError, decode_mp4, encode_mp4
-from shards.testing import dummy_frames
+from resim.shards.video import VideoError, decode_mp4, encode_mp4
+from tests.support.shards import dummy_frames
 
 
 def test_npy_round_trip_dtypes():

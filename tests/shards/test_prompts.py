@@ -4,9 +4,9 @@ import multiprocessing as mp
 import numpy as np
 import pytest
 
-from shards.npy import float32_to_bf16_bits
-from shards.prompts import PromptConflictError, PromptTable
-from shards.schema import prompt_id, prompt_text
+from resim.shards.npy import float32_to_bf16_bits
+from resim.shards.prompts import PromptConflictError, PromptTable
+from resim.shards.schema import prompt_id, prompt_text
 
 
 def _emb(seed, L=226, D=64):

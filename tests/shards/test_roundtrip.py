@@ -6,13 +6,13 @@ import tarfile
 import numpy as np
 import pytest
 
-from shards import layout
-from shards.manifest import read_indexes, read_manifest
-from shards.npy import bf16_bits_to_float32, encode_npy
-from shards.prompts import PromptTable
-from shards.reader import ForbiddenMemberError, decode_sample, iter_samples, make_webdataset, shard_urls
-from shards.schema import MANIFEST_COLUMNS, MEMBERS, prompt_id, prompt_text
-from shards.video import decode_mp4
+from resim.shards import layout
+from resim.shards.manifest import read_indexes, read_manifest
+from resim.shards.npy import bf16_bits_to_float32, encode_npy
+from resim.shards.prompts import PromptTable
+from resim.shards.reader import ForbiddenMemberError, decode_sample, iter_samples, make_webdataset, shard_urls
+from resim.shards.schema import MANIFEST_COLUMNS, MEMBERS, prompt_id, prompt_text
+from resim.shards.video import decode_mp4
 
 
 def test_round_trip_every_field(base_dataset):
@@ -69,8 +69,8 @@ def test_index_and_manifest(base_dataset):
 
 
 def test_roll_by_bytes(tmp_path):
-    from shards.testing import make_dummy_sample
-    from shards.writer import ShardWriter
+    from tests.support.shards import make_dummy_sample
+    from resim.shards.writer import ShardWriter
 
     samples = [make_dummy_sample(item_id=f"b/{i}", seed=i) for i in range(5)]
     one = sum(len(encode_npy(s["latent.npy"])) + len(s["frames.mp4"]) for s in samples[:1])

@@ -1,4 +1,4 @@
-"""The lean tar reader of training streams (shards/tario.py) against WebDataset's tarfile-based grouping,
+"""The lean tar reader of training streams (resim/shards/tario.py) against WebDataset's tarfile-based grouping,
 and the zero-copy npy decoder."""
 import gzip
 import io
@@ -7,9 +7,9 @@ import tarfile
 import numpy as np
 import pytest
 
-from shards.npy import NpyError, decode_npy, decode_npy_view, encode_npy
-from shards.reader import ForbiddenMemberError, ShardReadError
-from shards.tario import _general, open_records
+from resim.shards.npy import NpyError, decode_npy, decode_npy_view, encode_npy
+from resim.shards.reader import ForbiddenMemberError, ShardReadError
+from resim.shards.tario import _general, open_records
 
 
 def _tar(path, members, fmt=tarfile.USTAR_FORMAT, dirs=()):

@@ -5,11 +5,11 @@ import tarfile
 
 import numpy as np
 
-from shards import layout
-from shards.fsio import sha256_file
-from shards.manifest import read_indexes
-from shards.npy import decode_npy, encode_npy
-from shards.verify import verify
+from resim.shards import layout
+from resim.shards.fsio import sha256_file
+from resim.shards.manifest import read_indexes
+from resim.shards.npy import decode_npy, encode_npy
+from resim.shards.verify import verify
 
 SHARD = "unitA-00001.tar"
 
@@ -79,8 +79,8 @@ def test_wrong_shape(dataset):
 
 
 def test_wrong_video_length_and_prompt_reference(dataset):
-    from shards.testing import dummy_frames
-    from shards.video import encode_mp4
+    from tests.support.shards import dummy_frames
+    from resim.shards.video import encode_mp4
 
     keys = read_indexes(dataset)[1]["keys"]
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shards import layout
-from shards.reader import iter_samples
-from shards.testing import add_dummy_prompts, make_dummy_sample
-from shards.validate import SampleError
-from shards.verify import verify
-from shards.writer import ShardExistsError, ShardWriter
+from resim.shards import layout
+from resim.shards.reader import iter_samples
+from tests.support.shards import add_dummy_prompts, make_dummy_sample
+from resim.shards.validate import SampleError
+from resim.shards.verify import verify
+from resim.shards.writer import ShardExistsError, ShardWriter
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -102,8 +102,8 @@ def test_uncommitted_shard_is_replaced_on_rerun(tmp_path):
 
 CHILD = textwrap.dedent("""
     import sys, time
-    from shards.testing import make_dummy_sample
-    from shards.writer import ShardWriter
+    from tests.support.shards import make_dummy_sample
+    from resim.shards.writer import ShardWriter
     w = ShardWriter(sys.argv[1], "killme", max_samples_per_shard=3)
     for i in range(int(sys.argv[2])):
         w.write(make_dummy_sample(item_id=f"k/{i}", seed=i))
@@ -145,7 +145,7 @@ def test_writer_killed_mid_shard_leaves_no_final_shard_and_rerun_completes(tmp_p
 
 def _unit_worker(args):
     root, unit = args
-    from shards.schema import make_key
+    from resim.shards.schema import make_key
 
     with ShardWriter(root, f"u{unit:03d}", max_samples_per_shard=2) as w:
         for i in range(3):
@@ -176,7 +176,7 @@ def _keys(root):
 
 
 def test_overwrite_rerun_with_fewer_shards_removes_the_earlier_runs_higher_shards(tmp_path):
-    from shards.manifest import read_manifest
+    from resim.shards.manifest import read_manifest
 
     _write_unit(tmp_path, n=10)                                         # shards 0..3
     with ShardWriter(tmp_path, "unit", max_samples_per_shard=3, overwrite=True) as w:
@@ -219,8 +219,8 @@ def test_overwrite_rerun_interrupted_leaves_every_committed_shard_complete(tmp_p
 
 
 def test_crash_while_removing_stale_shards_leaves_only_uncommitted_files(tmp_path, monkeypatch):
-    from shards import writer as writer_mod
-    from shards.manifest import read_manifest
+    from resim.shards import writer as writer_mod
+    from resim.shards.manifest import read_manifest
 
     _write_unit(tmp_path, n=9)                                          # shards 0..2
     real_fsync_dir = writer_mod.fsync_dir

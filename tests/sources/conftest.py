@@ -199,7 +199,7 @@ def carla_root(tmp_path_factory) -> Path:
 # ---- synthetic --------------------------------------------------------------------------------
 @pytest.fixture(scope="session")
 def synth_dir(tmp_path_factory) -> Path:
-    from pipelines.sources.synth.generate import generate, preset
+    from resim.pipeline.sources.synth.generate import generate, preset
 
     out = tmp_path_factory.mktemp("synth") / "world"
     generate(out, 6, seed=7, cfg=preset("tiny"), progress=False)

@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from pipelines.sources.carla import CarlaConfig, CarlaReader, carla_to_ours, ours_to_carla
-from pipelines.sources.episode import scan_items
+from resim.pipeline.sources.carla import CarlaConfig, CarlaReader, carla_to_ours, ours_to_carla
+from resim.pipeline.sources.episode import scan_items
 
 
 def test_coordinate_conversion_is_right_handed():
@@ -62,7 +62,7 @@ def test_broken_routes_reported_with_item_and_reason(carla_root):
 def test_results_read_error_propagates_and_is_not_cached(carla_root, monkeypatch):
     import errno
 
-    from pipelines.sources import carla
+    from resim.pipeline.sources import carla
 
     real, calls = carla.load_results, {"n": 0}
 

@@ -2,8 +2,8 @@ import json
 
 import pytest
 
-from pipelines.sources.episode import SourceError
-from pipelines.sources.leaderboard import load_results, outside_lanes_pct, parse_results
+from resim.pipeline.sources.episode import SourceError
+from resim.pipeline.sources.leaderboard import load_results, outside_lanes_pct, parse_results
 
 REAL = {
     "lb1_transfuser_autopilot_longest6.json": ("lb1", 36),

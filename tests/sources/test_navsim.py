@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from pipelines.sources.episode import SourceError, scan_items
-from pipelines.sources.navsim import NavsimConfig, NavsimReader, quaternion_yaw, yaw_quaternion
+from resim.pipeline.sources.episode import SourceError, scan_items
+from resim.pipeline.sources.navsim import NavsimConfig, NavsimReader, quaternion_yaw, yaw_quaternion
 
 GOOD = "2021.05.12.22.00.38_veh-35_01008_01518"
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from pipelines.sources.episode import SourceError, scan_items
-from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
 from resim.config import ConfigError
+from resim.pipeline.sources.episode import SourceError, scan_items
+from resim.pipeline.sources.opendv import OpenDVConfig, OpenDVReader
 
 
 def reader(root, **kw):

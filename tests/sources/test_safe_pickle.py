@@ -5,8 +5,8 @@ import pickle
 import numpy as np
 import pytest
 
-from pipelines.sources.episode import SourceError
-from pipelines.sources.safe_pickle import load_restricted, loads_restricted
+from resim.pipeline.sources.episode import SourceError
+from resim.pipeline.sources.safe_pickle import load_restricted, loads_restricted
 
 
 @pytest.mark.parametrize("protocol", [3, 4, 5])

@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from pipelines.sources.carla import CarlaConfig, CarlaReader
-from pipelines.sources.episode import scan_items
-from pipelines.sources.navsim import NavsimConfig, NavsimReader
-from pipelines.sources.opendv import OpenDVConfig, OpenDVReader
-from pipelines.sources.synth.generate import generate, preset
-from pipelines.sources.synth.ground_truth import GroundTruth, window_commands
 from resim.config import ConfigError
+from resim.pipeline.sources.carla import CarlaConfig, CarlaReader
+from resim.pipeline.sources.episode import scan_items
+from resim.pipeline.sources.navsim import NavsimConfig, NavsimReader
+from resim.pipeline.sources.opendv import OpenDVConfig, OpenDVReader
+from resim.pipeline.sources.synth.generate import generate, preset
+from resim.pipeline.sources.synth.ground_truth import GroundTruth, window_commands
 
 
 def readers(d):
@@ -120,8 +120,8 @@ def test_cli_writes_dataset_and_contact_sheet(tmp_path, capsys):
 def test_random_explorer_drives_past_its_64_random_segments():
     # the random explorer draws 64 segments of 0.5-1.5 s; a longer episode (--set episode_s=64) indexed past
     # them and crashed the generator. Segments now repeat; shorter episodes keep their bytes.
-    from synthworld.drivers import _segment, simulate
-    from synthworld.world import build_road
+    from resim.synthworld.drivers import _segment, simulate
+    from resim.synthworld.world import build_road
 
     changes = np.array([1.0, 2.0, 3.0])
     assert [_segment(changes, t) for t in (0.5, 1.5, 2.5, 3.5, 4.5)] == [0, 1, 2, 0, 1]
@@ -133,7 +133,7 @@ def test_random_explorer_drives_past_its_64_random_segments():
 def test_an_episode_rendered_in_memory_is_the_one_written(synth_dir):
     """render_episode (the tests' way to the road world without a pipeline run) gives the same expert drive as
     ``resim synth`` wrote: the same poses exactly, and frames equal to the written JPEGs up to their loss."""
-    from pipelines.sources.synth.generate import render_episode
+    from resim.pipeline.sources.synth.generate import render_episode
 
     gt = GroundTruth.load(synth_dir)
     e = next(e for e in gt.episodes if e["layout"]["reader"] == "carla" and e["driver"] == "expert")

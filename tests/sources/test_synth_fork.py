@@ -4,12 +4,12 @@ import json
 import numpy as np
 import pytest
 
-from labeling.commands import command_from_trajectory
-from labeling.config import LabelerConfig
-from labeling.trajectory import trajectory_from_poses
-from synthworld.fork import FORK_BRANCHES, build_fork_world
-from pipelines.sources.synth.generate import generate, plan_episodes, preset, render_planned
 from resim.config import ConfigError
+from resim.labeling.commands import command_from_trajectory
+from resim.labeling.config import LabelerConfig
+from resim.labeling.trajectory import trajectory_from_poses
+from resim.pipeline.sources.synth.generate import generate, plan_episodes, preset, render_planned
+from resim.synthworld.fork import FORK_BRANCHES, build_fork_world
 
 HISTORY_FRAMES = 9    # ReSim's clip at 10 Hz: 9 history + 40 future frames
 

@@ -4,11 +4,11 @@ import json
 import numpy as np
 import pytest
 
-from labeling.trajectory import trajectory_from_poses
-from pipelines.sources.synth.generate import generate, plan_episodes, preset, render_planned
 from resim.config import ConfigError
-from synthworld.pace import PACE_BRANCHES, pace_fork
-from synthworld.world import build_road
+from resim.labeling.trajectory import trajectory_from_poses
+from resim.pipeline.sources.synth.generate import generate, plan_episodes, preset, render_planned
+from resim.synthworld.pace import PACE_BRANCHES, pace_fork
+from resim.synthworld.world import build_road
 
 HISTORY_FRAMES = 9
 

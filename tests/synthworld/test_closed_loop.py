@@ -1,15 +1,15 @@
-"""The closed loop in the true synthetic world (synthworld/closed_loop.py, policies.py): the loop itself drives
+"""The closed loop in the true synthetic world (resim/synthworld/closed_loop.py, policies.py): the loop itself drives
 the expert's plans as cleanly as the expert, an episode replays exactly, degraded policies score in the order
 they were degraded, and a broken plan fails loudly, naming the policy."""
 import numpy as np
 import pytest
 
-from synthworld.closed_loop import LoopConfig, PolicyError, WaypointFollower, drive
-from synthworld.drivers import simulate
-from synthworld.policies import ConstantVelocity, RoutePlanner, SteeringBias, SteeringNoise, bend, to_ego_frame
-from synthworld.render import Camera, Renderer
-from synthworld.score import score_trace
-from synthworld.world import build_road
+from resim.synthworld.closed_loop import LoopConfig, PolicyError, WaypointFollower, drive
+from resim.synthworld.drivers import simulate
+from resim.synthworld.policies import ConstantVelocity, RoutePlanner, SteeringBias, SteeringNoise, bend, to_ego_frame
+from resim.synthworld.render import Camera, Renderer
+from resim.synthworld.score import score_trace
+from resim.synthworld.world import build_road
 
 CFG = LoopConfig(seconds=10.0, handover_s=1.0)
 

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from training.testing import write_world_dataset
+from tests.support.training import write_world_dataset
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -11,7 +11,7 @@ import torch
 import torch.distributed.checkpoint as dcp
 from torch.distributed.checkpoint.metadata import _MEM_FORMAT_ENCODING, TensorProperties
 
-from training.checkpoint import CheckpointError, _MetadataUnpickler
+from resim.train.checkpoint import CheckpointError, _MetadataUnpickler
 
 FIXTURES = Path(__file__).resolve().parents[1] / "data" / "dcp_metadata"
 

@@ -8,12 +8,12 @@ import torch
 
 from resim.cli import main
 from resim.config import ConfigError, from_dict
-from shards.testing import insert_raw_sample
-from training.config import DataConfig
-from training.data import Batch, StreamLoader
-from training.stream import DataError, shard_mixing
+from tests.support.shards import insert_raw_sample
+from resim.train.config import DataConfig
+from resim.train.data import Batch, StreamLoader
+from resim.train.stream import DataError, shard_mixing
 
-from training.testing import navsim_spec, write_world_dataset
+from tests.support.training import navsim_spec, write_world_dataset
 
 
 def _cfg(root, **kw):
@@ -32,7 +32,7 @@ def test_batch_is_typed_and_moves(world_dataset):
     assert isinstance(b, Batch) and len(b) == 2
     assert b.latents.shape == (2, 13, 16, 8, 12) and b.latents.dtype == torch.float16  # as stored
     assert b.text.shape == b.null_text.shape == (2, 16, 64) and b.text.dtype == torch.float32
-    from shards.prompts import PromptTable
+    from resim.shards.prompts import PromptTable
     table = PromptTable(world_dataset)
     for i, m in enumerate(b.meta):
         torch.testing.assert_close(b.text[i], torch.tensor(table.get(m["prompt_id"], as_float32=True)))
@@ -307,8 +307,8 @@ def test_pipe_urls_are_refused_unless_allowed(tmp_path, capsys):
 
 
 def test_shuffle_commands_draws_each_clips_command_from_its_key_alone(world_dataset):
-    from shards.prompts import PromptTable
-    from shards.schema import COMMANDS
+    from resim.shards.prompts import PromptTable
+    from resim.shards.schema import COMMANDS
     prompts = PromptTable(world_dataset)
     table = prompts.entries()
     emb = {p: torch.tensor(prompts.get(p, as_float32=True)) for p in table}

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from training.sampling.outputs import decode_latents
+from resim.sample.outputs import decode_latents
 
 VAE_DIR = Path(__file__).resolve().parents[2] / "configs/models/placeholder-cogvideox-vae-tiny"
 
 
 def _vae(tiled: bool):
-    from media.encoders import VideoVAE
+    from resim.media.encoders import VideoVAE
     vae = VideoVAE(VAE_DIR, device="cpu")
     if tiled:  # 2x2-latent tiles: the decode goes through diffusers' tiled_decode (a decoder run per tile)
         vae.model.enable_tiling(tile_sample_min_height=16, tile_sample_min_width=16)

@@ -1,4 +1,4 @@
-"""Guidance + step distillation (training/distill.py, `resim train distill`): the student learns the teacher's guided
+"""Guidance + step distillation (resim/train/tasks/distill.py, `resim train distill`): the student learns the teacher's guided
 many-step output in a few unguided steps, its export samples like any world model at its own step count, and the
 teacher's trajectories depend on each clip's key alone (so a resumed run makes the same pairs)."""
 import json
@@ -11,16 +11,16 @@ from safetensors.torch import save_file
 
 from resim.cli import main
 from resim.config import ConfigError, from_dict
-from training.config import DataConfig
-from training.data import StreamLoader
-from training.distill import DistillConfig, TeacherPairs, build_distill
-from training.models.config import preset
-from training.models.dit import WorldModel
-from training.sampling.ddim import DDIMSchedule
-from training.sampling.guidance import guidance_preset
-from training.sampling.load import load_world_model, resolve_steps_and_guidance, sampling_defaults
-from training.sampling.rollout import Condition, RolloutConfig, rollout
-from training.testing import write_world_dataset
+from resim.diffusion.ddim import DDIMSchedule
+from resim.diffusion.guidance import guidance_preset
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
+from resim.sample.load import load_world_model, resolve_steps_and_guidance, sampling_defaults
+from resim.sample.rollout import Condition, RolloutConfig, rollout
+from resim.train.config import DataConfig
+from resim.train.data import StreamLoader
+from resim.train.tasks.distill import DistillConfig, TeacherPairs, build_distill
+from tests.support.training import write_world_dataset
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

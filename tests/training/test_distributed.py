@@ -9,8 +9,8 @@ import pytest
 
 from resim.cli import main
 
-from training import checkpoint as ckpt
-from training.testing import write_world_dataset
+from resim.train import checkpoint as ckpt
+from tests.support.training import write_world_dataset
 
 
 def _launch(ds, out, env, *extra, nproc=2, steps=10):

@@ -1,12 +1,12 @@
-"""training.exported: the one layout (RUN/final/{config.yaml, model.safetensors, ema.safetensors}) and its loader,
+"""resim.models.exported: the one layout (RUN/final/{config.yaml, model.safetensors, ema.safetensors}) and its loader,
 on the registry's toy model; the world model, the IDM and the reward model are tested through their callers."""
 import pytest
 import torch
 import yaml
 from safetensors.torch import save_file
 
-from training import registry
-from training.exported import (ExportError, ExportNotFoundError, find_export, load_exported, read_config,
+from resim.models import registry
+from resim.models.exported import (ExportError, ExportNotFoundError, find_export, load_exported, read_config,
                                write_export)
 
 TOY = {"dim": 4, "hidden": 8, "num_blocks": 1}
@@ -78,7 +78,7 @@ def test_missing_files_name_both_places(tmp_path):
     ("- a list\n", "config.yaml: expected a mapping with model_name and model, got list"),
     ("model_name: 3\nmodel: {}\n", "config.yaml: model_name must be a string"),
     ("model_name: toy\nmodel: [1]\n", "config.yaml: model must be a mapping"),
-    ("model_name: nosuch\n", "config.yaml: model_name 'nosuch' has no builder in training.registry"),
+    ("model_name: nosuch\n", "config.yaml: model_name 'nosuch' has no builder in resim.models.registry"),
     ("model_name: toy\nmodel: {dim: 4, bogus: 1}\n", "config.yaml: "),
     ("", "config.yaml: empty"),                       # was: sampled with every default
 ])

@@ -9,12 +9,12 @@ from diffusers.training_utils import EMAModel
 from safetensors.torch import load_file
 
 from resim.config import ConfigError, from_dict
-from training import checkpoint as ckpt
-from training.config import RunConfig
-from training.ema import EMA, warmup_decay
-from training.registry import build
-from training.schedule import lr_at
-from training.trainer import NonFiniteLossError, Trainer
+from resim.models.registry import build
+from resim.train import checkpoint as ckpt
+from resim.train.config import RunConfig
+from resim.train.ema import EMA, warmup_decay
+from resim.train.lr import lr_at
+from resim.train.trainer import NonFiniteLossError, Trainer
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -158,8 +158,8 @@ def test_partial_training_ema_export_samples_and_inits(world_dataset, tmp_path):
     """ReSim stage 2 shape (only the new modules train) with EMA: the export loads for sampling (EMA preferred)
     and as the next stage's init_weights."""
     from resim.cli import main
-    from training.sampling.load import load_world_model
-    from training.world import build_world
+    from resim.sample.load import load_world_model
+    from resim.train.tasks.world_model import build_world
     run = tmp_path / "run"
     assert main(["train", "world", "--preset", "tiny", "--shards", str(world_dataset), "--out", str(run),
                  "--steps", "1", "--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false",

@@ -12,10 +12,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from media.files import NotARegularFile, check_regular, open_regular
-from shards.reader import iter_samples
+from resim.media.files import NotARegularFile, check_regular, open_regular
+from resim.shards.reader import iter_samples
 from tests.planting import plant_nan_latents
-from training.testing import write_world_dataset
+from tests.support.training import write_world_dataset
 
 REPO = Path(__file__).resolve().parents[2]
 TRAIN = ["train", "world", "--preset", "tiny", "--set", "trainer.progress_bar=false",
@@ -115,7 +115,7 @@ def test_a_full_disk_while_checkpointing_is_one_line_exit_6_and_leaves_no_partia
                                                                                      monkeypatch):
     import errno
 
-    import training.checkpoint as ck
+    import resim.train.checkpoint as ck
 
     ds = write_world_dataset(tmp_path / "ds", num_samples=12)
     real = ck.dcp.save
@@ -134,7 +134,7 @@ def test_a_full_disk_while_checkpointing_is_one_line_exit_6_and_leaves_no_partia
 
 
 def test_ctrl_c_in_training_is_one_line_exit_130(tmp_path, capsys, monkeypatch):
-    import training.checkpoint as ck
+    import resim.train.checkpoint as ck
 
     ds = write_world_dataset(tmp_path / "ds", num_samples=12)
 

@@ -8,16 +8,16 @@ import pytest
 import torch
 
 from resim.config import ConfigError
-from training.diffusion.config import ObjectiveConfig, ScheduleConfig
-from training.diffusion.losses import training_losses
-from training.diffusion.noise_levels import sample_noise_levels
-from training.diffusion.schedule import alphas_cumprod
-from training.models.config import preset
-from training.models.dit import WorldModel
-from training.world import TrainableWorldModel
-from training.sampling.ddim import DDIMSchedule, ddim_step, ddim_timesteps
-from training.sampling.guidance import guidance_preset
-from training.sampling.rollout import Condition, RolloutConfig, rollout
+from resim.diffusion.config import ObjectiveConfig, ScheduleConfig
+from resim.diffusion.ddim import DDIMSchedule, ddim_step, ddim_timesteps
+from resim.diffusion.guidance import guidance_preset
+from resim.diffusion.losses import training_losses
+from resim.diffusion.noise_levels import sample_noise_levels
+from resim.diffusion.schedule import alphas_cumprod
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
+from resim.sample.rollout import Condition, RolloutConfig, rollout
+from resim.train.tasks.world_model import TrainableWorldModel
 
 diffusers = pytest.importorskip("diffusers")
 
@@ -102,7 +102,7 @@ def test_loss_logs_bin_thirds_of_n(n):
         for k in logs:
             seen[k] = seen.get(k, 0) + 1
     assert {"loss_t_low", "loss_t_mid", "loss_t_high"} <= set(seen)
-    from training.diffusion.losses import loss_level_bins
+    from resim.diffusion.losses import loss_level_bins
     assert [b[1:] for b in loss_level_bins(n)] == [(0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n)]
     assert [b[1:] for b in loss_level_bins(1000)] == [(0, 333), (333, 666), (666, 1000)]
 

@@ -1,13 +1,13 @@
-"""scripts/repatch_world.py: resizing a world model's 2 x 2 patches to 1 x 1 keeps what the coarse layers compute."""
+"""lab/repatch_world.py: resizing a world model's 2 x 2 patches to 1 x 1 keeps what the coarse layers compute."""
 import importlib.util
 from pathlib import Path
 
 import torch
 
-from training.models.config import preset
-from training.models.dit import WorldModel
+from resim.models.world.config import preset
+from resim.models.world.dit import WorldModel
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "repatch_world.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "lab" / "repatch_world.py"
 
 
 def _repatch():

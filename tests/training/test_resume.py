@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from resim.cli import main
-from training import checkpoint as ckpt
-from training.testing import navsim_spec, write_world_dataset
+from resim.train import checkpoint as ckpt
+from tests.support.training import navsim_spec, write_world_dataset
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

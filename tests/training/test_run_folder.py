@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from resim.cli import main
-from training import checkpoint as ckpt
+from resim.train import checkpoint as ckpt
 
 QUIET = ["--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false",
          "--set", "trainer.loss_curve_png=false", "--set", "data.num_workers=0"]
@@ -28,7 +28,7 @@ def _one_line(capsys, *needles):
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory):
     """A tiny world run trained to its trainer.steps (2), and its dataset."""
-    from training.testing import write_world_dataset
+    from tests.support.training import write_world_dataset
 
     root = tmp_path_factory.mktemp("runfolder")
     ds = write_world_dataset(root / "ds")
@@ -111,7 +111,7 @@ def test_another_kind_of_run_or_a_dataset_is_refused(finished, tmp_path, capsys,
 
 
 def test_describe_run(finished, tmp_path):
-    from training.run import describe_run
+    from resim.train.run import describe_run
 
     _, run = finished
     assert describe_run(run).kind == "world" and describe_run(run).evidence == "checkpoints/step_00000002"
@@ -127,7 +127,7 @@ def test_describe_run(finished, tmp_path):
 
 def test_a_shard_whose_size_is_not_its_indexs_is_left_out_or_refused_when_strict(tmp_path, capsys):
     # the loader's free check (the sha256 is `resim shards verify`'s, docs/security.md): a truncated tar
-    from training.testing import write_world_dataset
+    from tests.support.training import write_world_dataset
 
     ds = write_world_dataset(tmp_path / "ds")
     tar = sorted((ds / "shards").glob("*.tar"))[0]

@@ -1,4 +1,4 @@
-"""The small-model harness shared by Video2Reward and the IDM (training/smallfit.py), tested once here: the split
+"""The small-model harness shared by Video2Reward and the IDM (resim/train/smallfit.py), tested once here: the split
 by episode, the partition into usable and skipped clips, the epoch batches, the trainer run and the batched
 prediction. The models' own parts (targets, windows, losses, metrics) are tested in tests/reward and tests/eval."""
 from dataclasses import dataclass
@@ -8,9 +8,9 @@ import pytest
 import torch
 from torch import nn
 
-from training import smallfit
-from training.config import OptimConfig
-from training.smallfit import ClipError, EpochBatches, frames_to_tensor, heldout_count, split_by_episode
+from resim.train import smallfit
+from resim.train.config import OptimConfig
+from resim.train.smallfit import ClipError, EpochBatches, frames_to_tensor, heldout_count, split_by_episode
 
 
 @dataclass

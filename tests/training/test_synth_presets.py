@@ -5,10 +5,10 @@ import pytest
 import yaml
 
 from resim.config import from_dict
-from resim.models import SYNTH_WORLD, shipped_dir
-from training.diffusion.config import ObjectiveConfig
-from training.presets import WORLD_PRESETS
-from training.run import resolve_config
+from resim.diffusion.config import ObjectiveConfig
+from resim.shipped import SYNTH_WORLD, shipped_dir
+from resim.train.presets import WORLD_PRESETS
+from resim.train.run import resolve_config
 
 
 @pytest.mark.parametrize("preset", [p for p in WORLD_PRESETS if p.startswith("synth")])

@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from resim.config import ConfigError, from_dict
-from training.config import RunConfig, TrainerConfig
-from training.registry import build
-from training.traffic import SavedActivations
-from training.trainer import Trainer, adamw_kernel
-from training.vae import TrainableVAE
+from resim.models.registry import build
+from resim.train.config import RunConfig, TrainerConfig
+from resim.train.tasks.vae import TrainableVAE
+from resim.train.traffic import SavedActivations
+from resim.train.trainer import Trainer, adamw_kernel
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

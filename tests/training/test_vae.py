@@ -9,12 +9,12 @@ import torch.nn.functional as F
 
 from safetensors.torch import load_file
 
-from media.encoders import VideoVAE
 from resim.cli import main
 from resim.config import ConfigError
-from training.testing import write_world_dataset
-from training.vae import build_vae, psnr_db
-from training.vae_gan import PatchDiscriminator3D, adversarial_losses
+from resim.media.encoders import VideoVAE
+from tests.support.training import write_world_dataset
+from resim.train.tasks.vae import build_vae, psnr_db
+from resim.train.tasks.vae_gan import PatchDiscriminator3D, adversarial_losses
 
 ARGS = ["--set", "trainer.progress_bar=false", "--set", "trainer.tensorboard=false",
         "--set", "trainer.loss_curve_png=false"]

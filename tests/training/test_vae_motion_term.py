@@ -1,4 +1,4 @@
-"""The motion term of `resim train vae` (training/vae_motion.py): the original's optical flow, the warp along it,
+"""The motion term of `resim train vae` (resim/train/tasks/vae_motion.py): the original's optical flow, the warp along it,
 and an L1 that is zero for a perfect reconstruction, small for errors that move with the scene and large for
 texture that stays put while the scene pans."""
 import cv2
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from resim.config import ConfigError
-from training.vae import build_vae
-from training.vae_motion import backward_flow, motion_l1, warp
+from resim.train.tasks.vae import build_vae
+from resim.train.tasks.vae_motion import backward_flow, motion_l1, warp
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -2,7 +2,7 @@
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from training.world import build_world
+from resim.train.tasks.world_model import build_world
 
 _LINEAR_OPS = {"mm", "addmm"}
 

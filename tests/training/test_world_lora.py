@@ -1,4 +1,4 @@
-"""LoRA in the world model (peft, ``training.models.lora``): checkpoints of the hand-written ``LoRALinear`` it
+"""LoRA in the world model (peft, ``resim.models.world.lora``): checkpoints of the hand-written ``LoRALinear`` it
 replaced still load and compute what they did (``tests/data/lora-v1-world``, made by that code); a seeded build
 draws the same initial weights; stage-1 weights initialise a LoRA model; the ``trainable`` modes; a LoRA run
 trains, resumes exactly from its DCP checkpoint and exports weights that sampling and the next stage load."""
@@ -13,10 +13,10 @@ from safetensors.torch import load_file, save_file
 
 from resim.cli import main
 from resim.config import ConfigError
-from training.models.dit import NEW_MODULE_PREFIXES
-from training.models.lora import is_lora_param, to_peft_layout
-from training.sampling.load import load_world_model
-from training.world import build_world
+from resim.models.world.dit import NEW_MODULE_PREFIXES
+from resim.models.world.lora import is_lora_param, to_peft_layout
+from resim.sample.load import load_world_model
+from resim.train.tasks.world_model import build_world
 
 V1 = Path(__file__).resolve().parents[1] / "data" / "lora-v1-world"
 V1_MODEL = yaml.safe_load((V1 / "config.yaml").read_text())["model"]
@@ -33,8 +33,8 @@ def _reference():
 
 
 def test_unusable_world_checkpoints_are_one_line_naming_the_file(tmp_path):
-    """training.exported's errors, as the sampler's SamplingInputError ("checkpoint ...")."""
-    from training.sampling.load import SamplingInputError, run_objective
+    """resim.models.exported's errors, as the sampler's SamplingInputError ("checkpoint ...")."""
+    from resim.sample.load import SamplingInputError, run_objective
 
     run = tmp_path / "run"
     shutil.copytree(V1, run)
@@ -172,8 +172,8 @@ def test_pre_peft_dcp_checkpoint_resumes_under_the_new_names(tmp_path):
     the pre-peft fixture's keys; a run of the old code resumed this way logged bitwise its uninterrupted losses."""
     from torch.distributed.checkpoint.state_dict import get_state_dict, set_state_dict
 
-    from training import checkpoint as ckpt
-    from training.models.lora import pre_peft_name
+    from resim.train import checkpoint as ckpt
+    from resim.models.world.lora import pre_peft_name
 
     def trained():
         torch.manual_seed(0)

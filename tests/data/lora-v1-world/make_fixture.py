@@ -18,7 +18,7 @@ import torch
 import yaml
 from safetensors.torch import save_file
 
-from training.world import build_world
+from resim.train.tasks.world_model import build_world
 
 HERE = Path(__file__).parent
 MODEL = {"preset": "tiny", "overrides": {"num_layers": 1}, "trainable": "lora+new", "lora_rank": 4,

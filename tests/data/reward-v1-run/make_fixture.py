@@ -1,6 +1,6 @@
 """How ``tests/data/reward-v1-run/`` was made: a tiny Video2Reward run of ``resim train reward`` in the layout
 it wrote before reward runs moved to the shared export layout (``RUN/final/{config.yaml, model.safetensors,
-meta.json}``, ``training/exported.py``). Run on commit 4a56242 (with the working tree of that morning); it
+meta.json}``, ``resim/models/exported.py``). Run on commit 4a56242 (with the working tree of that morning); it
 writes the old layout only with that code, which is the point: the files keep the old format.
 
 * ``config.yaml``: the resolved ``RewardTrainConfig`` (model config under ``model``, no ``model_name``).
@@ -9,7 +9,7 @@ writes the old layout only with that code, which is the point: the files keep th
 * ``reference.safetensors``: two fixed 4-frame videos (``video``, uint8 (2, 4, 3, 24, 32)) and the loaded
   model's float32 CPU scores for them (``scores``, of ``model(video=video / 255)``).
 
-The run: 4 toy episodes (``training.reward.toy``, scores 0, 1/3, 2/3, 1), one 9-frame clip each, 2 epochs,
+The run: 4 toy episodes (``tests.support.reward_toy``, scores 0, 1/3, 2/3, 1), one 9-frame clip each, 2 epochs,
 features of the placeholder DINOv2 computed from the frames, a 1-block head of width 16.
 
     .venv/bin/python tests/data/reward-v1-run/make_fixture.py
@@ -23,12 +23,12 @@ import torch
 from safetensors.torch import save_file
 
 from resim.cli import main as resim
-from shards.schema import ClipSpec
-from shards.testing import make_dummy_sample
-from shards.video import encode_mp4
-from shards.writer import ShardWriter
-from training.reward.checkpoint import load_checkpoint
-from training.reward.toy import toy_episode_frames
+from resim.shards.schema import ClipSpec
+from tests.support.shards import make_dummy_sample
+from resim.models.reward.checkpoint import load_checkpoint
+from resim.shards.video import encode_mp4
+from resim.shards.writer import ShardWriter
+from tests.support.reward_toy import toy_episode_frames
 
 HERE = Path(__file__).parent
 SETS = {"model.num_frames": 4, "model.frame_step": 2, "model.head_dim": 16, "model.num_heads": 2,

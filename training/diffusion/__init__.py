@@ -1,5 +1,0 @@
-"""The world model's diffusion objective: schedule, v-targets, noise-level sampling, training_losses."""
-from training.diffusion.config import ObjectiveConfig, ScheduleConfig
-from training.diffusion.losses import training_losses
-
-__all__ = ["ObjectiveConfig", "ScheduleConfig", "training_losses"]
