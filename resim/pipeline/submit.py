@@ -6,7 +6,7 @@ What travels with the job (its runtime env):
   with relative paths made absolute), the placeholder model configs (``configs/models/placeholder-*``) and the
   shipped models the config names (``encode.vae: synth-vae``),
   so the job runs exactly what was checked on the submitting machine;
-* ``py_modules``: resim's packages (``resim``, ``media``, ``shards``, ``labeling``, ``pipelines``) from this checkout or
+* ``py_modules``: the ``resim`` package from this checkout or
   install — the cluster needs only the third-party dependencies (``pip install 'resim[pipeline]'``).
 
 The job's entrypoint is ``python -m resim pipeline run job_config.yaml --no-progress``; inside a job

@@ -16,7 +16,7 @@ import yaml
 from resim.config import ConfigError, to_dict
 from resim.media.files import OUTPUT_ERRNOS
 from resim.train.launch import add_launch_arguments, main_launch
-from resim.train.presets import PRESETS
+from resim.train.presets import PRESETS, recipes_dir
 from resim.train.tasks.policy_cli import add_train_parser as add_policy_parser
 from resim.train.tasks.reward.cli import add_train_parser as add_reward_parser
 
@@ -49,8 +49,12 @@ _MORE = {"distill": (" The teacher (model.teacher: a world-model run or a shippe
 
 
 def add_train_arguments(p: argparse.ArgumentParser, presets: list[str]) -> None:
-    p.add_argument("--preset", default=presets[0], choices=presets,
-                   help=f"named config to start from (default {presets[0]}); one YAML file each in configs/train/)")
+    if presets:
+        p.add_argument("--preset", default=presets[0], choices=presets,
+                       help=f"named config to start from (default {presets[0]}); one YAML file each in configs/train/")
+    else:   # no configs/train beside this install (a wheel outside a checkout): the command says so when run
+        p.add_argument("--preset", default=None,
+                       help=f"named config to start from: none found, no {recipes_dir()} (run from a checkout)")
     p.add_argument("--shards", help="dataset folder (shards/, index/, prompts/) = data.shards")
     p.add_argument("--out", required=True, help="run folder (created; checkpoints, metrics, final weights)")
     p.add_argument("--config", help="YAML file applied over the preset (same keys as config.yaml of a run)")

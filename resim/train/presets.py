@@ -52,6 +52,9 @@ def get_preset(model_name: str, preset: str) -> dict:
     if model_name not in PRESETS:
         raise KeyError(f"no presets for model {model_name!r}; known: {sorted(PRESETS)}")
     table = PRESETS[model_name]
+    if not table:
+        raise KeyError(f"no training recipes for {model_name}: {recipes_dir()} is missing (run from a checkout of "
+                       "resim, where configs/train/ holds them)")
     if preset not in table:
         raise KeyError(f"unknown preset {preset!r} for {model_name}; known: {', '.join(table)}")
     return copy.deepcopy(table[preset])
