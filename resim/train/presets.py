@@ -30,7 +30,7 @@ def load_recipes(root: Path) -> dict[str, dict[str, dict]]:
     ``preset`` is its name (a copied file that was not renamed inside would train under the wrong name)."""
     out: dict[str, dict[str, dict]] = {m: {} for m in MODELS}
     for model in MODELS:
-        for f in sorted((root / model).glob("*.yaml")):
+        for f in sorted((root / model).glob("*.yaml"), key=lambda f: f.stem):
             d = safe_yaml(f.read_text())
             if not isinstance(d, dict):
                 raise ConfigError(f"{f}: a training recipe must be a mapping, got {type(d).__name__}")
