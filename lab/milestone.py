@@ -45,13 +45,18 @@ def save(run: Path, name: str, threads: float, segment_wall_s: float | None, dia
     for m in metrics:
         curve.setdefault((offset + m["step"]) // 500 * 500, []).append(m["loss"])
     wall = sum(m.get("step_time_s", 0.0) for m in metrics)
+    readings = [json.loads(x) for x in diag.read_text().splitlines()] if diag and diag.is_file() else []
+    # the CPU the run's processes really used (lab/size_world.py measures it from their rusage), where recorded;
+    # else wall x threads
+    measured = readings[-1].get("cpu_min") if readings else None
     prog = {"name": name, "run": str(run.resolve()), "weights": src.name + " of the run, cast to bf16",
             "step": offset + metrics[-1]["step"], "step_offset": offset,
-            "cpu_hours": round(before + wall * threads / 3600, 2), "cpu_hours_before": before, "threads": threads,
+            "cpu_hours": round(before + (measured / 60 if measured is not None else wall * threads / 3600), 2),
+            "cpu_hours_from": "rusage of the training processes" if measured is not None else "wall x threads",
+            "cpu_hours_before": before, "threads": threads,
             "loss_per_500_steps": {str(k): round(sum(v) / len(v), 5) for k, v in sorted(curve.items())},
             "segment_wall_s": segment_wall_s,
-            "dev_readings": [json.loads(x) for x in diag.read_text().splitlines()] if diag and diag.is_file()
-            else prev.get("dev_readings", [])}
+            "dev_readings": readings or prev.get("dev_readings", [])}
     (dst / "progress.json").write_text(json.dumps(prog, indent=1) + "\n")
     return dst
 
