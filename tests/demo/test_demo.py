@@ -7,9 +7,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow   # the whole smoke demo, twice
 def test_smoke_demo_writes_report_and_reuses_steps(tmp_path):
     out = tmp_path / "demo"
     cmd = [sys.executable, "-m", "resim", "demo", "--preset", "smoke", "--out", str(out)]

@@ -38,6 +38,7 @@ def _verify(out: Path) -> None:
     assert main(["shards", "verify", str(out)]) == 0
 
 
+@pytest.mark.slow   # a whole pipeline run on a synthetic world with planted bad videos; the quarantine rules have their fast unit tests
 def test_bad_videos_are_quarantined_and_the_job_goes_on(ray_session, synth_world, tmp_path, capsys):
     import cv2
 
@@ -124,6 +125,7 @@ def _stable_count(commits: Path, quiet_s: float) -> int:
         time.sleep(0.1)
 
 
+@pytest.mark.slow   # three whole pipeline runs
 def test_kill_driver_then_rerun_equals_uninterrupted_run(ray_session, synth_world, tmp_path):
     from resim.pipeline import runner
 

@@ -49,6 +49,7 @@ def test_an_embedded_run_clamps_to_the_machine_and_says_so():
 # Before the clamp this run waited forever at encode 0/2. Clamping encode alone to 2 CPUs still hung (tried: the
 # write actor kept 0.25 of the 2 CPUs while waiting for encode's output); the pools are scaled to fit together.
 @pytest.mark.timeout(900)
+@pytest.mark.slow   # a whole pipeline run
 def test_an_embedded_run_asking_more_cpus_than_the_machine_is_clamped_and_finishes(ray_session, config_for, caplog):
     cfg = config_for("out", "sources.synthetic.layouts=[opendv]", "ray.stages.encode.num_cpus=4")
     assert ray_session.cluster_resources()["CPU"] == 2
