@@ -36,16 +36,21 @@ def save(run: Path, name: str, threads: float, segment_wall_s: float | None, dia
     if (final / "data_encode.yaml").is_file():
         shutil.copyfile(final / "data_encode.yaml", dst / "data_encode.yaml")
     prev = json.loads((dst / "progress.json").read_text()) if (dst / "progress.json").is_file() else {}
-    metrics = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if '"loss"' in x]
     same_run = prev.get("run") == str(run.resolve())
     # a run restarted from this file (a new machine) goes on from the saved step and CPU-hours
     offset = int(prev.get("step_offset", 0)) if same_run or not prev else int(prev["step"])
     before = float(prev.get("cpu_hours_before", 0.0)) if same_run or not prev else float(prev["cpu_hours"])
+    readings = [json.loads(x) for x in diag.read_text().splitlines()] if diag and diag.is_file() else []
+    # the step of the weights in final/: the last reading's (written when the segment that exported them ended), else
+    # the last checkpoint's; a segment still running has logged steps past it, which are not these weights'
+    ckpts = sorted(int(c.name.split("_")[-1]) for c in (run / "checkpoints").glob("step_*"))
+    final_step = readings[-1]["step"] if readings else (ckpts[-1] if ckpts else None)
+    metrics = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if '"loss"' in x]
+    metrics = [m for m in metrics if final_step is None or m["step"] <= final_step]
+    wall = sum(m.get("step_time_s", 0.0) for m in metrics)
     curve = {}
     for m in metrics:
         curve.setdefault((offset + m["step"]) // 500 * 500, []).append(m["loss"])
-    wall = sum(m.get("step_time_s", 0.0) for m in metrics)
-    readings = [json.loads(x) for x in diag.read_text().splitlines()] if diag and diag.is_file() else []
     # the CPU the run's processes really used (lab/size_world.py measures it from their rusage), where recorded;
     # else wall x threads
     measured = readings[-1].get("cpu_min") if readings else None
