@@ -10,7 +10,9 @@ Each step runs the same entry point a user would (``resim <command> ...``, in th
 process), writes into its own folder under ``--out`` and leaves a ``.done`` marker
 holding the step's arguments; a second run reuses finished steps unless ``--fresh``,
 unless the step's arguments changed, or unless an earlier step was redone (every
-step reads what the ones before it wrote).
+step reads what the ones before it wrote). The console gets one line per step with its time; what a step prints
+goes to ``--out/logs/NN-step.log`` (``--verbose``: to the console instead), and a failed step shows the
+end of its log.
 
 Two world models: the demo trains its own small one for a few minutes (the machinery: trainer,
 checkpoint, loss curve), and rolls out and evaluates the *shipped* synthetic-world model
@@ -22,6 +24,7 @@ encoder and the reward model's DINOv2 stay tiny random-init placeholders.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -132,36 +135,79 @@ class Step:
         m = json.loads(self.marker.read_text())
         return m.get("argv") == self.argv and m.get("upstream", "") == upstream
 
-    def run(self, upstream: str = "") -> float:
+    def run(self, upstream: str = "", log: Path | None = None) -> float:
+        """Run the step; with ``log``, everything it prints (its processes and Ray's workers too) goes there."""
         if self.dir.exists():
             shutil.rmtree(self.dir)  # an unfinished earlier attempt: start the step over
         t0 = time.perf_counter()
-        rc = main(self.argv)
+        with _output_to(log) if log else contextlib.nullcontext():
+            rc = main(self.argv)
         if rc != 0:
-            raise SystemExit(f"demo step {self.name!r} failed (exit {rc}): resim {' '.join(self.argv)}")
+            tail = "".join(log.read_text(errors="replace").splitlines(keepends=True)[-15:]) if log else ""
+            raise SystemExit(f"{tail}demo step {self.name!r} failed (exit {rc}): resim {' '.join(self.argv)}"
+                             + (f"\n(its whole output: {log})" if log else ""))
         dt = time.perf_counter() - t0
         self.dir.mkdir(parents=True, exist_ok=True)
         self.marker.write_text(json.dumps({"argv": self.argv, "seconds": dt, "upstream": upstream}))
         return dt
 
 
+@contextlib.contextmanager
+def _output_to(path: Path):
+    """Point this process's stdout and stderr (the file descriptors, so that C libraries, child processes and Ray's
+    forwarded worker logs follow) at ``path`` for the duration."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    try:
+        # the descriptors for what writes to them directly; sys.stdout/stderr too, for where they are not fds 1 and 2
+        # (a caller that captured them)
+        with open(path, "a", buffering=1) as f, contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
+            os.dup2(f.fileno(), 1)
+            os.dup2(f.fileno(), 2)
+            yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+
+
 class StepRunner:
     """Runs steps in order, reusing a finished one only on top of the same earlier steps: a digest of their
     markers (a redone step writes a new one) goes into each marker. E.g. --set world_steps=300 retrains the
-    world model, so the rollouts, planning and evaluations of the old model are redone too, not reused."""
+    world model, so the rollouts, planning and evaluations of the old model are redone too, not reused.
+    ``log_dir``: each step's output goes to ``log_dir/NN-<step>.log`` (None: to the console)."""
 
-    def __init__(self):
+    def __init__(self, log_dir: Path | None = None):
         self._chain = hashlib.sha256()
         self.timings: dict[str, float] = {}
+        self.log_dir = log_dir
 
     def go(self, step: Step, i: int, n: int) -> bool:
         """Runs or reuses ``step`` (``i`` of ``n``, for the log); True if it ran."""
         upstream = self._chain.hexdigest()[:16]
         ran = not step.is_done(upstream)
         if ran:
-            print(f"[demo {i}/{n}] {step.name}: resim {' '.join(step.argv)}", flush=True)
-            self.timings[step.name] = step.run(upstream)
-            print(f"[demo {i}/{n}] {step.name}: done in {self.timings[step.name]:.1f} s", flush=True)
+            log = None
+            if self.log_dir is not None:
+                log = self.log_dir / f"{i:02d}-{''.join(c if c.isalnum() else '-' for c in step.name)}.log"
+                log.unlink(missing_ok=True)
+                if sys.stdout.isatty():   # the step's line shows while it runs, then becomes its result
+                    print(f"[demo {i}/{n}] {step.name}: running (log: {log}) ...", end="", flush=True)
+            else:
+                print(f"[demo {i}/{n}] {step.name}: resim {' '.join(step.argv)}", flush=True)
+            try:
+                self.timings[step.name] = step.run(upstream, log)
+            except BaseException:
+                if log and sys.stdout.isatty():
+                    print(flush=True)   # end the "running" line before the error
+                raise
+            done = f"[demo {i}/{n}] {step.name}: done in {self.timings[step.name]:.1f} s" + (f" (log: {log})" if log else "")
+            print(("\r\033[K" if log and sys.stdout.isatty() else "") + done, flush=True)
         else:
             print(f"[demo {i}/{n}] {step.name}: reusing {step.dir} (--fresh to redo)", flush=True)
             self.timings[step.name] = json.loads(step.marker.read_text())["seconds"]
@@ -256,7 +302,7 @@ def check_fresh(out: Path) -> None:
                           "give an --out the demo made, or a new folder")
 
 
-def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False) -> Path:
+def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False, verbose: bool = False) -> Path:
     out = out.resolve()
     if fresh and out.exists():
         check_fresh(out)
@@ -266,7 +312,7 @@ def run_demo(cfg: DemoConfig, out: Path, fresh: bool = False) -> Path:
     steps = build_steps(cfg, out)
     t_all = time.perf_counter()
 
-    runner = StepRunner()
+    runner = StepRunner(None if verbose else out / "logs")
     go = runner.go
     evals = eval_steps(cfg, out)
     n = len(steps) + 4 + len(evals)
@@ -303,7 +349,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     except ConfigError as e:
         print(f"resim demo: error: {e}", file=sys.stderr)
         return 2
-    run_demo(cfg, Path(args.out), fresh=args.fresh)
+    run_demo(cfg, Path(args.out), fresh=args.fresh, verbose=args.verbose)
     return 0
 
 
@@ -318,4 +364,7 @@ def register(subparsers) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a DemoConfig field, e.g. --set world_steps=300")
     p.add_argument("--fresh", action="store_true", help="delete --out first and redo every step")
+    p.add_argument("--verbose", action="store_true",
+                   help="show each step's command and everything it prints (default: one line per step; the output "
+                        "goes to OUT/logs/NN-step.log)")
     p.set_defaults(func=_cmd_demo)

@@ -55,3 +55,18 @@ def test_demo_bad_override_is_a_clear_error(capsys):
     assert "workers must be >= 1" in capsys.readouterr().err
     assert main(["demo", "--set", "closed_loop_variants=[policy,bogus]"]) == 2
     assert "closed_loop_variants" in capsys.readouterr().err
+
+
+def test_a_step_s_output_goes_to_its_log_and_the_console_gets_one_line(tmp_path, capfd):
+    (tmp_path / "shards").mkdir()
+    r = StepRunner(tmp_path / "logs")
+    assert r.go(Step("list it", tmp_path / "a", ["shards", "ls", str(tmp_path)]), 1, 2)
+    out = capfd.readouterr()
+    assert out.out.count("\n") == 1 and out.out.startswith("[demo 1/2] list it: done in "), out
+    log = tmp_path / "logs" / "01-list-it.log"
+    assert str(log) in out.out
+    assert log.read_text().strip()          # what `resim shards ls` printed is in the log, not on the console
+    # a failing step ends with the tail of its log, the command and where the whole output is
+    with pytest.raises(SystemExit, match=r"(?s)demo step 'broken' failed \(exit \d+\).*02-broken\.log"):
+        r.go(Step("broken", tmp_path / "b", ["shards", "ls", str(tmp_path / "nowhere")]), 2, 2)
+    assert (tmp_path / "logs" / "02-broken.log").read_text().strip()
