@@ -20,13 +20,19 @@ PLACEHOLDER_VAE = "placeholder-cogvideox-vae-tiny"
 PLACEHOLDER_T5 = "placeholder-t5-tiny"
 
 
-def shipped_dir(name: str) -> Path:
-    """``configs/models/<name>`` of this checkout, else of the working dir (Ray jobs ship it there)."""
+def configs_dir(*parts: str) -> Path:
+    """``configs/<parts>`` of this checkout, else of the working dir (Ray jobs ship it there); where neither has
+    it, this checkout's path, for the caller to report missing."""
     for base in (REPO_ROOT, Path.cwd()):
-        p = base / "configs" / "models" / name
+        p = base.joinpath("configs", *parts)
         if p.is_dir():
             return p
-    return REPO_ROOT / "configs" / "models" / name   # a config check reports it missing
+    return REPO_ROOT.joinpath("configs", *parts)
+
+
+def shipped_dir(name: str) -> Path:
+    """``configs/models/<name>``: a shipped model folder."""
+    return configs_dir("models", name)
 
 
 def shipped_model(p: Optional[str | Path]) -> Optional[Path]:

@@ -11,7 +11,7 @@ import copy
 from pathlib import Path
 
 from resim.config import ConfigError, safe_yaml
-from resim.shipped import REPO_ROOT
+from resim.shipped import configs_dir
 
 MODELS = ("world", "vae", "distill")   # `resim train NAME` for these; reward and policy have their own data paths
 DEFAULT = {"world": "tiny", "vae": "synth", "distill": "synth"}   # `--preset` when none is given: listed first
@@ -19,10 +19,7 @@ DEFAULT = {"world": "tiny", "vae": "synth", "distill": "synth"}   # `--preset` w
 
 def recipes_dir() -> Path:
     """``configs/train`` of this checkout, else of the working dir (as the shipped model folders)."""
-    for base in (REPO_ROOT, Path.cwd()):
-        if (base / "configs" / "train").is_dir():
-            return base / "configs" / "train"
-    return REPO_ROOT / "configs" / "train"
+    return configs_dir("train")
 
 
 def load_recipes(root: Path) -> dict[str, dict[str, dict]]:
