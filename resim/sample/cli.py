@@ -254,23 +254,21 @@ class _Setup:
     def __init__(self, args, device: str, cfg):
         import torch
 
-        from resim.media.encoders import VideoVAE
-        from resim.sample.load import (PromptSource, SamplingInputError, encoded_with, history_from_shard,
-                                            history_from_video, load_world_model, run_objective,
-                                            trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
+        from resim.sample.bundle import WorldModelBundle
+        from resim.sample.load import PromptSource, SamplingInputError, trained_size_hw
         from resim.sample.rollout import ddim_schedule, rollout_num_future_frames
 
         self.device = device
-        dtype = getattr(torch, args.dtype)
-        self.model, self.model_info = load_world_model(args.checkpoint, self.device, dtype)
-        self.objective = run_objective(args.checkpoint)   # the run's: its schedule is what DDIM steps over
+        # the model, its objective (its schedule is what DDIM steps over), the VAE that encoded its training data
+        self.bundle = WorldModelBundle.from_pretrained(args.checkpoint, device=device, dtype=getattr(torch, args.dtype),
+                                                       vae=args.vae, text_encoder=args.text_encoder,
+                                                       shards=args.shards)
+        self.model, self.objective, self.vae = self.bundle.model, self.bundle.objective, self.bundle.vae
         if args.attention is not None:
             self.model.set_attention_backend(args.attention)
-        self.model_info = {**self.model_info, "attention_backend": self.model.cfg.attention_backend,
+        self.model_info = {**self.bundle.info, "attention_backend": self.model.cfg.attention_backend,
                            **maybe_compile(self.model, args.compile, self.device, mode=args.compile_mode,
                                            log=lambda m: print(f"[resim] {m}", file=sys.stderr))}
-        mcfg = self.model.cfg
-        self.vae = VideoVAE(args.vae or encoded_with(args.checkpoint, args.shards), device=self.device)
         self.cfg = cfg
         ddim_schedule(self.cfg, self.objective.schedule)   # --steps / --history-noise-level vs the run's schedule, now
         if Path(args.history).is_file():
@@ -280,21 +278,18 @@ class _Setup:
                 raise UsageError(f"--size {args.size[0]}x{args.size[1]}: the model was trained on {trained[0]}x"
                                  f"{trained[1]} clips (its training data's encode size); leave --size out or give "
                                  f"{trained[0]}x{trained[1]}")
-            size = (tuple(args.size) if args.size else trained
-                    or (mcfg.sample_height * self.vae.info.spatial_compression,
-                        mcfg.sample_width * self.vae.info.spatial_compression))
+            size = tuple(args.size) if args.size else self.bundle.size_hw
             sc = self.vae.info.spatial_compression
-            mult = sc * int(getattr(mcfg, "patch_size", 1) or 1)
+            mult = sc * int(getattr(self.model.cfg, "patch_size", 1) or 1)
             if size[0] % mult or size[1] % mult:
+                ms = self.bundle.size_hw
                 raise UsageError(f"--size {size[0]}x{size[1]}: both sides must be multiples of {mult} (the VAE's "
                                  f"{sc}x downsampling times the model's patch size), e.g. the model's sample size "
-                                 f"{mcfg.sample_height * sc}x{mcfg.sample_width * sc}")
-            fps = (trained_clip_fps_hz(args.checkpoint, args.shards)
-                   or video_clip_fps_hz(self.objective, self.vae.info.temporal_compression))
-            self.history = history_from_video(args.history, self.vae, self.cfg.history_frames, size, fps)
+                                 f"{ms[0]}x{ms[1]}")
+            self.history = self.bundle.history(args.history, self.cfg.history_frames, size)
         else:
             try:
-                self.history = history_from_shard(args.shards, args.history, self.cfg.history_frames)
+                self.history = self.bundle.history(args.history, self.cfg.history_frames)
             except SamplingInputError:
                 have = _shard_history_frames(args.shards, args.history)
                 if have is None or have[0] >= self.cfg.history_frames:
