@@ -16,7 +16,7 @@ from pathlib import Path
 
 from resim.argtypes import height_width as _hw, local_dir as _local_dir, positive_int as _positive_int
 from resim.argtypes import torch_device as _torch_device
-from resim.config import ConfigError, apply_overrides, from_dict
+from resim.config import ConfigError, apply_overrides, from_dict, to_dict
 from resim.models.policy.variants import HELP as CL_VARIANTS_HELP, VARIANTS as CL_VARIANTS
 from resim.sample.cli import UsageError, resolve_device
 from resim.sample.compile import add_compile_args, maybe_compile
@@ -420,49 +420,33 @@ def _heldout_items(path: str | None, all_clips: bool = False):
 
 
 def _runner(args):
-    import torch
-
-    from resim.media.encoders import VideoVAE
-    from resim.diffusion.guidance import guidance_from_cli
-    from resim.sample.load import (PromptSource, encoded_with, load_world_model, resolve_steps_and_guidance,
-                                        run_objective)
-    from resim.sample.rollout import ROLLOUT_PRESETS, RolloutConfig, ddim_schedule
+    """The rollout set-up of every `resim eval` protocol (and of `simulate` / `eval closed-loop`, through
+    ``make_runner``): the world model as one bundle (resim.sample.bundle), its rollout config, the runner."""
     from resim.eval.worldeval import WorldRollouts
-
-    from resim.sample.load import SamplingInputError
+    from resim.sample.bundle import BundleLoadError, WorldModelBundle
+    from resim.sample.load import PromptSource
 
     device = args.device
     try:
-        model, info = load_world_model(args.checkpoint, device, torch.float32)
-        schedule = run_objective(args.checkpoint).schedule
-    except SamplingInputError as e:
-        raise SystemExit(f"resim eval: --checkpoint: {e}") from None
-    try:
-        vae = VideoVAE(args.vae or encoded_with(args.checkpoint, args.shards), device=device)
-    except SamplingInputError as e:
-        raise SystemExit(f"resim eval: --vae: {e}") from None
-    rc = dict(ROLLOUT_PRESETS[args.preset])
-    # the command line, else a distilled student's own steps and no guidance (its config), else the preset's
-    steps, guidance, origin = resolve_steps_and_guidance(args.checkpoint, args.steps, args.preset, args.no_guidance,
-                                                         args.guidance_scale)
-    if origin:
-        print(f"[resim eval] {origin}", file=sys.stderr)
-    if steps is not None:   # not `if steps`: 0 must not quietly mean the preset's 50
-        rc["num_steps"] = steps
-    rc["guidance"] = guidance_from_cli(guidance, args.guidance_scale, args.guidance_schedule)
-    cfg = from_dict(RolloutConfig, rc)
-    ddim_schedule(cfg, schedule)   # --steps vs the run's schedule, before any rollout
-    info = {**info, **maybe_compile(model, args.compile, device, mode=args.compile_mode,
-                                    log=lambda m: print(f"[resim eval] {m}", file=sys.stderr))}
+        wm = WorldModelBundle.from_pretrained(args.checkpoint, device=device, vae=args.vae,
+                                              text_encoder=args.text_encoder, shards=args.shards)
+    except BundleLoadError as e:
+        raise SystemExit(f"resim eval: --{e.part}: {e}") from None
+    cfg = wm.rollout_config(args.preset, args.steps, args.guidance_scale, args.no_guidance, args.guidance_schedule,
+                            log=lambda m: print(f"[resim eval] {m}", file=sys.stderr))
+    model, vae = wm.model, wm.vae
+    info = {**wm.info, **maybe_compile(model, args.compile, device, mode=args.compile_mode,
+                                       log=lambda m: print(f"[resim eval] {m}", file=sys.stderr))}
     prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
                            max_tokens=model.cfg.max_text_seq_length)
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,
-                           batch_size=args.batch_size, schedule=schedule,
+                           batch_size=args.batch_size, schedule=wm.objective.schedule,
                            log=lambda m: print(f"[resim eval] {m}", file=sys.stderr, flush=True))
+    guidance = args.preset if cfg.guidance.enabled else "none"
     meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
-            "rollout": {k: v for k, v in rc.items() if k != "guidance"},
+            "rollout": {k: v for k, v in to_dict(cfg).items() if k != "guidance"},
             "guidance": guidance, "guidance_scale_start": args.guidance_scale,
-            "guidance_schedule": rc["guidance"].schedule if guidance != "none" else None,
+            "guidance_schedule": cfg.guidance.schedule if guidance != "none" else None,
             "seed": args.seed}
     return runner, meta
 

@@ -25,11 +25,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
 
+from resim.config import from_dict
 from resim.diffusion.guidance import guidance_from_cli
 from resim.media.encoders import VideoVAE
 from resim.sample.load import (History, PromptSource, SamplingInputError, encoded_with, history_from_shard,
@@ -42,6 +43,15 @@ from resim.shards.schema import COMMANDS, pixel_frame_count
 from resim.shipped import configs_dir
 
 DEFAULT_TEXT_ENCODER = configs_dir("models", "placeholder-t5-tiny")
+
+
+class BundleLoadError(SamplingInputError):
+    """A part of the bundle that cannot be loaded; ``part`` names it ("checkpoint" or "vae") for the CLI's
+    one-line error (``--checkpoint: ...``)."""
+
+    def __init__(self, part: str, message: str):
+        super().__init__(message)
+        self.part = part
 
 
 @dataclass
@@ -73,11 +83,17 @@ class WorldModelBundle:
         """Load a run folder, its ``final/`` or a shipped name. ``vae``: another VAE folder than the one that
         encoded the training data (rarely right); ``shards``: a dataset whose histories and prompt table are used
         (its encoding decides the VAE); ``text_encoder``: a local T5 folder for prompts not in a table.
-        Raises :class:`~resim.sample.load.SamplingInputError` (one line) for missing or broken files."""
+        Raises :class:`BundleLoadError` (one line, naming the part) for missing or broken files."""
         ck = str(name_or_path)
-        model, info = load_world_model(ck, device, dtype)
-        objective = run_objective(ck)
-        video_vae = VideoVAE(vae or encoded_with(ck, shards), device=device)
+        try:
+            model, info = load_world_model(ck, device, dtype)
+            objective = run_objective(ck)
+        except SamplingInputError as e:
+            raise BundleLoadError("checkpoint", str(e)) from None
+        try:
+            video_vae = VideoVAE(vae or encoded_with(ck, shards), device=device)
+        except SamplingInputError as e:
+            raise BundleLoadError("vae", str(e)) from None
         mcfg = model.cfg
         sc = video_vae.info.spatial_compression
         size = trained_size_hw(ck, shards) or (mcfg.sample_height * sc, mcfg.sample_width * sc)
@@ -107,15 +123,20 @@ class WorldModelBundle:
         return PromptSource(root, self.text_encoder, device=self.device, max_tokens=self.model.cfg.max_text_seq_length)
 
     def rollout_config(self, preset: str = "resim", steps: int | None = None, guidance_scale: float | None = None,
-                       no_guidance: bool = False, **overrides: Any) -> RolloutConfig:
-        """The preset's :class:`RolloutConfig` with this export's sampling defaults (a distilled student's steps
-        and guidance) under the given overrides; checked against the run's noise schedule."""
-        steps, guidance, _ = resolve_steps_and_guidance(self.checkpoint, steps, preset, no_guidance, guidance_scale)
+                       no_guidance: bool = False, guidance_schedule: str | None = None,
+                       log: Callable[[str], None] | None = None, **overrides: Any) -> RolloutConfig:
+        """The preset's :class:`RolloutConfig` under the given overrides (None: keep the preset's), with this
+        export's own sampling defaults where the caller gives none (a distilled student: its steps, no guidance;
+        ``log`` is told so); checked against the run's noise schedule."""
+        steps, guidance, origin = resolve_steps_and_guidance(self.checkpoint, steps, preset, no_guidance,
+                                                             guidance_scale)
+        if origin and log is not None:
+            log(origin)
         rc = {**ROLLOUT_PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None}}
-        if steps is not None:
+        if steps is not None:   # not `if steps`: 0 must not quietly mean the preset's 50
             rc["num_steps"] = steps
-        rc["guidance"] = guidance_from_cli(guidance, guidance_scale, None)
-        cfg = RolloutConfig(**rc)
+        rc["guidance"] = guidance_from_cli(guidance, guidance_scale, guidance_schedule)
+        cfg = from_dict(RolloutConfig, rc)
         ddim_schedule(cfg, self.objective.schedule)
         return cfg
 
