@@ -33,9 +33,9 @@ import torch
 from resim.config import from_dict
 from resim.diffusion.guidance import guidance_from_cli
 from resim.media.encoders import VideoVAE
-from resim.sample.load import (History, PromptSource, SamplingInputError, encoded_with, history_from_shard,
-                               history_from_video, load_world_model, resolve_steps_and_guidance, run_objective,
-                               trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
+from resim.sample.load import (History, PromptSource, SamplingInputError, check_same_encoding, encoded_with,
+                               history_from_shard, history_from_video, load_world_model, resolve_steps_and_guidance,
+                               run_objective, trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
 from resim.sample.outputs import decode_rollout
 from resim.sample.rollout import (ROLLOUT_PRESETS, Condition, RolloutConfig, ddim_schedule, rollout,
                                   rollout_num_future_frames)
@@ -90,6 +90,10 @@ class WorldModelBundle:
             objective = run_objective(ck)
         except SamplingInputError as e:
             raise BundleLoadError("checkpoint", str(e)) from None
+        try:
+            check_same_encoding(ck, shards)
+        except SamplingInputError as e:
+            raise BundleLoadError("shards", str(e)) from None
         try:
             video_vae = VideoVAE(vae or encoded_with(ck, shards), device=device)
         except SamplingInputError as e:

@@ -364,3 +364,19 @@ def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None
         raise SamplingInputError(f"the latents were encoded with the VAE {vae}, which is not on this machine; "
                                  "pass --vae with its folder")
     return Path(path)
+
+
+def check_same_encoding(checkpoint: str | Path, shards: str | Path | None) -> None:
+    """Refuse a dataset whose latents come from another VAE than the one the model learnt: its histories would be
+    read in a latent space the model never saw, and its rollouts decoded by the wrong decoder. Checked where both
+    the dataset (``config.yaml``) and the model (``data_encode.yaml``) name their VAE."""
+    if shards is None:
+        return
+    data = _encode_section(Path(shards) / "config.yaml")
+    model = next((e for e in map(_encode_section, _data_files(checkpoint, None)) if e is not None), None)
+    dv, mv = (data or {}).get("vae"), (model or {}).get("vae")
+    if dv and mv and Path(shipped_model(dv)).resolve() != Path(shipped_model(mv)).resolve():
+        raise SamplingInputError(f"dataset {shards} was encoded with the VAE {dv}, the world model {checkpoint} "
+                                 f"learnt the latents of {mv}: encode the dataset with {mv} (or evaluate a model "
+                                 f"trained on {dv})")
+

@@ -56,6 +56,19 @@ def test_bad_inputs_are_one_line_errors(bundle, tmp_path):
         WorldModelBundle.from_pretrained(tmp_path / "no-such-run")
 
 
+def test_a_dataset_encoded_by_another_vae_is_refused_in_one_line(tmp_path):
+    """The model learnt synth-vae's latents; a dataset of the placeholder VAE's is refused, naming both."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "config.yaml").write_text("encode:\n  vae: placeholder-cogvideox-vae-tiny\n  height_px: 64\n  width_px: 96\n")
+    with pytest.raises(SamplingInputError, match="encoded with the VAE placeholder-cogvideox-vae-tiny.*learnt the "
+                                                 "latents of synth-vae") as e:
+        WorldModelBundle.from_pretrained("synth-world", shards=data)
+    assert "\n" not in str(e.value) and e.value.part == "shards"
+    (data / "config.yaml").write_text("encode:\n  vae: synth-vae\n  height_px: 64\n  width_px: 96\n")
+    assert WorldModelBundle.from_pretrained("synth-world", shards=data).vae.info.vae_id == "synth-vae"
+
+
 def test_the_readme_python_example_runs(tmp_path, monkeypatch):
     """The README's "From Python" block, run as written in a folder holding its history.mp4."""
     text = README.read_text()
