@@ -1,6 +1,7 @@
 """Diagnostic: how well would the flow labeler read yaw if it knew each frame pair's focus of expansion?
 
-The labeler's remaining error on the synthetic world was traced to the yaw / FOE-x trade-off (docs/labeling.md).
+The labeler's remaining error on the synthetic world was traced to the yaw / FOE-x trade-off
+(docs/lab/2026-11-22-labeler-calibration.md, "Fourth look").
 This script replaces the fitted FOE by the *physical* one, computed from the ground-truth poses and the world's
 camera rig (the camera moves along the chord and, ahead of the rear axle, sideways: its direction of travel in
 the camera frame is the FOE), and fits rotation only with the labeler's own flow, masks and IRLS

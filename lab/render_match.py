@@ -5,9 +5,9 @@
 
 Trajectory Difference reads the path a rollout drove with an inverse dynamics model (IDM). IDMs that agree
 within 1 m on every real video (recorded or decoded through the VAE) disagree by 14 m on rollouts
-(docs/models/synth-world.md), and nothing said which was right: a check needs generated video whose motion is
-known. In the synthetic world the scene is known exactly, so the motion of any video of it can be read by
-re-rendering. For each clip (a CARLA-layout episode of a ``resim synth`` world, which this script rebuilds
+(docs/lab/2026-11-26-synth-world-stage-chain.md), and nothing said which was right: a check needs generated video
+whose motion is known. In the synthetic world the scene is known exactly, so the motion of any video of it can
+be read by re-rendering. For each clip (a CARLA-layout episode of a ``resim synth`` world, which this script rebuilds
 from its seed) the future is rendered along the recorded path with the distance driven scaled by ``k``
 (``k = 0``: standing still; ``1``: the recorded drive; ``2``: twice as far), each candidate is encoded by the
 VAE that encoded the shards, and a rollout's future latents are matched to the candidates. The ``k`` with the

@@ -1,5 +1,5 @@
 """Resize a world model's 2 x 2 patches to 1 x 1 (FlexiViT-style weight transfer) for the finer-tokens probe
-(docs/models/synth-world.md, "Finer tokens, a first probe on the CPU").
+(docs/lab/2026-11-26-synth-world-stage-chain.md, runs KP and KP2).
 
     python lab/repatch_world.py configs/models/synth-world/model.safetensors OUT.safetensors
     resim train world ... --set model.init_weights=OUT.safetensors \

@@ -1,4 +1,5 @@
-"""Screen Video2Reward head settings on a `resim synth` world (docs/reward.md, "Screening").
+"""Screen Video2Reward head settings on a `resim synth` world (docs/lab/2026-11-22-reward-synthetic-world.md,
+"Screening").
 
 Two steps, both on the shared CPU with one torch thread:
 

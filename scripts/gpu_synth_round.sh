@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One leased GPU call for the synthetic world: runs side by side on one card, each stopped by its wall-clock budget
 # (trainer.max_wall_s) and packed as soon as it ends into flat files of <= 15 MB for a leased machine's return
-# path (at most 8 files; docs/models/synth-vae.md and synth-world.md, "On a GPU").
+# path (at most 8 files). synth-vae's stage 1b is its run V (docs/models/synth-vae.md, "Reproduce").
 #
 #   V    the VAE: `--preset synth-adv` (the "A2" recipe of the first GPU sweep, which kept the motion best there:
 #        MSE + L1 + 2 x gradient L1 + 0.1 x adversarial, a discriminator 32 wide, lr 2e-4, EMA 0.998, batch 16;
@@ -22,10 +22,11 @@
 #             has used), rendered by `resim synth --workers` on the machine's cores and turned into shards by
 #             `resim pipeline run` with the local executor (Ray is not installed there; the VAE encodes on the
 #             GPU, the flow labeler runs in sequence on one core), as FORKS81-83 were built on the CPU
-#             (docs/models/synth-world.md, "Run K again"). Give the command this step's time as well.
+#             (docs/lab/2026-11-26-synth-world-stage-chain.md). Give the command this step's time as well.
 #   EVAL=1    each world run is then read by `resim eval commands --group-ends` on the 36 fork clips of seed 3005,
-#             the clips of the command ladder in docs/models/synth-world.md (built there beside the training data);
-#             its commands.json and pictures go into RUN.logs.tgz (`gpu_unpack.py` puts them in DEST/logs/eval).
+#             the clips of the command ladder in docs/lab/2026-11-26-synth-world-stage-chain.md (built there beside
+#             the training data); its commands.json and pictures go into RUN.logs.tgz (`gpu_unpack.py` puts them
+#             in DEST/logs/eval).
 #
 # Usage: RUNS="V V2" bash scripts/gpu_synth_round.sh OUT_DIR [WALL_S]
 #        RUNS=WC FORKS=216 EVAL=1 DEADLINE_S=570 bash scripts/gpu_synth_round.sh OUT_DIR   # the command at scale
@@ -128,7 +129,7 @@ if [ -n "$FORKS" ]; then
   tail -n 12 "$WORK/forks$FORK_SEED.log"
   [ "$rc" -eq 0 ] || exit "$rc"
 fi
-evaluate() {   # RUN: the ladder's command reading (docs/models/synth-world.md)
+evaluate() {   # RUN: the ladder's command reading (docs/lab/2026-11-26-synth-world-stage-chain.md)
   [ "$EVAL" = 1 ] || return 0
   while [ ! -f "$WORK/forks3005.rc" ]; do sleep 5; done   # built by a sibling process: no `wait` from here
   [ "$(cat "$WORK/forks3005.rc")" = 0 ] || { echo "[round] no seed-3005 clips to read $1 on: $WORK/forks3005.log"; return 1; }

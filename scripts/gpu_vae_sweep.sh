@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Synthetic-world VAE runs side by side on one GPU, each for a wall-clock budget (trainer.max_wall_s), packed
-# into at most 8 flat files for a leased machine's return path (docs/models/synth-vae.md, "On a GPU").
+# into at most 8 flat files for a leased machine's return path (its one H100 call, 2026-11-27:
+# docs/lab/2026-11-26-synth-vae-4x.md).
 #
 #   A   the shipped widths (16-32-64-64) from the shipped weights: MSE + L1 + 2 x gradient L1 + 0.05 x adversarial
 #       (the CPU run `runs/vae_gan2`'s recipe, 4x its batch)

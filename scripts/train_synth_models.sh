@@ -161,7 +161,7 @@ if [ ! -f "$W/pace79/stats.json" ]; then
 fi
 fork_stage world9 synth-fork-plan pace79 "stage 9 (pace forks: the trajectory's speed decides the future)"
 # 1e (shipped). The VAE's decoder alone, stage 1d's recipe for 1,000 more steps on the frames of stage 9's world
-# (docs/models/synth-vae.md, "Stage 1e"): the encoder, and so every latent above, stays 1b's
+# (docs/models/synth-vae.md, "Reproduce"): the encoder, and so every latent above, stays 1b's
 if [ ! -f "$W/vae6/final/vae/config.json" ]; then
   step "train vae, stage 1e (the decoder alone on the seed-79 frames)"
   $R train vae --preset synth-dec-detail --shards "$W/pace79" --out "$W/vae6" --set trainer.progress_bar=false \

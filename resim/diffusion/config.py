@@ -65,7 +65,7 @@ class ObjectiveConfig:
     # where the future's level is drawn: with probability ``low_level_fraction`` from U{0..low_level_max_t} instead
     # of U{0..N-1}. Under CogVideoX's SNR-shifted schedule the levels above SNR ~3 (t < 100 of 1000) are 10 % of a
     # uniform draw, yet that is where a small model's one-step prediction loses the fine detail the flow labeler reads
-    # a turn from (docs/models/synth-world.md, "Where the turn is lost"); 0 (default) = the papers' uniform draw.
+    # a turn from (docs/lab/2026-11-26-synth-world-stage-chain.md, finding 3); 0 (default) = the papers' uniform draw.
     low_level_fraction: float = 0.0
     low_level_max_t: int = 150
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)

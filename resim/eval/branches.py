@@ -13,9 +13,9 @@ command tells those futures apart. That gives controllability a ground truth tha
 
 Why latents and not the flow labeler on decoded video (``resim.eval.command_following``): the labeler reads the turn
 off decoded pixels, so a VAE that smears motion caps it. On the shipped synthetic-world VAE the recorded
-futures themselves, encoded and decoded, keep about a quarter of their heading (docs/models/synth-vae.md), and a
-model that had memorised a fork's three branches steered its latents to the right one while every decoded
-rollout read "forward" (docs/models/synth-world.md, "Does a model that knows the command steer its rollouts?").
+futures themselves, encoded and decoded, lose much of their heading (docs/models/synth-vae.md, "Limitations"), and
+a model that had memorised a fork's three branches steered its latents to the right one while every decoded
+rollout read "forward" (docs/lab/2026-11-26-synth-world-stage-chain.md, "Experiments beside the chain").
 Nearest-branch matching reads the model itself; the labeler's reading stays the product's headline number.
 
 Chance is ``1 / (number of siblings)`` per history, averaged; the **null prompt** rolled out from the same history
@@ -26,10 +26,10 @@ frames, so each gives its own rollouts.
 Nearest-sibling scoring has a weakness: where one sibling's recorded future is closest to any bland future (on
 seed 1003's trajectory forks a motionless future, the last history latent repeated, is nearest the left-turn
 sibling in 9 of 13 histories and never the right), a model whose rollouts are weakly conditioned lands there
-whatever it was given (docs/models/synth-world.md, "Stage 6"). The null prompt shows where the pull lies but does
-not remove it. The **swap test** reads the same rollouts without that pull: for each history and each pair of asked
-conditions ``(a, b)``, the pair is right when the matching assignment is nearer than the swapped one,
-``d(g_a, r_a) + d(g_b, r_b) < d(g_a, r_b) + d(g_b, r_a)``, which is ``<g_a - g_b, r_a - r_b> > 0``: the two
+whatever it was given (docs/lab/2026-11-26-synth-world-stage-chain.md, stage 6). The null prompt shows where the
+pull lies but does not remove it. The **swap test** reads the same rollouts without that pull: for each history and
+each pair of asked conditions ``(a, b)``, the pair is right when the matching assignment is nearer than the swapped
+one, ``d(g_a, r_a) + d(g_b, r_b) < d(g_a, r_b) + d(g_b, r_a)``, which is ``<g_a - g_b, r_a - r_b> > 0``: the two
 rollouts differ the way the two recorded futures differ. A shared pull moves ``g_a`` and ``g_b`` alike and
 cancels. A model blind to the condition makes ``g_a`` and ``g_b`` exchangeable (or equal, under the same noise: a
 tie, counted 1/2), so chance is exactly 0.5.

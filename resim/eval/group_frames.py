@@ -3,7 +3,7 @@
 Why: CogVideoX's causal VAE keeps frame 0 alone and then codes 4 frames per latent frame, so a decoded video's
 frames 0, 4, 8, ... end the groups. On the synthetic world the shipped decoder puts those frames where the
 originals are (the shift between frames 4 apart is 0.92-1.01 of the originals'), but draws the 3 frames between
-them much as a cross-fade (docs/models/synth-vae.md, "Where inside a group"). The optical-flow labeler that scores
+them much as a cross-fade (docs/models/synth-vae.md, "Limitations"). The optical-flow labeler that scores
 command accuracy reads a cross-fade as almost no motion: on 24 fork clips, originals re-timed as a cross-fade
 between group ends keep 0.06 of their heading, where a Gaussian blur of 2 px keeps 0.91. So through this decoder the
 labeler under-reads every turn, the world model's as much as the recorded one's.

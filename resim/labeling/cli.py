@@ -31,7 +31,7 @@ in turns. If you know the camera rig (how far the camera sits ahead of the rear 
 the shift then comes from the rig and the road surface, which removes most of the remaining error on the
 synthetic world (median 0.5-0.8 deg per 4 s).
 Not for fast footage: there the distance per frame pair, read from the road surface, comes out far too
-short (real freeway clips: ~20x) and the correction overshoots (docs/labeling.md, "Fourth look").
+short (real freeway clips: ~20x) and the correction overshoots (docs/labeling.md, "The known rig on fast footage").
 
 examples:
   resim label clip.mp4

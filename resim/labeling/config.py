@@ -44,7 +44,8 @@ class FlowConfig:
     #                                  candidate per patch at every scale, kept where it matches better); the flow
     #                                  of a car's camera changes little in 0.1 s. Median window error on the
     #                                  synthetic world 0.95/1.51/1.30 -> 0.81/1.10/1.01 deg (`default`, seeds
-    #                                  11/14/16) for ~12 % more DIS CPU (docs/labeling.md "Sixth look")
+    #                                  11/14/16) for ~12 % more DIS CPU
+    #                                  (docs/lab/2026-11-22-labeler-calibration.md, "Sixth look")
     dis_patch_size: int | None = None
     dis_patch_stride: int | None = None
     dis_grad_iters: int | None = None
@@ -85,7 +86,8 @@ class FlowConfig:
     #                                  kinematics, e_x = -f yaw (1/2 + L/d), which removes the yaw / FOE-x trade-off
     #                                  (the main remaining error); a wrong L biases turns: ~ -6 % per +0.5 m (docs).
     #                                  Validated on the synthetic world only: on real freeway video the ground-plane
-    #                                  distance per pair reads ~20x short (docs/labeling.md "Fourth look")
+    #                                  distance per pair reads ~20x short
+    #                                  (docs/labeling.md, "The known rig on fast footage")
     camera_height_m: float = 1.5     # with camera_ahead_m: camera height above the road (ground-plane distance d)
     rig_iters: int = 2               # with camera_ahead_m: (distance, FOE, rotation) re-fits per chunk
     chunk_pairs: int = 60            # pairs fitted together (batched); the running FOE prior is updated per chunk
@@ -178,13 +180,15 @@ PRESETS: dict[str, dict] = {
     "default": {},
     # higher-quality flow at about 4x the flow cost (still far below decoding at 720p)
     # DIS medium: about 3x the flow cost of the default (4.5 vs 1.5 ms per 256 px pair), median yaw error
-    # 0.94 vs 1.16 deg on the synthetic world (docs/labeling.md)
+    # 0.94 vs 1.16 deg on the synthetic world (seed 11, 2026-11-22: docs/lab/2026-11-22-labeler-calibration.md)
     "accurate": {"flow": {"flow_preset": "medium", "dis_finest_scale": None, "irls_iters": 3, "foe_iters": 6}},
     # throughput: 160 px working width (DIS at 80x45 instead of 128x72) and one rotation-only IRLS step;
-    # about half the labeler's own CPU per frame, median yaw error ~0.3-0.5 deg worse on the synthetic
-    # world, command accuracy about the same (docs/labeling.md, bench/label_throughput.py)
+    # about half the labeler's own CPU per frame, median yaw error worse on the synthetic world, command
+    # accuracy about the same (docs/labeling.md, "Held-out accuracy on the synthetic world";
+    # bench/label_throughput.py)
     # no DIS warm start: it costs ~0.05 ms per frame here (+1.5 % of b/a', which `fast` has little of to spare) and
-    # moved `fast`'s command accuracy by -3 ... +4 windows per world for a 0.0-0.25 deg better median (docs)
+    # moved `fast`'s command accuracy by -3 ... +4 windows per world for a 0.0-0.25 deg better median
+    # (docs/lab/2026-11-22-labeler-calibration.md, "Sixth look")
     "fast": {"flow": {"work_width_px": 160, "grid_step_px": 4, "irls_iters": 1, "dis_warm_start": False}},
 }
 

@@ -146,7 +146,8 @@ class MotionFit:
         pairs (the last ``foe_straight_pool_pairs`` of them), those whose yaw rate averaged over +-0.5 s is below ``straight_yaw_deg_s`` (one pair's rate is
         too noisy to tell: +-1-3 deg/s on the tests' renderer). On the synthetic world a from all pairs was off
         by up to 8 px (turns pull it), from straight pairs by a median 0.5 px; a yaw bias per pair of
-        (d / Z) (delta a / f) is 5 deg per 4 s at 2 deg of mount yaw (docs/labeling.md "Fifth look").
+        (d / Z) (delta a / f) is 5 deg per 4 s at 2 deg of mount yaw
+        (docs/lab/2026-11-22-labeler-calibration.md, "Fifth look").
         k = weighted least squares of (a - e_x) on f yaw over the last ``foe_pool_pairs`` pairs.
         """
         fc = self.flow_cfg

@@ -118,7 +118,8 @@ class IDMConfig:
 
 IDM_PRESETS: dict[str, dict] = {
     # CPU tests / the synthetic world at low resolution. The odometry head: held-out ADE 1.31 m vs 2.00 m for the
-    # query head on the same synthetic split (docs/eval.md); "tiny-queries" keeps the query head
+    # query head on the same synthetic split (docs/lab/2026-11-22-idm-ground-plane-world.md); "tiny-queries" keeps
+    # the query head
     "tiny": dict(input_hw=(32, 48), frame_step=2, num_frames=21, channels=(16, 32, 48), head_dim=48, head_heads=4,
                  head_layers=1, head="odometry"),
     "tiny-queries": dict(input_hw=(32, 48), frame_step=2, num_frames=21, channels=(16, 32, 48), head_dim=48,
@@ -237,7 +238,8 @@ class OdometryHead(nn.Module):
     positions (:meth:`IDMConfig.waypoint_positions`). Why: ego motion between two frames is a *local*
     quantity, the same function at every step; the query head must learn the whole 4 s trajectory as one
     global regression, and overfit doing so on the synthetic world (train ADE 1.05 m vs held-out 2.00 m,
-    docs/eval.md). This is the classical visual-odometry structure (motion per frame pair, then integration)."""
+    docs/lab/2026-11-22-idm-ground-plane-world.md). This is the classical visual-odometry structure (motion per
+    frame pair, then integration)."""
 
     def __init__(self, cfg: IDMConfig, in_dim: int):
         super().__init__()

@@ -2,10 +2,10 @@
 
 A world model learns to follow a command only where the command is what decides the future. On ordinary
 drives the history already shows where the car goes (the road's curve is in view, the yaw rate is in the
-last frames), so the loss never needs the text (measured: docs/models/synth-world.md). A *fork* is three
-episodes of one world that are the same, frame for frame, until the ego reaches a four-way intersection,
-where it turns left, goes straight or turns right. A clip whose history ends before the split pairs one
-history with three futures, and only the command tells them apart.
+last frames), so the loss never needs the text (measured: docs/lab/2026-11-26-synth-world-stage-chain.md). A
+*fork* is three episodes of one world that are the same, frame for frame, until the ego reaches a four-way
+intersection, where it turns left, goes straight or turns right. A clip whose history ends before the split
+pairs one history with three futures, and only the command tells them apart.
 
 What makes the three drives identical up to the split (and what a test checks byte for byte):
 * one world for all three: the roads are the three branch routes in a fixed order, so the scenery, the

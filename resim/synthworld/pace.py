@@ -4,9 +4,9 @@ A world model learns to follow a condition only where that condition is what dec
 says why for the command). The trajectory ReSim gives the world model carries two things: where the car
 goes and how fast. Junction forks make the first decide the future; nothing so far made the second: on an
 ordinary drive the history already shows the speed (how fast the scenery flows in the last frames), and the
-expert keeps it, so the given trajectory's speed is redundant and a model can learn to ignore it. It did:
-the shipped world model drives about the same distance whatever distance it is given
-(docs/models/synth-world.md, "How far do the rollouts drive?").
+expert keeps it, so the given trajectory's speed is redundant and a model can learn to ignore it (before pace
+forks the rollouts followed the given distance only in part: docs/lab/2026-11-26-synth-world-stage-chain.md,
+finding 4).
 
 A *pace fork* is three episodes of one world, driven by the expert along one route, identical frame for
 frame until a split time, after which the expert's cruising speed is multiplied by 0.5, 1 or 1.5

@@ -8,7 +8,8 @@ Warm-up (``warmup=True``, the default): the n-th update uses ``min(decay, (1 + s
 starts at the initial weights and forgets them only as ``decay ** n``: after 600 steps at 0.999 the EMA is still
 55 % the weights the run started from, so a short run or fine-tune exports (and samples with) mostly what it
 was given. Measured on a world model fine-tuned 600 steps to read the command: the command's worth on its own
-training clips was 0.3 % with those EMA weights and 1.0-1.3 % with the raw ones (docs/models/synth-world.md).
+training clips was 0.3 % with those EMA weights and 1.0-1.3 % with the raw ones
+(docs/lab/2026-11-26-synth-world-stage-chain.md, 2026-11-27).
 """
 from __future__ import annotations
 

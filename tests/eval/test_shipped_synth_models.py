@@ -75,7 +75,7 @@ def test_vae_puts_each_latent_group_where_the_turn_took_the_original():
     g = m["group_ends"]
     # measured 2026-12-02 (stage 1e, these 6 clips, 4 turning by 34-79 deg): heading kept 1.00 at the group ends
     # (0.51 as decoded), every clip labelled right there (0.67 as decoded); a decoder whose frames stood still or
-    # drifted would keep ~0 at the group ends too (docs/models/synth-vae.md, "Where inside a group")
+    # drifted would keep ~0 at the group ends too (docs/models/synth-vae.md, "Limitations")
     assert m["turning_clips"] >= 4 and g["heading_kept"] > 0.8, (m["heading_kept"], g)
     assert g["labeler_on_reconstructions"]["accuracy"] >= 0.9, g["labeler_on_reconstructions"]
 
@@ -131,18 +131,17 @@ def test_world_model_rolls_a_fork_out_to_the_commanded_branch():
     rep = branch_matching(gen, np.stack([c.latents[h:] for c in clips]), [c.command for c in clips], groups,
                           null_key="null")
     # measured 2026-11-30 (stage 9, 20 DDIM steps): commanded 0.72 (13 of 18), null prompt 0.33, swap test 1.00
-    # (18 pairs; stage 8b: 0.83 / 0.33 / 1.00); stage 8b on the 71 seed-1004 fork clips
-    # (25 steps) 0.76 / 0.44 / 0.96 (docs/models/synth-world.md); a command-blind model: ~0.33 / 0.33 / 0.5
+    # (18 pairs; stage 8b: 0.83 / 0.33 / 1.00); on held-out fork worlds: docs/models/synth-world.md, "Held-out
+    # numbers"; a command-blind model: ~0.33 / 0.33 / 0.5
     assert rep["commanded"]["accuracy"] >= 0.66, rep["commanded"]
     assert rep["null_prompt"]["accuracy"] <= 0.5, rep["null_prompt"]
     assert rep["swap_test"]["accuracy"] >= 0.8, rep["swap_test"]
 
 
 @pytest.mark.xfail(strict=True, reason="the shipped synth-world turns the commanded way too weakly for the flow "
-                                       "labeler (docs/models/synth-world.md: stage 9 on seed 1009 left / forward / "
-                                       "right headings +3.8 / +2.2 / -0.1 deg, stage 8b on seed 1004 +2.7 / +1.5 / "
-                                       "-2.4 deg, where a turn is 15.5 deg); strict: an XPASS means a new model "
-                                       "turns clearly, so this mark and the card must be updated")
+                                       "labeler (docs/models/synth-world.md, 'Limitations': a few degrees where "
+                                       "a turn is 15.5 deg); strict: an XPASS means a new model turns clearly, so "
+                                       "this mark and the card must be updated")
 def test_world_model_turns_where_it_is_told():
     from resim.eval.command_following import flow_commands
     from resim.eval.worldeval import flow_labeler_status

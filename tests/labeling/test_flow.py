@@ -113,7 +113,7 @@ def test_pooled_foe_is_applied_to_chunks_seen_before_the_straight_driving(render
     assert not np.allclose(pooled[:20], per_pair[:20])              # the first chunk was re-fitted
     true = np.degrees(np.diff(poses[:, 2]))
     # 33.4 for a true 30.0 (per pair: 31.0): one short turn at 12 deg/s among noisy straight pairs leaves
-    # the regressed k at 1.3 where the truth is 3.0 (docs/labeling.md "Fifth look": a known weakness)
+    # the regressed k at 1.3 where the truth is 3.0 (docs/labeling.md, "Short clips that open with a turn")
     assert pooled[:25].sum() == pytest.approx(true[:25].sum(), rel=0.15)
 
 

@@ -1,4 +1,4 @@
-"""Fixtures for tests/sources: tiny datasets in the real layouts, built per session (issue 3).
+"""Fixtures for tests/sources: tiny datasets in the real layouts, built per session.
 
 The NAVSIM and Bench2Drive fixtures are written here by hand from the format notes
 (docs/sources.md), independently of the synthetic world's writers, so the readers are

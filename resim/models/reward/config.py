@@ -119,7 +119,8 @@ PRESETS: dict[str, dict] = {
     # spans 78 of the 80 frames, so the episode-level infraction (a late crash, a stop of >= 3 s) is in
     # view (docs/reward.md, "what the frames show"); frozen random placeholder backbone, head only.
     # temporal_diff: the head also sees each frame's feature change (stops show as little change late in
-    # the episode); it lifted split 1's validation Spearman from ~0.7 to ~0.8 (docs/reward.md).
+    # the episode); it was the change that lifted the ranking on every held-out split
+    # (docs/lab/2026-11-22-reward-synthetic-world.md, "What changed, and what each change did").
     "synthetic": {"model": {"num_frames": 8, "frame_step": 11, "head_dim": 32, "num_heads": 2,
                             "mlp_hidden_dim": 64, "dropout": 0.1, "temporal_diff": True},
                   "epochs": 100},

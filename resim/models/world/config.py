@@ -85,7 +85,8 @@ class TextPoolConfig:
     """A pooled prompt vector added to every frame's noise-level embedding (AdaLN), beside joint attention.
 
     CogVideoX-2B reads the prompt only through joint attention over the T5 tokens. A small model trained briefly
-    learns to ignore that path when the history already predicts the future (docs/models/synth-world.md); a
+    learns to ignore that path when the history already predicts the future
+    (docs/lab/2026-11-26-synth-world-stage-chain.md, "Experiments beside the chain"); a
     pooled text vector in the modulation, as SD3's pooled projection or DiT's class embedding, is a direct path.
     Disabled by default: CogVideoX checkpoints have no such module (it starts at zero output when enabled).
     """

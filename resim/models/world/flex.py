@@ -5,9 +5,9 @@ tensor, SDPA runs cuDNN attention with the mask as a dense bias, computing every
 call took 2.18x the unmasked one at 512x896 although the mask removes 46 % of the scores, and it was ~75 % of
 an uncached forward. ``flex_attention`` with the same pattern as a ``BlockMask`` skips the fully masked
 128x128 tiles and evaluates the mask only on tiles that straddle a frame boundary. Measured in the model on
-an H100 (torch 2.11, docs/benchmarks.md, "flex_attention backend in the model"): a 4-s 512x896 rollout 1.29x
-faster (49.2 s vs 63.6 s), a 512x896 training step with activation checkpointing 1.55x faster; no gain at
-256x448 training. The mask itself is built in ``attention.py``
+an H100 (torch 2.11; docs/benchmarks.md, the sections of bench/rollout_gpu_cogvideox2b.py and
+bench/train_mfu.py): a 4-s 512x896 rollout 1.29x faster (49.2 s vs 63.6 s), a 512x896 training step with
+activation checkpointing 1.55x faster; no gain at 256x448 training. The mask itself is built in ``attention.py``
 (:func:`resim.models.world.attention.block_causal_block_mask`, cached per geometry).
 
 Compilation. flex_attention is only fast compiled: ``torch.compile`` generates one Triton kernel from the

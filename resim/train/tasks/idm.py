@@ -68,7 +68,8 @@ class IDMTrainConfig:
     # clip's decoded frames instead of its recorded ones with probability ``decoded_prob``. The trajectory is the
     # recorded one either way. Why: Trajectory Difference reads *decoded* video (the world model's rollouts), and
     # an IDM that has only seen recorded frames reads decoded ones worse (on the synthetic world 2.26 -> 3.51 m;
-    # with this augmentation 2.02 -> 2.53 m, docs/models/synth-world.md). ReSim's IDM-based metric assumes the IDM
+    # with this augmentation 2.02 -> 2.53 m, docs/lab/2026-11-26-synth-world-stage-chain.md, 2026-11-30; the
+    # shipped IDM's recipe: docs/models/synth-idm.md). ReSim's IDM-based metric assumes the IDM
     # reads generated and real video alike.
     decoded_vae: str | None = None
     decoded_prob: float = 0.5

@@ -73,8 +73,8 @@ class VaeTrainConfig:
     # the discriminator's hinge loss enters the summed loss x this. AdamW's update of a parameter does not change
     # when its loss is scaled by a constant, so the discriminator learns as it would unscaled; but the trainer
     # clips the one global gradient norm over both players. Unscaled, that norm went from ~1.5 (the VAE alone)
-    # to 20-40 and the clipping shrank and jittered the VAE's steps with it: from the shipped synth-vae, training
-    # PSNR fell 28.9 -> 23.6 dB in 230 steps (docs/models/synth-vae.md)
+    # to 20-40 and the clipping shrank and jittered the VAE's steps with it: from synth-vae's stage 1, training
+    # PSNR fell 28.9 -> 23.6 dB in 230 steps (docs/lab/2026-11-26-synth-vae-4x.md, 2026-11-27)
     discriminator_loss_scale: float = 0.02
     init_weights: Optional[Path] = None   # a run's final/model.safetensors to start from
     # which weights train (as the world model's model.trainable). "decoder" needs init_weights from a VAE folder:
@@ -85,7 +85,8 @@ class VaeTrainConfig:
 
     def __post_init__(self):
         # 4 levels: 8x spatial compression, as CogVideoX. 3 (4x) or 2 (2x) for the synthetic world's 64x96 clips:
-        # at 8x its 8x12 latent grid could not keep the texture the optical flow reads (docs/models/synth-vae.md).
+        # at 8x its 8x12 latent grid could not keep the texture the optical flow reads
+        # (docs/lab/2026-11-26-synth-vae-4x.md, 2026-11-26).
         # Each level below the top halves time too until the temporal ratio is reached, so 4x time needs 3 levels
         if len(self.block_out_channels) not in (2, 3, 4):
             raise ConfigError("model.block_out_channels needs 4 widths (8x spatial compression, as CogVideoX), "

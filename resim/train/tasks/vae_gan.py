@@ -3,7 +3,7 @@
 Why: an MSE (or L1) decoder returns the mean of what a latent could hold. On the synthetic world that is flat
 grass, smeared lane dashes and tree blobs, and within a 4-frame latent group the moving edges ghost: the
 optical-flow labeler then reads little of the ego motion off the reconstructions (docs/models/synth-vae.md,
-"Motion through the VAE"). CogVideoX trains its VAE with a GAN loss besides L1 and LPIPS (Yang et al. 2024,
+"Limitations"). CogVideoX trains its VAE with a GAN loss besides L1 and LPIPS (Yang et al. 2024,
 Sec. 2.1), as Stable Diffusion's and taming-transformers' autoencoders do; LPIPS needs downloaded VGG weights
 and is left out, the discriminator is trained from scratch with the VAE.
 

@@ -1,8 +1,8 @@
 """The motion term of ``resim train vae``: reconstruction errors that move with the scene.
 
 Why: the world model's command accuracy is read off decoded video by the optical-flow labeler, and through the
-synthetic world's VAE it reads about a third of the originals' turn (docs/models/synth-vae.md). Measured per frame
-pair, the reconstructions' yaw rate is 0.2-0.4 of the originals' at every position in a 4-frame latent group, while
+synthetic world's VAE it reads much less of the originals' turn (docs/models/synth-vae.md, "Limitations"). Measured
+per frame pair, the reconstructions' yaw rate falls short of the originals' inside each 4-frame latent group, while
 frames 4 apart are shifted as in the originals: inside a group the decoded texture barely moves and then catches
 up, so the frame-to-frame flow has little motion to read.
 
@@ -22,13 +22,13 @@ blind video temporal consistency"), written on the error so that the original's 
 The flow is OpenCV's DIS (the labeler's estimator) on the originals, computed on the CPU per batch: the originals
 are uint8 frames, the flow carries no gradient, and at 64 x 96 it costs ~1 ms per pair.
 
-**Measured: it does not keep the heading** (docs/models/synth-vae.md, "Stage 1e"). The synthetic world's decoder
-fine-tuned with it at weight 1 for 300 steps, against the same run without it, on 48 fresh clips: heading kept
-−0.008 [−0.025, +0.008], PSNR −0.55 dB. The term is small for errors of low spatial frequency (they barely change
-under a warp of a pixel), so it pays a decoder to blur the texture it cannot place. Blur is not what costs the
-labeler the turn, though (a 2-px Gaussian blur of the originals keeps 0.91 of the heading); a cross-fade between
-the group ends is (0.06), and this term did not remove it (resim/eval/group_frames.py).
-No shipped model uses it; it stays an option (``model.motion_weight``, default 0) with that measurement.
+**Measured: it does not keep the heading** (docs/lab/2026-11-26-synth-vae-4x.md, 2026-12-01). The synthetic world's
+decoder fine-tuned with it at weight 1 for 300 steps, against the same run without it, on 48 fresh clips: heading
+kept −0.008 [−0.025, +0.008], PSNR −0.55 dB. The term is small for errors of low spatial frequency (they barely
+change under a warp of a pixel), so it pays a decoder to blur the texture it cannot place. Blur is not what costs
+the labeler the turn, though (a 2-px Gaussian blur of the originals keeps 0.91 of the heading); a cross-fade between
+the group ends is (0.06), and this term did not remove it (resim/eval/group_frames.py). No shipped model uses it; it
+stays an option (``model.motion_weight``, default 0) with that measurement.
 """
 from __future__ import annotations
 
