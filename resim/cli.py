@@ -3,7 +3,9 @@
 Each subcommand lives with the package that owns it, in a light module that
 defines ``register(subparsers)``; heavy imports (torch, ray, cv2) happen inside
 the command's handler, so ``resim --help`` and ``resim shards ...`` start fast.
-To add a command, add one line to ``COMMANDS``.
+To add a command, add one line to ``COMMANDS`` (or, for a subcommand of another
+package's group, to ``JOINED``). The commands are grouped by noun: what trains a
+model is under ``resim train``, what works on a dataset under ``resim shards``.
 """
 from __future__ import annotations
 
@@ -28,10 +30,22 @@ COMMANDS: list[str] = [
     "resim.demo.run",
 ]
 
+# subcommands whose code lives in a package above or beside the group they sit in: (group, name) -> "module:function"
+# adding the parser to that group's subparsers. The layers of docs/architecture.md keep resim.shards from importing
+# resim.train and resim.train from importing resim.eval, so the face joins them here.
+JOINED: dict[tuple[str, str], str] = {
+    ("shards", "features"): "resim.train.tasks.reward.cli:add_features_parser",
+    ("train", "idm"): "resim.eval.cli:add_idm_parser",
+}
+
 # commands that were renamed or retired: their old words answer with one line (exit 2) instead of argparse's
-# "invalid choice"; the value says what to use now
+# "invalid choice"; the value says what to use now. Matched on the leading words of argv (options left out), so
+# ("reward",) is `resim reward ...` only, never `resim train reward ...`.
 RETIRED: dict[tuple[str, ...], str] = {
     ("eval", "detail"): "a probe of one investigation, retired; its code is in git history (lab/detail_probe.py)",
+    ("reward",): "renamed; use `resim score`",
+    ("reward-features",): "renamed; use `resim shards features`",
+    ("eval", "idm"): "renamed; use `resim train idm`",
 }
 
 EPILOG = """\
@@ -44,7 +58,7 @@ typical flow (from the repository root, in this order; small settings that run o
   resim train reward --preset tiny --shards out/shards --out runs/reward
   resim sample --checkpoint runs/wm --shards out/shards --history KEY --command "Turning left" --steps 4 --out out/samples
   resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --steps 4 --out out/plan
-  resim eval idm --preset tiny --epochs 1 --shards out/shards --out runs/idm   # held-out split for eval
+  resim train idm --preset tiny --epochs 1 --shards out/shards --out runs/idm  # held-out split for eval
   resim eval quality --checkpoint runs/wm --shards out/shards --heldout-from runs/idm --limit 2 --steps 4 \\
       --allow-placeholder-networks --out out/eval              # random-init metric networks: plumbing only
   resim demo                                                   # all of the above, small, with an HTML report
@@ -66,7 +80,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in COMMANDS:
         importlib.import_module(mod).register(sub)
+    for (group, _name), where in JOINED.items():
+        mod, func = where.split(":")
+        getattr(importlib.import_module(mod), func)(subcommands(sub.choices[group]))
     return parser
+
+
+def subcommands(parser: argparse.ArgumentParser) -> argparse._SubParsersAction:
+    """The subparsers of a command group (``resim train``, ``resim shards``, ...)."""
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -185,8 +185,8 @@ $R eval commands --checkpoint "$WORLD" --shards "$W/heldout" --all-clips --limit
 # seed-79 pace forks, where one scene is driven at three speeds, so it reads the motion and not the speed an expert
 # drives on such a road; shown decoded frames too, as it reads generated video through the VAE; never on seed 1000
 if [ ! -f "$W/idm/idm_report.json" ]; then
-  step "eval idm (for Trajectory Difference; ~25 min decoding + 5 min of steps)"
-  $R eval idm --preset tiny --shards "$W/pace79" --out "$W/idm" --decoded-vae "$VAE"
+  step "train idm (for Trajectory Difference; ~25 min decoding + 5 min of steps)"
+  $R train idm --preset tiny --shards "$W/pace79" --out "$W/idm" --decoded-vae "$VAE"
 fi
 step "eval control"
 $R eval control --checkpoint "$WORLD" --shards "$W/heldout" --idm "$W/idm" --all-clips --limit 12 --steps 25 \

@@ -28,7 +28,7 @@ ALLOWED = {
     "resim/labeling/cli.py": (4, CLI),
     "resim/train/cli.py": (5, CLI),
     "resim/train/launch.py": (3, CLI),
-    "resim/eval/cli.py": (37, CLI),
+    "resim/eval/cli.py": (34, CLI),
     "resim/sample/cli.py": (20, CLI),
     "resim/train/tasks/reward/cli.py": (20, CLI),
     "resim/train/tasks/policy_cli.py": (2, CLI),

@@ -274,7 +274,7 @@ def eval_steps(cfg: DemoConfig, out: Path) -> list[Step]:
         Step("eval: command accuracy", ev / "commands",
              ["eval", "commands", *wm, "--all-clips", "--limit", str(cfg.command_clips), "--out", str(ev / "commands")]),
         Step("eval: inverse dynamics model", ev / "idm",
-             ["eval", "idm", "--shards", str(data), "--out", str(ev / "idm"), "--preset", "tiny",
+             ["train", "idm", "--shards", str(data), "--out", str(ev / "idm"), "--preset", "tiny",
               "--epochs", str(cfg.idm_epochs), "--batch-size", "8", "--seed", str(cfg.seed),
               "--min-heldout-episodes", str(cfg.idm_heldout_episodes)]),
         Step("eval: controllability", ev / "control",

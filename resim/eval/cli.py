@@ -1,4 +1,5 @@
-"""`resim eval ...`: video quality, controllability, planning, and the inverse dynamics model.
+"""`resim eval ...`: video quality, controllability, planning; and `resim train idm` (the inverse dynamics model
+they read trajectories with, trained and evaluated on held-out episodes: ``add_idm_parser``).
 
 Light module: every `resim` call imports this module to register its subcommands, so what needs torch, numpy or the
 models is imported inside the handler that uses it, to keep `resim --help` fast.
@@ -29,8 +30,8 @@ DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
 EPILOG = """\
 typical flow (held-out = the episodes the IDM did not train on):
   resim pipeline run configs/pipeline/synthetic.yaml --out DATA     # the synthetic world: exact trajectories
-  resim eval idm --shards DATA --out runs/idm                      # IDM (future frames -> 8 waypoints)
-  resim eval idm --shards DATA --out runs/vo --window history      # VO-style planner (history only)
+  resim train idm --shards DATA --out runs/idm                     # IDM (future frames -> 8 waypoints)
+  resim train idm --shards DATA --out runs/vo --window history     # VO-style planner (history only)
   resim eval control  --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
   resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
   resim eval commands --checkpoint runs/wm --shards DATA --all-clips --limit 20 --out out/commands
@@ -49,7 +50,7 @@ only with --allow-placeholder-networks (random-init networks, marked as such eve
 QUALITY_EPILOG = """\
 examples:
   resim pipeline run configs/pipeline/synthetic.yaml --out DATA       # the synthetic world's shards
-  resim eval idm --shards DATA --out runs/idm --preset tiny            # the IDM and its held-out split
+  resim train idm --shards DATA --out runs/idm --preset tiny           # the IDM and its held-out split
   resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --allow-placeholder-networks                 # no weights needed: random-init networks (plumbing only)
   resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
@@ -67,7 +68,7 @@ CONTROL_EPILOG = """\
 example:
   resim eval control --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
 
---idm is a `resim eval idm` run; its held-out episodes are evaluated (--heldout-from another run, or
+--idm is a `resim train idm` run; its held-out episodes are evaluated (--heldout-from another run, or
 --all-clips). Writes OUT/control.json (Trajectory Difference for expert / non-expert trajectories, the IDM on
 the recorded video as the floor, the expert rollouts and the recorded video against another episode's trajectory,
 one they were not given, and the two bounds: expert <= 1.5 x floor, expert < 0.5 x against the one not given;
@@ -116,7 +117,7 @@ example (the shipped synthetic-world models: world model, policy and IDM, traine
 with your own policy (and an under-trained one beside it) and IDM:
   resim train policy --shards data/forks --out runs/policy
   resim train policy --shards data/forks --out runs/policy-1-epoch --epochs 1
-  resim eval idm --shards data/forks --out runs/idm --preset tiny
+  resim train idm --shards data/forks --out runs/idm --preset tiny
   resim eval closed-loop --checkpoint synth-world --shards data/forks --policy runs/policy \\
       --also runs/policy-1-epoch --idm runs/idm --reward runs/reward --out out/closed-loop --steps 10
 --shards gives the prompt table and the VAE the world model was trained with; the starting states are built
@@ -137,14 +138,14 @@ standard deviations (0 = real-looking on these statistics), per second. Writes O
 
 PLANNING_EPILOG = """\
 example:
-  resim eval idm --shards DATA --out runs/vo --window history      # the VO-style planner baseline
+  resim train idm --shards DATA --out runs/vo --window history     # the VO-style planner baseline
   resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
 
 Writes OUT/planning.json (ADE/FDE of the video-prediction policy, the VO planner, constant velocity and the
 IDM on the recorded future; the protocol) and OUT/planning.png (bar chart).
 """
 
-# `resim eval idm --preset` (resim.models.idm.IDM_PRESETS; listed here so that --help needs no torch import).
+# `resim train idm --preset` (resim.models.idm.IDM_PRESETS; listed here so that --help needs no torch import).
 # Times measured on 168 clips of 32x48 (24 episodes of an earlier ground-plane test world, since replaced by the
 # synthetic road world), default epochs, 2 CPU cores shared with other jobs: tiny 166-452 s (tiny-queries 166 s),
 # small about 10 min.
@@ -203,7 +204,7 @@ def _probe_args(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("eval", help="evaluate world models: quality, controllability, planning, IDM",
+    p = subparsers.add_parser("eval", help="evaluate world models: quality, controllability, planning, closed loop",
                               description="Evaluate world models. Each command prints its protocol next to "
                                           "the numbers and writes a JSON + PNG report into --out.",
                               epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -233,7 +234,7 @@ def register(subparsers) -> None:
                                    "video with the IDM, and report its L2 distance to the conditioning trajectory.",
                        epilog=CONTROL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _world_args(c)
-    c.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
+    c.add_argument("--idm", required=True, help="IDM run folder (resim train idm)")
     c.set_defaults(func=_cmd_control)
 
     cm = sub.add_parser("commands", help="command accuracy: one history under left / forward / right (+ null prompt)",
@@ -314,41 +315,10 @@ def register(subparsers) -> None:
                                     "to a history-only VO planner and a constant-velocity baseline.",
                         epilog=PLANNING_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _world_args(pl)
-    pl.add_argument("--idm", required=True, help="IDM run folder (resim eval idm)")
-    pl.add_argument("--planner", default=None, help="VO-style planner run folder (resim eval idm --window history)")
+    pl.add_argument("--idm", required=True, help="IDM run folder (resim train idm)")
+    pl.add_argument("--planner", default=None, help="VO-style planner run folder (resim train idm --window history)")
     pl.add_argument("--with-command", action="store_true", help="give the policy the clip's command prompt")
     pl.set_defaults(func=_cmd_planning)
-
-    i = sub.add_parser("idm", help="train + evaluate the inverse dynamics model (or the VO planner) on shards",
-                       description="Trains through the common Trainer on clips with traj.npy, split by episode; "
-                                   "reports held-out ADE/FDE next to the constant-velocity baseline.")
-    i.add_argument("--shards", required=True, help="dataset folder")
-    i.add_argument("--out", required=True, help="run folder (final/ weights, idm_report.json/.png)")
-    i.add_argument("--preset", default="small", choices=IDM_PRESET_NAMES, metavar="PRESET",
-                   help=IDM_PRESET_HELP)
-    i.add_argument("--window", default="future", choices=["future", "history"],
-                   help="future: the IDM; history: the VO-style planner baseline (same architecture)")
-    i.add_argument("--epochs", type=_positive_int, default=None)
-    i.add_argument("--batch-size", type=_positive_int, default=None)
-    i.add_argument("--lr", type=float, default=None)
-    i.add_argument("--heldout-fraction", type=float, default=None, help="share of episodes held out (default 0.25)")
-    i.add_argument("--min-heldout-episodes", type=_positive_int, default=None,
-                   help="hold out at least this many episodes (default 1; the demo uses 2 so the held-out set "
-                        "has more than one clip and non-expert trajectories from another held-out episode)")
-    i.add_argument("--val-fraction", type=float, default=None,
-                   help="share of the training episodes set aside for early stopping (default 0.15; 0: off)")
-    i.add_argument("--hflip-prob", type=float, default=None,
-                   help="probability of mirroring a training clip left-right (default 0.5; 0: off)")
-    i.add_argument("--decoded-vae", default=None, metavar="VAE",
-                   help="also train on each clip's shard latents decoded by this VAE (folder or shipped name, e.g. "
-                        "synth-vae): the frames a world model's rollouts are read from; reports the held-out "
-                        "error on both (decoding takes ~0.5 s per clip on a 2-core CPU)")
-    i.add_argument("--decoded-prob", type=float, default=None,
-                   help="with --decoded-vae: probability that an epoch shows a clip decoded (default 0.5)")
-    i.add_argument("--seed", type=int, default=0)
-    i.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
-    i.set_defaults(func=_cmd_idm)
 
     cl = sub.add_parser("closed-loop", help="policies driven in the true synthetic world and inside the world model: "
                                             "do both rank them alike?",
@@ -364,7 +334,7 @@ def register(subparsers) -> None:
     cl.add_argument("--also", nargs="*", default=[], metavar="POLICY_RUN",
                     help="more policy runs to rank beside it (e.g. an under-trained one)")
     cl.add_argument("--idm", required=True,
-                    help="IDM run folder (resim eval idm) or synth-idm (shipped): reads the driven path off video")
+                    help="IDM run folder (resim train idm) or synth-idm (shipped): reads the driven path off video")
     cl.add_argument("--variants", nargs="+", default=list(CL_VARIANTS), choices=list(CL_VARIANTS), metavar="NAME",
                     help=f"which of the graded policies drive (default all): {CL_VARIANTS_HELP}")
     cl.add_argument("--reward", default=None, metavar="REWARD_RUN",
@@ -399,6 +369,41 @@ def _device(args, name: str) -> bool:
     return True
 
 
+def add_idm_parser(sub) -> None:
+    """`resim train idm ...`: it trains a model, so it sits under `resim train` (joined there by resim/cli.py: the
+    train package sits below eval in the layers of docs/architecture.md); its held-out report is eval's."""
+    i = sub.add_parser("idm", help="train + evaluate the inverse dynamics model (or the VO planner) on shards",
+                       description="Trains through the common Trainer on clips with traj.npy, split by episode; "
+                                   "reports held-out ADE/FDE next to the constant-velocity baseline.")
+    i.add_argument("--shards", required=True, help="dataset folder")
+    i.add_argument("--out", required=True, help="run folder (final/ weights, idm_report.json/.png)")
+    i.add_argument("--preset", default="small", choices=IDM_PRESET_NAMES, metavar="PRESET",
+                   help=IDM_PRESET_HELP)
+    i.add_argument("--window", default="future", choices=["future", "history"],
+                   help="future: the IDM; history: the VO-style planner baseline (same architecture)")
+    i.add_argument("--epochs", type=_positive_int, default=None)
+    i.add_argument("--batch-size", type=_positive_int, default=None)
+    i.add_argument("--lr", type=float, default=None)
+    i.add_argument("--heldout-fraction", type=float, default=None, help="share of episodes held out (default 0.25)")
+    i.add_argument("--min-heldout-episodes", type=_positive_int, default=None,
+                   help="hold out at least this many episodes (default 1; the demo uses 2 so the held-out set "
+                        "has more than one clip and non-expert trajectories from another held-out episode)")
+    i.add_argument("--val-fraction", type=float, default=None,
+                   help="share of the training episodes set aside for early stopping (default 0.15; 0: off)")
+    i.add_argument("--hflip-prob", type=float, default=None,
+                   help="probability of mirroring a training clip left-right (default 0.5; 0: off)")
+    i.add_argument("--decoded-vae", default=None, metavar="VAE",
+                   help="also train on each clip's shard latents decoded by this VAE (folder or shipped name, e.g. "
+                        "synth-vae): the frames a world model's rollouts are read from; reports the held-out "
+                        "error on both (decoding takes ~0.5 s per clip on a 2-core CPU)")
+    i.add_argument("--decoded-prob", type=float, default=None,
+                   help="with --decoded-vae: probability that an epoch shows a clip decoded (default 0.5)")
+    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="IDMConfig override, e.g. --set input_hw=[64,112] (repeatable)")
+    i.set_defaults(func=_cmd_idm)
+
+
 def _heldout_items(path: str | None, all_clips: bool = False):
     if path is None or all_clips:
         return None
@@ -415,7 +420,7 @@ def _heldout_items(path: str | None, all_clips: bool = False):
     items = proto.get("heldout_items") if isinstance(proto, dict) else None
     if not isinstance(items, list):  # e.g. a quality.json: it names no held-out episodes
         raise SystemExit(f"resim eval: --heldout-from {p}: no protocol.heldout_items (expected the "
-                         "idm_report.json of a `resim eval idm` run, or its folder)")
+                         "idm_report.json of a `resim train idm` run, or its folder)")
     return items
 
 
@@ -833,7 +838,7 @@ def _cmd_planning(args) -> int:
     planner, planner_info = _load_idm(args.planner, device) if args.planner else (None, None)
     if planner is not None and planner.cfg.window != "history":
         print(f"resim eval planning: --planner {args.planner} sees window={planner.cfg.window!r}; the VO-style "
-              "planner must see history frames only (train it with `resim eval idm --window history`)",
+              "planner must see history frames only (train it with `resim train idm --window history`)",
               file=sys.stderr)
         return 2
     clips = _clips(args, _heldout_items(args.heldout_from or args.idm, args.all_clips))
@@ -881,7 +886,7 @@ def _cmd_idm(args) -> int:
         cfg = from_dict(IDMTrainConfig, {**d, "overrides": ov})
         cfg.model_cfg()
     except ConfigError as e:
-        print(f"resim eval idm: config error: {e}", file=sys.stderr)
+        print(f"resim train idm: config error: {e}", file=sys.stderr)
         return 2
     from resim.shards.reader import ShardReadError
     from resim.train.tasks.idm import IDMDataError, prepare_idm_data
@@ -889,7 +894,7 @@ def _cmd_idm(args) -> int:
     try:   # the data and its split are checked before anything is trained
         data = prepare_idm_data(args.shards, cfg)
     except (FileNotFoundError, ShardReadError, IDMDataError) as e:
-        print(f"resim eval idm: --shards: {e}", file=sys.stderr)
+        print(f"resim train idm: --shards: {e}", file=sys.stderr)
         return 1
     res = run_idm_training(args.shards, cfg, args.out, progress=True, data=data)
     res.pop("_model")

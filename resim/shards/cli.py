@@ -250,9 +250,10 @@ def _on_dataset(cmd):
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "shards",
-        help="inspect shard datasets (ls, stats, show, verify, preview, schema)",
+        help="inspect shard datasets (ls, stats, show, verify, preview, schema); copy one adding features",
         description="Inspect a resim shard dataset (a folder with shards/, index/, manifest/, prompts/). "
-        "The format is described in docs/data_format.md; `resim shards schema` prints it as JSON.",
+        "The format is described in docs/data_format.md; `resim shards schema` prints it as JSON. "
+        "`resim shards features` copies a dataset adding the reward model's DINOv2 features.",
     )
     sub = p.add_subparsers(dest="shards_command", metavar="SUBCOMMAND")
 

@@ -1,4 +1,5 @@
-"""`resim train NAME ...` (one subcommand per model with presets) and `resim train launch`.
+"""`resim train NAME ...` (one subcommand per model with presets) and `resim train launch`; `resim train idm` is
+joined to this group by resim/cli.py (its code, with its held-out report, is in resim/eval/cli.py).
 
 Light module: every `resim` call imports this module to register its subcommands, so what needs torch, numpy or the
 models is imported inside the handler that uses it, to keep `resim --help` fast.
@@ -168,7 +169,7 @@ def _cmd_launch(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "train", help="train a model from shards (world model, Video2Reward; launch on many GPUs)",
+        "train", help="train a model from shards (world model, VAE, Video2Reward, policy, IDM; launch on many GPUs)",
         description="Train a model from shards on one CPU/GPU, or on many with `resim train launch`.",
         epilog=TRAIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="train_command", metavar="SUBCOMMAND")

@@ -92,16 +92,16 @@ def test_control_and_planning_check_inputs_before_rollouts(ds, capsys):
 
 def test_idm_training_says_why_no_clip_is_usable(ds, tmp_path, capsys):
     out = tmp_path / "idm"
-    assert main(["eval", "idm", "--shards", str(tmp_path / "nope"), "--out", str(out), "--preset", "tiny"]) == 1
+    assert main(["train", "idm", "--shards", str(tmp_path / "nope"), "--out", str(out), "--preset", "tiny"]) == 1
     _error(capsys, "does not exist")                       # was "0 clips from 0 episode(s)"
-    assert main(["eval", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--preset", "tiny"]) == 1
+    assert main(["train", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--preset", "tiny"]) == 1
     _error(capsys, "the model's window fits none of the 2 clips")   # and the first clip's reason
     (tmp_path / "empty").mkdir()
-    assert main(["eval", "idm", "--shards", str(tmp_path / "empty"), "--out", str(out), "--preset", "tiny"]) == 1
+    assert main(["train", "idm", "--shards", str(tmp_path / "empty"), "--out", str(out), "--preset", "tiny"]) == 1
     _error(capsys, "no samples")
-    assert main(["eval", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--lr", "nan"]) == 2
+    assert main(["train", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--lr", "nan"]) == 2
     _error(capsys, "lr must be a finite number")
-    assert main(["eval", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--set", "head_heads=0"]) == 2
+    assert main(["train", "idm", "--shards", str(ds / "ds"), "--out", str(out), "--set", "head_heads=0"]) == 2
     _error(capsys, "head_heads must be >= 1")           # was ZeroDivisionError
     assert not out.exists()
 
@@ -161,8 +161,8 @@ def test_help_describes_each_command(capsys):
         assert f"resim eval {sub} --checkpoint" in h and f"OUT/{sub}.json" in h and f"OUT/{sub}.png" in h, h
     # the quality example runs without downloaded weights: placeholder networks and an IDM run made first
     q = _help(capsys, ["eval", "quality"])
-    assert "--allow-placeholder-networks" in q and "resim eval idm --shards DATA --out runs/idm" in q
-    i = _help(capsys, ["eval", "idm"])
+    assert "--allow-placeholder-networks" in q and "resim train idm --shards DATA --out runs/idm" in q
+    i = _help(capsys, ["train", "idm"])
     assert all(name in i for name in IDM_PRESETS), i                      # was: "tiny, small (default)"
 
 

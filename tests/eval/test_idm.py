@@ -183,7 +183,7 @@ def test_a_missing_or_corrupt_idm_run_is_named(tmp_path):
     from safetensors.torch import save_file
 
     with pytest.raises(FileNotFoundError, match=f"IDM checkpoint {tmp_path}: expected config.yaml \\+ "
-                                                "model.safetensors in it or in .*written by `resim eval idm`"):
+                                                "model.safetensors in it or in .*written by `resim train idm`"):
         load_idm(tmp_path)
     (tmp_path / "final").mkdir()
     m = InverseDynamicsModel(idm_preset("tiny"))

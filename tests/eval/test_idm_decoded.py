@@ -1,4 +1,4 @@
-"""The IDM's decoded-frame augmentation (``resim eval idm --decoded-vae``): the frames are the clip's own latents
+"""The IDM's decoded-frame augmentation (``resim train idm --decoded-vae``): the frames are the clip's own latents
 through the shipped VAE, an epoch shows them with their probability, and the mirror flags of runs without them
 are unchanged."""
 from pathlib import Path

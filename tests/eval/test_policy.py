@@ -109,7 +109,7 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert "held-out" in r.stdout and (tmp_path / "pol" / "final" / "model.safetensors").is_file()
     again = run("train", "policy", "--shards", str(root), "--out", str(tmp_path / "pol"))
     assert again.returncode == 2 and "not empty" in again.stderr
-    r = run("eval", "idm", "--shards", str(root), "--out", str(tmp_path / "idm"), "--preset", "tiny", "--epochs", "1")
+    r = run("train", "idm", "--shards", str(root), "--out", str(tmp_path / "idm"), "--preset", "tiny", "--epochs", "1")
     assert r.returncode == 0, r.stderr[-2000:]
     r = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
             str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl"),

@@ -1,5 +1,6 @@
-"""`resim eval idm|control|planning|quality` end to end on a tiny random world model, the tiny placeholder VAE
-and rendered shards: the commands run, write JSON + PNG, and the reports hold what the protocol says."""
+"""`resim train idm` and `resim eval control|planning|quality` end to end on a tiny random world model, the tiny
+placeholder VAE and rendered shards: the commands run, write JSON + PNG, and the reports hold what the protocol
+says."""
 import json
 
 import numpy as np
@@ -30,7 +31,7 @@ def world(tmp_path_factory, road_world):
     save_file({k: v.contiguous() for k, v in wm.state_dict().items()}, str(root / "wm/final/model.safetensors"))
     (root / "wm/final/config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {"preset": "tiny"}}))
     for window in ("future", "history"):
-        rc = main(["eval", "idm", "--shards", str(ds), "--out", str(root / f"idm-{window}"), "--preset", "tiny",
+        rc = main(["train", "idm", "--shards", str(ds), "--out", str(root / f"idm-{window}"), "--preset", "tiny",
                    "--window", window, "--epochs", "1", "--batch-size", "8",
                    *(["--set", "future_frames=12", "--set", "num_frames=7"] if window == "future" else [])])
         assert rc == 0

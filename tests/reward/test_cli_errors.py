@@ -1,4 +1,4 @@
-"""User mistakes in `resim reward`, `resim train reward`, `resim reward-features`: one line on stderr naming
+"""User mistakes in `resim score`, `resim train reward`, `resim shards features`: one line on stderr naming
 the item and the reason, a non-zero exit, no traceback."""
 import shutil
 from pathlib import Path
@@ -81,7 +81,7 @@ def test_score_corrupt_checkpoints_name_the_file(ckpt, tmp_path, capsys, layout)
         ck = OLD_RUN
     cfg_f, weights_f = ("final/config.yaml", "final/model.safetensors") if layout == "final" else \
         ("config.yaml", "reward.safetensors")
-    assert main(["reward", str(vid), "--checkpoint", str(ck)]) == 0
+    assert main(["score", str(vid), "--checkpoint", str(ck)]) == 0
     capsys.readouterr()
 
     def bad_config(d):
@@ -113,12 +113,12 @@ def test_score_corrupt_checkpoints_name_the_file(ckpt, tmp_path, capsys, layout)
         cases.append((world_run, cfg_f, "model_name is 'world', not a reward run"))
     for edit, name, reason in cases:
         d = _corrupt(ck, tmp_path / edit.__name__, edit)
-        assert main(["reward", str(vid), "--checkpoint", str(d)]) == 1, edit.__name__
+        assert main(["score", str(vid), "--checkpoint", str(d)]) == 1, edit.__name__
         _one_line_error(capsys, f"{d / name}", reason)
-    assert main(["reward", str(vid), "--checkpoint", str(tmp_path / "nope")]) == 1
+    assert main(["score", str(vid), "--checkpoint", str(tmp_path / "nope")]) == 1
     _one_line_error(capsys, "no such checkpoint folder")
     (tmp_path / "empty").mkdir()
-    assert main(["reward", str(vid), "--checkpoint", str(tmp_path / "empty")]) == 1
+    assert main(["score", str(vid), "--checkpoint", str(tmp_path / "empty")]) == 1
     _one_line_error(capsys, "is not a reward checkpoint: no config.yaml + model.safetensors in it")
 
 
@@ -129,7 +129,7 @@ def test_score_stride_zero_is_refused(ckpt, capsys):
 
     ck, vid = ckpt
     with pytest.raises(SystemExit) as e:
-        main(["reward", str(vid), "--checkpoint", str(ck), "--stride", "0"])
+        main(["score", str(vid), "--checkpoint", str(ck), "--stride", "0"])
     assert e.value.code == 2 and "--stride: must be >= 1, got 0" in capsys.readouterr().err
     import torch
 
@@ -163,14 +163,14 @@ def test_train_unsplittable_data_fails_before_training(two_episodes, tmp_path, c
 
 
 def test_features_bad_source_or_destination(two_episodes, tmp_path, capsys):
-    assert main(["reward-features", str(two_episodes), "--out", str(two_episodes), *TINY_SETS]) == 1
+    assert main(["shards", "features", str(two_episodes), "--out", str(two_episodes), *TINY_SETS]) == 1
     _one_line_error(capsys, "is the source dataset")
-    assert main(["reward-features", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), *TINY_SETS]) == 1
+    assert main(["shards", "features", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), *TINY_SETS]) == 1
     _one_line_error(capsys, "no such dataset folder")
     (tmp_path / "empty").mkdir()
-    assert main(["reward-features", str(tmp_path / "empty"), "--out", str(tmp_path / "o"), *TINY_SETS]) == 1
+    assert main(["shards", "features", str(tmp_path / "empty"), "--out", str(tmp_path / "o"), *TINY_SETS]) == 1
     _one_line_error(capsys, "no committed shards")
-    assert main(["reward-features", str(two_episodes), "--out", str(tmp_path / "o"), "--preset", "bogus"]) == 2
+    assert main(["shards", "features", str(two_episodes), "--out", str(tmp_path / "o"), "--preset", "bogus"]) == 2
     _one_line_error(capsys, "unknown preset 'bogus'")
 
 

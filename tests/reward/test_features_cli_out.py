@@ -1,4 +1,4 @@
-"""`resim reward-features SRC --out OUT`: a non-empty OUT that is not a shard dataset is refused (the copy would
+"""`resim shards features SRC --out OUT`: a non-empty OUT that is not a shard dataset is refused (the copy would
 mix into it); a new/empty OUT or an earlier output is accepted; the help has an example."""
 import pytest
 
@@ -11,9 +11,9 @@ def test_features_refuses_a_non_empty_unrelated_out(two_episodes, tmp_path, caps
     out = tmp_path / "mine"
     out.mkdir()
     (out / "notes.txt").write_text("keep me")
-    assert main(["reward-features", str(two_episodes), "--out", str(out), *TINY_SETS]) == 1
+    assert main(["shards", "features", str(two_episodes), "--out", str(out), *TINY_SETS]) == 1
     err = capsys.readouterr().err.strip()
-    assert err.splitlines() == [f"resim reward-features: error: output folder {out} is not empty and is not a shard "
+    assert err.splitlines() == [f"resim shards features: error: output folder {out} is not empty and is not a shard "
                                 "dataset (it holds notes.txt); give an empty or new folder"]
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
@@ -34,5 +34,5 @@ def test_an_earlier_output_or_an_empty_folder_is_accepted(tmp_path):
 
 def test_features_help_has_an_example(capsys):
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["reward-features", "--help"])
-    assert "example:\n  resim reward-features " in capsys.readouterr().out
+        build_parser().parse_args(["shards", "features", "--help"])
+    assert "example:\n  resim shards features " in capsys.readouterr().out

@@ -65,7 +65,7 @@ def test_features_step_writes_dino_and_quarantines(dataset, tmp_path, tiny_cfg):
 
 def test_cli_features_train_score(dataset, tmp_path, capsys):
     feats = tmp_path / "feats"
-    assert main(["reward-features", str(dataset), "--out", str(feats), *TINY_SETS]) == 0
+    assert main(["shards", "features", str(dataset), "--out", str(feats), *TINY_SETS]) == 0
     run = tmp_path / "run"
     rc = main(["train", "reward", "--shards", str(feats), "--out", str(run), "--set", "epochs=4",
                "--set", "batch_size_per_gpu=4", *TINY_SETS])
@@ -100,15 +100,15 @@ def test_cli_features_train_score(dataset, tmp_path, capsys):
     for f in toy_episode_frames(0.0, 15, 32, 48, np.random.default_rng(1)):
         w.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
     w.release()
-    assert main(["reward", key, str(vid), "--checkpoint", str(run), "--shards", str(dataset), "--json"]) == 0
+    assert main(["score", key, str(vid), "--checkpoint", str(run), "--shards", str(dataset), "--json"]) == 0
     res = json.loads(capsys.readouterr().out)["results"]
     assert [r["kind"] for r in res] == ["shard sample", "video"] and res[1]["frames"] == 15
     assert all(np.isfinite(r["score"]) for r in res)
     short_key = next(s["__key__"] for s in iter_samples(dataset, attach_prompts=False)
                      if s["meta.json"]["item_id"] == "short/ep")
-    assert main(["reward", short_key, "--checkpoint", str(run), "--shards", str(dataset)]) == 1
+    assert main(["score", short_key, "--checkpoint", str(run), "--shards", str(dataset)]) == 1
     assert "shorter than the model's window of 7" in capsys.readouterr().err
-    assert main(["reward", "no-such-key", "--checkpoint", str(run), "--shards", str(dataset)]) == 1
+    assert main(["score", "no-such-key", "--checkpoint", str(run), "--shards", str(dataset)]) == 1
 
 
 def test_cli_train_overwrite_replaces_a_reward_run(dataset, tmp_path, capsys):

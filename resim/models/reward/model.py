@@ -178,7 +178,7 @@ class Video2Reward(nn.Module):
             bad = [i for i in ids if i != self.feature_id]
             if not ids or bad:
                 raise FeatureMismatchError(f"stored features {bad[:1] or 'without dino_id'} do not match this "
-                                           f"model's {self.feature_id!r}: recompute them (resim reward-features)")
+                                           f"model's {self.feature_id!r}: recompute them (resim shards features)")
             pred = self(features=feats)
         else:
             pred = self(video=video)

@@ -310,7 +310,7 @@ def load_idm(run_dir: str | Path, device: str = "cpu") -> tuple[InverseDynamicsM
         ex = load_exported(run_dir, expect="idm", label="an IDM run", adapt_config=_head_of_old_runs,
                            shipped=True)
     except ExportNotFoundError as e:
-        raise FileNotFoundError(f"IDM checkpoint {e} (written by `resim eval idm`)") from None
+        raise FileNotFoundError(f"IDM checkpoint {e} (written by `resim train idm`)") from None
     sha = hashlib.sha256(ex.weights.read_bytes()).hexdigest()
     return ex.model.to(device).eval().requires_grad_(False), {"checkpoint": str(ex.folder), "weights_sha256": sha}
 

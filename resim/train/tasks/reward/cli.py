@@ -1,4 +1,8 @@
-"""`resim reward ...`, `resim train reward ...`, `resim reward-features ...`.
+"""`resim score ...`, `resim train reward ...`, `resim shards features ...`: the Video2Reward commands.
+
+`resim score` is registered here (``register``), `resim train reward` by resim/train/cli.py
+(``add_train_parser``), `resim shards features` by resim/cli.py (``add_features_parser``: the shards package stays
+below train in the layers of docs/architecture.md, so the face joins them).
 
 Light module: torch/transformers are imported inside the handlers.
 """
@@ -63,7 +67,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
             (score,) = score_videos(model, [frames], stride=args.stride, names=[target])
             results.append({"input": target, "kind": kind, "frames": int(len(frames)), "score": float(score)})
     except (ScoreError, CheckpointError) as e:
-        print(f"resim reward: error: {e}", file=sys.stderr)
+        print(f"resim score: error: {e}", file=sys.stderr)
         return 1
     meta = model.metadata()
     if args.json:
@@ -76,7 +80,7 @@ def _cmd_score(args: argparse.Namespace) -> int:
     return 0
 
 
-# what `resim reward-features` writes in OUT: a folder holding only these is an earlier run (a rerun redoes it)
+# what `resim shards features` writes in OUT: a folder holding only these is an earlier run (a rerun redoes it)
 FEATURES_OUT_NAMES = {"shards", "index", "manifest", "prompts", "quarantine", "config.yaml"}
 
 
@@ -103,7 +107,7 @@ def _cmd_features(args: argparse.Namespace) -> int:
     from resim.train.tasks.reward.features import add_features_to_dataset, check_feature_paths
     from resim.models.reward.model import Video2Reward
 
-    prog = "resim reward-features"
+    prog = "resim shards features"
     torch.set_num_threads(args.threads) if args.threads else None
     cfg = _train_cfg_or_none(args, prog)
     if cfg is None:
@@ -245,8 +249,9 @@ def add_train_parser(sub) -> None:
 
 
 def register(subparsers) -> None:
+    """`resim score` (top level)."""
     p = subparsers.add_parser(
-        "reward", help="score videos or shard samples with a trained Video2Reward model",
+        "score", help="score videos or shard samples with a trained Video2Reward model",
         description="Predict the infraction score (1 = clean driving, lower = collisions / red lights / off-road / "
         "too slow) of videos with a trained Video2Reward checkpoint. Each input is a video file (anything "
         "OpenCV reads) or, with --shards, a shard sample key. Longer videos are scored by sliding windows "
@@ -260,17 +265,19 @@ def register(subparsers) -> None:
     p.set_defaults(func=_cmd_score)
 
 
-    f = subparsers.add_parser(
-        "reward-features", help="copy a shard dataset adding DINOv2 features (dino.npy) for Video2Reward",
+def add_features_parser(sub) -> None:
+    """`resim shards features ...` (joined to `resim shards` by resim/cli.py)."""
+    f = sub.add_parser(
+        "features", help="copy a shard dataset adding DINOv2 features (dino.npy) for Video2Reward",
         description=textwrap.fill(width=90, text="Store per-frame DINOv2 features of the reward model's window (float16 (T, N_tokens, D), "
         "meta.dino_id names backbone, input size and window) for every sample with an infraction score, "
         "writing a new dataset. Clips that cannot be featurised are copied without features and quarantined."),
-        epilog="example:\n  resim reward-features out/shards --preset tiny --out out/shards-dino\n"
+        epilog="example:\n  resim shards features out/shards --preset tiny --out out/shards-dino\n"
         "  resim train reward --preset tiny --shards out/shards-dino --out runs/reward   # uses the stored features",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     f.add_argument("src", help="source shard dataset folder")
     f.add_argument("--out", required=True, help="destination dataset folder (must differ from src; new, empty, "
-                   "or an earlier reward-features output)")
+                   "or an earlier `resim shards features` output)")
     f.add_argument("--threads", type=_non_negative_int, default=0, help="torch threads (0: torch's default)")
     _add_cfg_args(f)
     f.set_defaults(func=_cmd_features)
