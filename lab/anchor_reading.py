@@ -7,6 +7,7 @@ trajectory this reads, with the same noise draw for every variant:
 * the per-future-frame v-loss at each level, beside the loss of copying the last history frame (at t = 999 the two
   are the same measure): a model that anchors on its history beats copy-last on the first future frames, and its
   loss grows with the horizon; one that draws a blurred scene has a flat curve;
+* the worth of the history: loss with another clip's history / with its own (> 1 when the model draws from it);
 * the worth of the command: loss under the opposite turn / under the recorded one (> 1 when used);
 * the worth of the trajectory: loss with the recorded trajectory / without it (< 1 when used), and with the
   mirrored trajectory (y and yaw negated) / with the recorded one (> 1 when used).
@@ -19,6 +20,7 @@ Prints one block per checkpoint and appends one JSON row each to ``--out`` (defa
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -46,8 +48,12 @@ def _last_step(run: Path) -> int | None:
 
 @torch.no_grad()
 def read(checkpoint: str, shards: Path, clips: int, levels: list[int], seed: int = 0) -> dict:
-    cs = [c for c in eval_clips_from_dataset(shards, items=None, need_trajectory=True)
-          if c.command in OPPOSITE][:clips]
+    by_episode: dict[str, list] = {}
+    for c in eval_clips_from_dataset(shards, items=None, need_trajectory=True):
+        if c.command in OPPOSITE:
+            by_episode.setdefault(c.item_id, []).append(c)
+    # one clip per episode in turn: the dataset's order would give the many clips of its first two episodes
+    cs = [c for group in itertools.zip_longest(*by_episode.values()) for c in group if c is not None][:clips]
     if not cs:
         raise SystemExit(f"{shards}: no turning clips with a trajectory")
     model, info = load_world_model(checkpoint, "cpu", torch.float32)
@@ -62,6 +68,7 @@ def read(checkpoint: str, shards: Path, clips: int, levels: list[int], seed: int
     gen = torch.Generator().manual_seed(seed)
     copy_last = ((x0[:, h:] - x0[:, h - 1:h]) ** 2).mean(dim=(0, 2, 3, 4))
     row = {"checkpoint": str(checkpoint), "step": _last_step(Path(info["checkpoint"]).parent), "clips": b,
+           "episodes": len({c.item_id for c in cs}),
            "copy_last_per_frame": copy_last.numpy().round(4).tolist(), "levels": {}}
     for level in levels:
         noise = torch.randn(x0.shape, generator=gen)
@@ -71,13 +78,16 @@ def read(checkpoint: str, shards: Path, clips: int, levels: list[int], seed: int
         x_t[:, :h] = x0[:, :h]          # the history as the sampler gives it: clean, t = 0
         target = v_target(x0, noise, t, ac)
 
-        def loss(text, tr):
-            return _mse(model(x_t, t, text, tr, None), target, h)
+        def loss(text, tr, x=x_t):
+            return _mse(model(x, t, text, tr, None), target, h)
 
+        swapped = x_t.clone()
+        swapped[:, :h] = x0.roll(b // 2, dims=0)[:, :h]   # each clip's future beside the history of a clip half the list away (not its fork sibling)
         base = loss(own, None)
         row["levels"][str(level)] = {
             "per_frame": base.numpy().round(4).tolist(),
             "loss": float(base.mean()),
+            "history_worth": float(loss(own, None, swapped).mean() / base.mean()),
             "command_worth": float(loss(opposite, None).mean() / base.mean()),
             "trajectory_worth": float(loss(own, traj).mean() / base.mean()),
             "mirrored_over_true": float(loss(own, mirrored).mean() / loss(own, traj).mean())}
@@ -88,16 +98,17 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", nargs="+", required=True, help="world-model run folders (or their final/)")
     p.add_argument("--shards", type=Path, required=True, help="dev dataset folder (never the held-out one)")
-    p.add_argument("--clips", type=int, default=32, help="turning clips with a trajectory, in dataset order")
+    p.add_argument("--clips", type=int, default=32, help="turning clips with a trajectory, one episode after another")
     p.add_argument("--levels", type=int, nargs="+", default=[999, 950, 800])
     p.add_argument("--out", type=Path, help="append one JSON row per checkpoint here")
     a = p.parse_args()
     for ck in a.checkpoint:
         row = read(ck, a.shards, a.clips, a.levels)
-        print(f"{ck} (step {row['step']}, {row['clips']} clips)")
+        print(f"{ck} (step {row['step']}, {row['clips']} clips of {row['episodes']} episodes)")
         print(f"  copy-last per frame: {' '.join(f'{v:.3f}' for v in row['copy_last_per_frame'][:8])} ...")
         for lv, r in row["levels"].items():
-            print(f"  t={lv}: per frame {' '.join(f'{v:.3f}' for v in r['per_frame'][:8])} ... | command worth "
+            print(f"  t={lv}: per frame {' '.join(f'{v:.3f}' for v in r['per_frame'][:8])} ... | history worth "
+                  f"{r['history_worth']:.3f}, command worth "
                   f"{r['command_worth']:.4f}, with/without trajectory {r['trajectory_worth']:.4f}, mirrored/true "
                   f"{r['mirrored_over_true']:.4f}")
         if a.out:
