@@ -39,11 +39,16 @@ def _mse(pred: torch.Tensor, target: torch.Tensor, h: int) -> torch.Tensor:
     return ((pred.float() - target.float())[:, h:] ** 2).mean(dim=(0, 2, 3, 4))
 
 
-def _last_step(run: Path) -> int | None:
-    """The run's last logged step (``metrics.jsonl``), or None for a folder without one (a shipped bundle)."""
-    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if '"loss"' in x] \
-        if (run / "metrics.jsonl").is_file() else []
-    return rows[-1]["step"] if rows else None
+def _weights_step(final: Path) -> int | None:
+    """The step of the weights in ``final/``: that of the newest complete checkpoint saved with them (a run in
+    progress logs later steps than its ``final/`` holds); None for a folder without checkpoints (a shipped bundle)."""
+    ckpts = final.parent / "checkpoints"
+    weights = next((final / n for n in ("ema.safetensors", "model.safetensors") if (final / n).is_file()), None)
+    if weights is None or not ckpts.is_dir():
+        return None
+    saved = [json.loads((d / "meta.json").read_text()) for d in ckpts.iterdir() if (d / "meta.json").is_file()]
+    steps = [m["step"] for m in saved if m.get("saved_unix_s", 0) <= weights.stat().st_mtime + 5]
+    return max(steps) if steps else None
 
 
 @torch.no_grad()
@@ -67,7 +72,7 @@ def read(checkpoint: str, shards: Path, clips: int, levels: list[int], seed: int
     h, b = cs[0].num_history_latents, len(cs)
     gen = torch.Generator().manual_seed(seed)
     copy_last = ((x0[:, h:] - x0[:, h - 1:h]) ** 2).mean(dim=(0, 2, 3, 4))
-    row = {"checkpoint": str(checkpoint), "step": _last_step(Path(info["checkpoint"]).parent), "clips": b,
+    row = {"checkpoint": str(checkpoint), "step": _weights_step(Path(info["checkpoint"])), "clips": b,
            "episodes": len({c.item_id for c in cs}),
            "copy_last_per_frame": copy_last.numpy().round(4).tolist(), "levels": {}}
     for level in levels:
