@@ -100,6 +100,26 @@ class TextPoolConfig:
 
 
 @dataclass
+class LocalHeadConfig:
+    """A small per-frame convolutional head added to the DiT's output (``local_head.py``).
+
+    A patch of ``p x p`` latent pixels is one token: with large patches (the small synthetic model's p = 8) the
+    transformer must carry every latent pixel's noise through its blocks to predict v, and its one-step clean
+    estimate at mid noise levels keeps a speckle the sampler then draws. A convolution sees each pixel and its
+    neighbours, as U-ViT's extra 3x3 convolution after the patch-to-image projection (Bao et al. 2023, Sec. 3)
+    and DIAMOND's U-Net denoiser. Disabled by default: CogVideoX checkpoints have no such module (it starts at
+    zero output when enabled).
+    """
+    enabled: bool = False
+    channels: int = 64
+    num_layers: int = 3                # 3x3 convolutions; the last one starts at zero
+
+    def __post_init__(self) -> None:
+        if self.channels < 1 or self.num_layers < 2:
+            raise ConfigError(f"local_head: channels >= 1 and num_layers >= 2, got {self.channels}, {self.num_layers}")
+
+
+@dataclass
 class WorldModelConfig:
     """The causal, action-conditioned DiT. Shapes: latents (B, T_lat, in_channels, h, w)."""
     # --- CogVideoX layout (names as in diffusers) ---
@@ -136,6 +156,7 @@ class WorldModelConfig:
     trajectory: TrajectoryEncoderConfig = field(default_factory=TrajectoryEncoderConfig)
     actions: ActionConfig = field(default_factory=ActionConfig)
     text_pool: TextPoolConfig = field(default_factory=TextPoolConfig)
+    local_head: LocalHeadConfig = field(default_factory=LocalHeadConfig)
     gradient_checkpointing: bool = False
     gradient_checkpointing_every: int = 1   # with it on, blocks i % k == 0 recompute (selective AC); 1 = all
     # kernel for the block-causal mask (attention.py, flex.py): "sdpa" = F.scaled_dot_product_attention with a

@@ -41,8 +41,9 @@ from resim.models.world.conditioning import ActionEncoder, TextPooler, Trajector
 from resim.models.world.config import (WorldModelConfig, check_attention_backend, check_pretrained_noise_levels,
                                     config_from_cogvideox)
 from resim.models.world.embeddings import PatchEmbed, TimestepMLP, sincos_pos_embed_3d, timestep_embedding
+from resim.models.world.local_head import LocalHead
 
-NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.", "text_pooler.")
+NEW_MODULE_PREFIXES = ("trajectory_encoder.", "action_encoder.", "text_pooler.", "local_head.")
 
 
 class AdaNormOut(nn.Module):
@@ -80,6 +81,8 @@ class WorldModel(nn.Module):
         self.trajectory_encoder = TrajectoryEncoder(cfg.trajectory, d) if cfg.trajectory.enabled else None
         self.action_encoder = ActionEncoder(cfg.actions, dt) if cfg.actions.kind != "none" else None
         self.text_pooler = TextPooler(cfg.text_pool, cfg.text_embed_dim, dt) if cfg.text_pool.enabled else None
+        self.local_head = (LocalHead(cfg.local_head, cfg.in_channels, cfg.out_channels, dt)
+                           if cfg.local_head.enabled else None)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -244,6 +247,8 @@ class WorldModel(nn.Module):
         video = self.norm_out(self.norm_final(video), temb)
         out = self.proj_out(video)                                              # (B, T*n, p*p*C)
         out = out.reshape(b, nf, h // p, w // p, -1, p, p).permute(0, 1, 4, 2, 5, 3, 6).flatten(5, 6).flatten(3, 4)
+        if self.local_head is not None:
+            out = self.local_head(x, out, temb)
         if return_kv_cache:
             return out, KVCache(keys, values, text_len, n, prefix + nf, text_cond)
         return out
