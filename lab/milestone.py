@@ -24,7 +24,8 @@ from safetensors.torch import load_file, save_file
 ROOT = Path(__file__).resolve().parent / "runs"
 
 
-def save(run: Path, name: str, threads: float, segment_wall_s: float | None, diag: Path | None) -> Path:
+def save(run: Path, name: str, threads: float, segment_wall_s: float | None, diag: Path | None,
+         spent_before: float | None = None) -> Path:
     dst = ROOT / name
     dst.mkdir(parents=True, exist_ok=True)
     final = run / "final"
@@ -40,6 +41,13 @@ def save(run: Path, name: str, threads: float, segment_wall_s: float | None, dia
     # a run restarted from this file (a new machine) goes on from the saved step and CPU-hours
     offset = int(prev.get("step_offset", 0)) if same_run or not prev else int(prev["step"])
     before = float(prev.get("cpu_hours_before", 0.0)) if same_run or not prev else float(prev["cpu_hours"])
+    earlier = list(prev.get("earlier_runs", []))
+    if spent_before is not None and not same_run:
+        # a new run from scratch under the same budget: its steps start at 0, the earlier runs' CPU stays spent
+        offset, before = 0, float(spent_before)
+        if prev:
+            earlier.append({"run": prev.get("run"), "step": prev.get("step"), "cpu_hours_counted":
+                            round(float(spent_before) - sum(e["cpu_hours_counted"] for e in earlier), 2)})
     readings = [json.loads(x) for x in diag.read_text().splitlines()] if diag and diag.is_file() else []
     # the step of the weights in final/: the last reading's (written when the segment that exported them ended), else
     # the last checkpoint's; a segment still running has logged steps past it, which are not these weights'
@@ -58,7 +66,7 @@ def save(run: Path, name: str, threads: float, segment_wall_s: float | None, dia
             "step": offset + metrics[-1]["step"], "step_offset": offset,
             "cpu_hours": round(before + (measured / 60 if measured is not None else wall * threads / 3600), 2),
             "cpu_hours_from": "rusage of the training processes" if measured is not None else "wall x threads",
-            "cpu_hours_before": before, "threads": threads,
+            "cpu_hours_before": before, "earlier_runs": earlier, "threads": threads,
             "loss_per_500_steps": {str(k): round(sum(v) / len(v), 5) for k, v in sorted(curve.items())},
             "segment_wall_s": segment_wall_s,
             "dev_readings": readings or prev.get("dev_readings", [])}
@@ -76,11 +84,13 @@ def main() -> int:
                    help="cores the run had (CPU-hours = wall x this; 3 runs side by side on 2 cores: 0.667)")
     s.add_argument("--segment-wall-s", type=float)
     s.add_argument("--diag", type=Path, help="a jsonl of dev readings to keep with the weights")
+    s.add_argument("--spent-before", type=float,
+                   help="first save of a new run from scratch under the same budget: CPU-hours the earlier runs spent")
     sh = sub.add_parser("show")
     sh.add_argument("--name", required=True)
     a = p.parse_args()
     if a.cmd == "save":
-        print(f"saved {save(a.run, a.name, a.threads, a.segment_wall_s, a.diag)}")
+        print(f"saved {save(a.run, a.name, a.threads, a.segment_wall_s, a.diag, a.spent_before)}")
     else:
         print((ROOT / a.name / "progress.json").read_text())
     return 0

@@ -11,7 +11,9 @@ are read on the dev clips (never the held-out world):
 * the command-shuffle loss ratio: `resim eval command-loss` (loss under the opposite turn / under the recorded
   command, turning clips; and under the null prompt), > 1 when the model uses the command;
 * counterfactual branches and the left - right heading as decoded: `resim eval commands --counterfactual-only`
-  (each fork history under left / forward / right, read by the flow labeler).
+  (each fork history under left / forward / right, read by the flow labeler), and the same rollouts' PSNR /
+  SSIM at 1 s under the recorded command beside copy-last-frame (a speckled rollout reads as noise to the labeler:
+  look at the segment's ``diag/ARM-N/commands/commands_strip.png`` before reading its turns).
 
 One row per (arm, milestone) goes to OUT/sizing.jsonl; OUT/sizing.png plots them against CPU minutes. Pick by the
 slope of the curves, not their level (docs/lab/). Usage:
@@ -77,13 +79,18 @@ def diagnostics(run: Path, dev: Path, out: Path, limit: int, steps: int, log: Pa
                   "--out", str(out / "commands")], log)
     com = json.loads((out / "commands" / "commands.json").read_text())
     yaw = com["flow_labeler"]["mean_yaw_deg"]
+    # fidelity at 1 s under the recorded command (the issue's target: beat copy-last); SSIM shows a speckled
+    # rollout that PSNR alone can hide
+    one_s = next((h for h in com["fidelity"]["per_horizon"] if h["horizon_s"] == 1.0), {})
     lv = {k: {m: v.get(m) for m in ("accuracy", "worth_opposite", "worth_null")} for k, v in closs["levels"].items()}
     return {"command_loss": lv,
             "shuffle_ratio_400": 1 + (lv["400"]["worth_opposite"] or 0.0),
             "commanded_accuracy": com["flow_labeler"]["commanded"]["accuracy"],
             "branch_accuracy": com["branches"].get("commanded", {}).get("accuracy"),
             "mean_yaw_deg": yaw,
-            "left_minus_right_deg": yaw["Turning left"] - yaw["Turning right"]}
+            "left_minus_right_deg": yaw["Turning left"] - yaw["Turning right"],
+            "psnr_1s": one_s.get("psnr_model"), "psnr_1s_copy_last": one_s.get("psnr_copy_last_frame"),
+            "ssim_1s": one_s.get("ssim_model"), "ssim_1s_copy_last": one_s.get("ssim_copy_last_frame")}
 
 
 def train_arm(arm: str, a) -> None:
@@ -112,7 +119,8 @@ def train_arm(arm: str, a) -> None:
             f.write(json.dumps(row) + "\n")
         print(f"[size_world] {arm} segment {seg}: step {row['step']}, loss {row['loss']:.4f}, shuffle ratio "
               f"{row['shuffle_ratio_400']:.3f}, branches {row['branch_accuracy']}, left-right "
-              f"{row['left_minus_right_deg']:+.1f} deg", flush=True)
+              f"{row['left_minus_right_deg']:+.1f} deg, SSIM at 1 s {row['ssim_1s']} (copy-last "
+              f"{row['ssim_1s_copy_last']})", flush=True)
 
 
 def plot(out: Path) -> Path:
@@ -122,12 +130,15 @@ def plot(out: Path) -> Path:
 
     rows = [json.loads(x) for x in (out / "sizing.jsonl").read_text().splitlines()]
     keys = [("loss", "training loss"), ("shuffle_ratio_400", "loss(opposite) / loss(own), t=400"),
-            ("branch_accuracy", "fork branch accuracy (latents)"), ("left_minus_right_deg", "left - right (deg)")]
+            ("branch_accuracy", "fork branch accuracy (latents)"), ("left_minus_right_deg", "left - right (deg)"),
+            ("ssim_1s", "SSIM at 1 s (copy-last dashed)")]
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4))
     for ax, (k, title) in zip(axes, keys):
         for arm in sorted({r["arm"] for r in rows}):
             rr = [r for r in rows if r["arm"] == arm and r.get(k) is not None]
             ax.plot([r["cpu_min"] for r in rr], [r[k] for r in rr], "o-", label=arm)
+            if k == "ssim_1s" and rr:
+                ax.plot([r["cpu_min"] for r in rr], [r["ssim_1s_copy_last"] for r in rr], "--", color="grey")
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("CPU minutes")
     axes[0].legend()
