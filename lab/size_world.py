@@ -13,7 +13,9 @@ are read on the dev clips (never the held-out world):
 * counterfactual branches and the left - right heading as decoded: `resim eval commands --counterfactual-only`
   (each fork history under left / forward / right, read by the flow labeler), and the same rollouts' PSNR /
   SSIM at 1 s under the recorded command beside copy-last-frame (a speckled rollout reads as noise to the labeler:
-  look at the segment's ``diag/ARM-N/commands/commands_strip.png`` before reading its turns).
+  look at the segment's ``diag/ARM-N/commands/commands_strip.png`` before reading its turns);
+* ``lab/x0_reading.py``: the one-step clean estimate's latent MSE at t = 200 and the plain-DDIM latents' std beside
+  the recorded one (residual noise the sampler draws as speckle).
 
 One row per (arm, milestone) goes to OUT/sizing.jsonl; OUT/sizing.png plots them against CPU minutes. Pick by the
 slope of the curves, not their level (docs/lab/). Usage:
@@ -78,6 +80,11 @@ def diagnostics(run: Path, dev: Path, out: Path, limit: int, steps: int, log: Pa
                   "--counterfactual-only", "--limit", str(limit), "--steps", str(steps), "--device", "cpu",
                   "--out", str(out / "commands")], log)
     com = json.loads((out / "commands" / "commands.json").read_text())
+    x0_rows = out / "x0.jsonl"
+    x0_rows.unlink(missing_ok=True)
+    _run([sys.executable, str(Path(__file__).with_name("x0_reading.py")), "--checkpoint", str(run), "--shards",
+          str(dev), "--clips", "16", "--out", str(x0_rows), "--png", str(out)], log)
+    x0 = json.loads(x0_rows.read_text().splitlines()[-1])
     yaw = com["flow_labeler"]["mean_yaw_deg"]
     # fidelity at 1 s under the recorded command (the issue's target: beat copy-last); SSIM shows a speckled
     # rollout that PSNR alone can hide
@@ -89,6 +96,9 @@ def diagnostics(run: Path, dev: Path, out: Path, limit: int, steps: int, log: Pa
             "branch_accuracy": com["branches"].get("commanded", {}).get("accuracy"),
             "mean_yaw_deg": yaw,
             "left_minus_right_deg": yaw["Turning left"] - yaw["Turning right"],
+            # does the output's rank bind? (x0_reading: the one-step estimate at t = 200, the sampled latents' energy)
+            "x0_mse_t200": x0["levels"]["200"]["latent_mse"], "ddim_latent_std": x0["ddim"]["latent_std"],
+            "recorded_latent_std": x0["ddim"]["true_latent_std"],
             "psnr_1s": one_s.get("psnr_model"), "psnr_1s_copy_last": one_s.get("psnr_copy_last_frame"),
             "ssim_1s": one_s.get("ssim_model"), "ssim_1s_copy_last": one_s.get("ssim_copy_last_frame")}
 
