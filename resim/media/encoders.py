@@ -35,6 +35,16 @@ def _resolve(folder: Path, sub: str) -> Path:
     return folder / sub if (folder / sub / "config.json").is_file() else folder
 
 
+class MissingWeightsError(FileNotFoundError):
+    """A model folder with a config but no weights, that is not a shipped seeded placeholder."""
+
+
+def is_placeholder(folder: Path) -> bool:
+    """The shipped tiny stand-ins (``configs/models/placeholder-*``): a config only, weights drawn from a seed. Any
+    other folder without weights is a missing download, not a placeholder."""
+    return Path(folder).name.startswith("placeholder-")
+
+
 def _seeded_init(build, seed: int):
     """Build a model with parameters drawn from ``seed`` without touching the caller's global RNG."""
     import torch
@@ -76,6 +86,10 @@ class VideoVAE:
         if _has_weights(folder):
             model = AutoencoderKLCogVideoX.from_pretrained(folder, torch_dtype=self.dtype)
             placeholder = False
+        elif not is_placeholder(folder):
+            raise MissingWeightsError(f"VAE folder {folder}: config.json but no weights ({WEIGHT_FILES[0]}); a "
+                                      "decoder without its weights draws noise (only the shipped placeholder-* "
+                                      "folders are built from a seed)")
         else:
             config = AutoencoderKLCogVideoX.load_config(folder)
             model = _seeded_init(lambda: AutoencoderKLCogVideoX.from_config(config), placeholder_seed)

@@ -32,7 +32,7 @@ import torch
 
 from resim.config import from_dict
 from resim.diffusion.guidance import guidance_from_cli
-from resim.media.encoders import VideoVAE
+from resim.media.encoders import MissingWeightsError, VideoVAE
 from resim.sample.load import (History, PromptSource, SamplingInputError, check_same_encoding, encoded_with,
                                history_from_shard, history_from_video, load_world_model, resolve_steps_and_guidance,
                                run_objective, trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
@@ -96,7 +96,7 @@ class WorldModelBundle:
             raise BundleLoadError("shards", str(e)) from None
         try:
             video_vae = VideoVAE(vae or encoded_with(ck, shards), device=device)
-        except SamplingInputError as e:
+        except (SamplingInputError, MissingWeightsError) as e:
             raise BundleLoadError("vae", str(e)) from None
         mcfg = model.cfg
         sc = video_vae.info.spatial_compression

@@ -355,10 +355,16 @@ def trained_size_hw(checkpoint: str | Path | None = None, shards: str | Path | N
 
 def encoded_with(checkpoint: str | Path | None = None, shards: str | Path | None = None) -> Path:
     """The VAE folder the latents were encoded with: that of ``shards`` (its pipeline ``config.yaml``), else
-    that of the world model's training data (``RUN/final/data_encode.yaml``, written at the end of training),
-    else the shipped placeholder. Rollouts must be decoded by the VAE whose latents the model learnt."""
-    enc = next((e for e in map(_encode_section, _data_files(checkpoint, shards)) if e is not None), None)
-    vae = (enc or {}).get("vae")
+    that of the world model's training data (``RUN/final/data_encode.yaml``, written at the end of training); an
+    ``encode.vae`` of null there is the pipeline's default, the shipped placeholder. Neither file: an error, not a
+    guess. Rollouts must be decoded by the VAE whose latents the model learnt."""
+    files = _data_files(checkpoint, shards)
+    enc = next((e for e in map(_encode_section, files) if e is not None), None)
+    if enc is None:
+        raise SamplingInputError(f"no file says which VAE encoded the model's latents (looked for "
+                                 f"{', '.join(str(f) for f in files) or 'nothing: no checkpoint or shards'}); "
+                                 "pass --vae with its folder")
+    vae = enc.get("vae")
     path = shipped_model(vae) if vae else shipped_dir(PLACEHOLDER_VAE)
     if not Path(path).is_dir():
         raise SamplingInputError(f"the latents were encoded with the VAE {vae}, which is not on this machine; "

@@ -10,6 +10,7 @@ import yaml
 
 from resim.cli import main
 from resim.shards.schema import ClipSpec
+from tests.support.shards import write_data_encode
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +31,7 @@ def world(tmp_path_factory, road_world):
     (root / "wm" / "final").mkdir(parents=True)
     save_file({k: v.contiguous() for k, v in wm.state_dict().items()}, str(root / "wm/final/model.safetensors"))
     (root / "wm/final/config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {"preset": "tiny"}}))
+    write_data_encode(root / "wm/final")
     for window in ("future", "history"):
         rc = main(["train", "idm", "--shards", str(ds), "--out", str(root / f"idm-{window}"), "--preset", "tiny",
                    "--window", window, "--epochs", "1", "--batch-size", "8",

@@ -83,3 +83,23 @@ def test_the_readme_python_example_runs(tmp_path, monkeypatch):
     exec(compile(code, "README.md", "exec"), scope)
     frames = scope["out"].frames
     assert frames.ndim == 4 and frames.shape[-1] == 3 and frames.shape[0] > scope["out"].num_history_frames_px
+
+
+def test_a_missing_decoder_is_an_error_not_a_placeholder(tmp_path):
+    """A model whose export says nothing of its VAE, or a VAE folder without weights, is refused in one line naming
+    the VAE part; only the shipped placeholder-* folders are built from a seed."""
+    from resim.shipped import shipped_model
+    run = tmp_path / "run"
+    run.mkdir()
+    for f in Path(shipped_model("synth-world")).iterdir():
+        if f.name != "data_encode.yaml" and f.is_file():
+            (run / f.name).symlink_to(f)
+    with pytest.raises(SamplingInputError, match="no file says which VAE") as e:
+        WorldModelBundle.from_pretrained(run)
+    assert "\n" not in str(e.value) and e.value.part == "vae"
+    no_weights = tmp_path / "my-vae"
+    no_weights.mkdir()
+    (no_weights / "config.json").write_text((Path(shipped_model("synth-vae")) / "config.json").read_text())
+    with pytest.raises(SamplingInputError, match="my-vae: config.json but no weights") as e:
+        WorldModelBundle.from_pretrained("synth-world", vae=no_weights)
+    assert e.value.part == "vae"

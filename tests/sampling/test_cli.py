@@ -15,7 +15,7 @@ def setup(tmp_path_factory):
     from safetensors.torch import save_file
 
     from resim.shards.schema import COMMANDS
-    from tests.support.shards import add_dummy_prompts, make_dummy_sample
+    from tests.support.shards import add_dummy_prompts, make_dummy_sample, write_data_encode
     from resim.shards.writer import ShardWriter
     from resim.models.world.config import preset
     from resim.models.world.dit import WorldModel
@@ -42,6 +42,7 @@ def setup(tmp_path_factory):
     ck = root / "run" / "final"
     ck.mkdir(parents=True)
     (ck / "config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {"preset": "tiny"}}))
+    write_data_encode(ck)
     save_file({k: v.contiguous() for k, v in wm.state_dict().items()}, str(ck / "model.safetensors"))
     tc = RewardTrainConfig()
     save_checkpoint(Video2Reward(tc.model), root / "reward", tc)

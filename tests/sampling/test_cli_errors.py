@@ -21,7 +21,7 @@ def env(tmp_path_factory):
     from safetensors.torch import save_file
 
     from resim.shards.schema import ClipSpec
-    from tests.support.shards import add_dummy_prompts, dummy_frames, make_dummy_sample
+    from tests.support.shards import add_dummy_prompts, dummy_frames, make_dummy_sample, write_data_encode
     from resim.shards.video import encode_mp4
     from resim.shards.writer import ShardWriter
     from resim.models.world.config import preset
@@ -43,6 +43,7 @@ def env(tmp_path_factory):
     ck = root / "run" / "final"
     ck.mkdir(parents=True)
     (ck / "config.yaml").write_text(yaml.safe_dump({"model_name": "world", "model": {"preset": "tiny"}}))
+    write_data_encode(ck)
     save_file({k: v.contiguous() for k, v in WorldModel(preset("tiny")).state_dict().items()},
               str(ck / "model.safetensors"))
     tc = RewardTrainConfig()

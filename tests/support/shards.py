@@ -13,6 +13,7 @@ import io
 import json
 import tarfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -183,3 +184,9 @@ def insert_raw_sample(root, shard: str, key: str, overrides: dict[str, bytes | N
     idx["sha256"], idx["bytes"] = sha256_file(path)
     layout.index_path(root, shard).write_text(json.dumps(idx, indent=1, sort_keys=True) + "\n")
     return key
+
+
+def write_data_encode(folder, vae: str = "placeholder-cogvideox-vae-tiny") -> None:
+    """The ``data_encode.yaml`` a trained export carries (``resim.sample.load.ENCODE_FILE``): which VAE encoded the
+    model's latents. Hand-made test checkpoints write it as training does; without it loading refuses to guess."""
+    (Path(folder) / "data_encode.yaml").write_text(f"encode:\n  vae: {vae}\n")

@@ -29,4 +29,7 @@ def write_world_dataset(root, num_samples=12, per_shard=4, sources=("synthetic",
                                           command=COMMANDS[i % 3], seed=seed * 1000 + i, latent_channels=16,
                                           latent_hw=(8, 12), frames_hw=(16, 24), spec=(specs or {}).get(src)))
                 i += 1
+    # the encode section a pipeline's config.yaml holds (the trainer copies it into RUN/final/data_encode.yaml, so
+    # a sampler knows the decoder): these random latents stand for the shipped placeholder VAE's
+    (Path(root) / "config.yaml").write_text("encode:\n  vae: placeholder-cogvideox-vae-tiny\n")
     return Path(root)
