@@ -24,7 +24,7 @@ CLIP = ["clip.fps_hz=2.5", "labels.labeler.flow.sample_hz=2.5", "clip.num_histor
 def _vae_folder(tmp_path, ratio: int):
     cfg = json.loads((REPO / "configs/models/placeholder-cogvideox-vae-tiny/config.json").read_text())
     cfg["temporal_compression_ratio"] = ratio
-    folder = tmp_path / f"vae-r{ratio}"
+    folder = tmp_path / f"placeholder-vae-r{ratio}"   # a seeded stand-in: only placeholder-* folders may lack weights
     folder.mkdir()
     (folder / "config.json").write_text(json.dumps(cfg))
     return folder
