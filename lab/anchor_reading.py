@@ -20,7 +20,6 @@ Prints one block per checkpoint and appends one JSON row each to ``--out`` (defa
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 from pathlib import Path
@@ -30,8 +29,8 @@ import torch
 
 from resim.diffusion.schedule import add_noise, alphas_cumprod, v_target
 from resim.eval.command_loss import OPPOSITE
-from resim.eval.worldeval import eval_clips_from_dataset
 from resim.sample.load import PromptSource, load_world_model, run_objective
+from x0_reading import one_per_episode   # lab/, run as a script: its folder is on sys.path
 
 
 def _mse(pred: torch.Tensor, target: torch.Tensor, h: int) -> torch.Tensor:
@@ -53,12 +52,7 @@ def _weights_step(final: Path) -> int | None:
 
 @torch.no_grad()
 def read(checkpoint: str, shards: Path, clips: int, levels: list[int], seed: int = 0) -> dict:
-    by_episode: dict[str, list] = {}
-    for c in eval_clips_from_dataset(shards, items=None, need_trajectory=True):
-        if c.command in OPPOSITE:
-            by_episode.setdefault(c.item_id, []).append(c)
-    # one clip per episode in turn: the dataset's order would give the many clips of its first two episodes
-    cs = [c for group in itertools.zip_longest(*by_episode.values()) for c in group if c is not None][:clips]
+    cs = one_per_episode(shards, clips, keep=lambda c: c.command in OPPOSITE, need_trajectory=True)
     if not cs:
         raise SystemExit(f"{shards}: no turning clips with a trajectory")
     model, info = load_world_model(checkpoint, "cpu", torch.float32)

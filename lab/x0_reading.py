@@ -40,10 +40,13 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(255 ** 2 / max(mse, 1e-10)))
 
 
-def _clips(shards: Path, n: int) -> list:
+def one_per_episode(shards: Path, n: int, keep=lambda clip: True, need_trajectory: bool = False) -> list:
+    """Up to ``n`` clips of ``shards`` that ``keep`` accepts, one episode after another in turn (the dataset's order
+    would give the many clips of its first episodes)."""
     by_episode: dict[str, list] = {}
-    for c in eval_clips_from_dataset(shards, items=None, need_trajectory=False):
-        by_episode.setdefault(c.item_id, []).append(c)
+    for c in eval_clips_from_dataset(shards, items=None, need_trajectory=need_trajectory):
+        if keep(c):
+            by_episode.setdefault(c.item_id, []).append(c)
     return [c for g in itertools.zip_longest(*by_episode.values()) for c in g if c is not None][:n]
 
 
@@ -51,7 +54,7 @@ def _clips(shards: Path, n: int) -> list:
 def read(checkpoint: str, shards: Path, clips: int, ddim_steps: int = 20, seed: int = 0) -> tuple[dict, np.ndarray]:
     wm = WorldModelBundle.from_pretrained(checkpoint, shards=shards)
     ac = alphas_cumprod(wm.objective.schedule)
-    cs = _clips(shards, clips)
+    cs = one_per_episode(shards, clips)
     x0 = torch.from_numpy(np.stack([c.latents for c in cs])).float()
     h, b = cs[0].num_history_latents, len(cs)
     prompts = wm.prompts()
