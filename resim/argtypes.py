@@ -1,5 +1,6 @@
 """argparse types shared by the subcommands: a bad value is a one-line usage error (exit 2), not a traceback.
-Also :func:`wrap`, for descriptions of parsers that keep their epilog's layout.
+Also :func:`wrap`, for descriptions of parsers that keep their epilog's layout, and :func:`add_settings_args`, the
+``--config`` / ``--set`` of the sampling commands.
 
 Why typed and not ``if args.x:``: a 0 used to mean "the default" or "all" by accident (``--stride 0``,
 ``--limit 0``, ``--steps 0``), and a negative count reached ``random.sample`` as a traceback.
@@ -92,3 +93,18 @@ def local_dir(text: str) -> str:
 def wrap(text: str) -> str:
     """A description wrapped here, so a RawDescriptionHelpFormatter parser can keep its epilog's layout."""
     return textwrap.fill(text, width=90)
+
+
+SETTINGS_HELP = ("settings beyond the flags: YAML file with sections rollout (resim.sample.rollout.RolloutConfig), "
+                 "runtime (resim.sample.settings.RuntimeConfig){extra}")
+
+
+def add_settings_args(p: argparse.ArgumentParser, sections: tuple[str, ...] = ()) -> None:
+    """``--config FILE`` and ``--set SECTION.KEY=VALUE`` of a sampling command (resolved by
+    ``resim.sample.settings.resolve_settings``); ``sections``: its own sections beside rollout and runtime."""
+    extra = "".join(f", {s}" for s in sections)
+    p.add_argument("--config", default=None, metavar="FILE", help=SETTINGS_HELP.format(extra=extra))
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one setting, applied after --config (repeatable), e.g. --set rollout.chunk_frames=1 "
+                        "--set rollout.guidance.scale_start=5 --set runtime.compile=on --set runtime.text_encoder=DIR"
+                        + (f"; sections rollout, runtime{extra}" if extra else ""))

@@ -98,6 +98,33 @@ def test_a_changed_option_or_command_is_reported():
     assert snapshot_diff(want, want) == []
 
 
+MAX_OPTIONS = 16   # past ~15 a usage line stops being read; the rest goes to --config / --set (resim.sample.settings)
+
+
+def option_count(parser: argparse.ArgumentParser) -> int:
+    """The options its usage line shows, each counted once whatever its spellings (-h/--help left out)."""
+    return sum(1 for a in parser._actions if a.option_strings and a.help is not argparse.SUPPRESS
+               and not isinstance(a, argparse._HelpAction))
+
+
+def test_no_command_has_more_than_a_handful_of_options():
+    crowded = {" ".join(("resim", *path)): option_count(p) for path, p in command_paths(build_parser()).items()
+               if option_count(p) > MAX_OPTIONS}
+    assert not crowded, f"commands with more than {MAX_OPTIONS} options (group the rest under --set): {crowded}"
+
+
+def test_the_option_count_is_read_from_the_parser():
+    """The control: a parser with 17 options is crowded, one with 16 is not; two spellings are one option."""
+    for n, crowded in ((MAX_OPTIONS, False), (MAX_OPTIONS + 1, True)):
+        p = argparse.ArgumentParser()
+        for i in range(n):
+            p.add_argument(f"--o{i}")
+        assert (option_count(p) > MAX_OPTIONS) is crowded
+    p = argparse.ArgumentParser()
+    p.add_argument("-q", "--quiet", action="store_true")
+    assert option_count(p) == 1
+
+
 RENAMED = {("reward",): ("score",), ("reward-features",): ("shards", "features"), ("eval", "idm"): ("train", "idm")}
 
 

@@ -29,7 +29,7 @@ ALLOWED = {
     "resim/train/cli.py": (5, CLI),
     "resim/train/launch.py": (3, CLI),
     "resim/eval/cli.py": (34, CLI),
-    "resim/sample/cli.py": (20, CLI),
+    "resim/sample/cli.py": (19, CLI),
     "resim/train/tasks/reward/cli.py": (20, CLI),
     "resim/train/tasks/policy_cli.py": (2, CLI),
     "resim/eval/simulate_cli.py": (1, CLI),

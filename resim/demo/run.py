@@ -267,7 +267,7 @@ def eval_steps(cfg: DemoConfig, out: Path) -> list[Step]:
     clips of the episodes the IDM held out (on a tiny trained world model)."""
     data, ev = out / "shards", out / "eval"
     wm = ["--checkpoint", str(world_model_dir(cfg.world_model, out)), "--shards", str(data), "--steps",
-          str(cfg.ddim_steps), "--seed", str(cfg.seed), "--batch-size", "4"]
+          str(cfg.ddim_steps), "--seed", str(cfg.seed), "--set", "runtime.batch_size=4"]
     world = [*wm, "--heldout-from", str(ev / "idm")]
     return [
         # every clip of the demo's world is held out from the shipped model (trained on other seeds)
@@ -288,7 +288,8 @@ def eval_steps(cfg: DemoConfig, out: Path) -> list[Step]:
         Step("eval: closed loop", ev / "closed_loop",
              ["eval", "closed-loop", "--checkpoint", str(world_model_dir(cfg.world_model, out)), "--shards", str(data),
               "--policy", SYNTH_POLICY, "--idm", SYNTH_IDM, "--reward", str(out / "reward_model"),
-              "--variants", *cfg.closed_loop_variants, "--states", str(cfg.closed_loop_states),
+              "--set", f"closed_loop.variants=[{', '.join(cfg.closed_loop_variants)}]",
+              "--set", f"closed_loop.states={cfg.closed_loop_states}",
               "--seconds", str(cfg.closed_loop_seconds), "--steps", str(cfg.closed_loop_steps),
               "--seed", str(cfg.seed), "--out", str(ev / "closed_loop")]),
     ]

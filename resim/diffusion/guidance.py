@@ -26,7 +26,7 @@ from typing import Literal
 
 import torch
 
-from resim.config import ConfigError, from_dict
+from resim.config import ConfigError, check_positive, from_dict
 
 ScheduleKind = Literal["constant", "linear", "cosine"]
 
@@ -93,6 +93,8 @@ class GuidanceConfig:
             raise ConfigError(f"guidance.schedule={self.schedule!r} not in constant/linear/cosine")
         if not 0.0 <= self.rescale_phi <= 1.0:
             raise ConfigError(f"guidance.rescale_phi={self.rescale_phi} not in [0, 1]")
+        for name in ("scale_start", "scale_end"):
+            check_positive(f"guidance.{name}", getattr(self, name), allow_zero=True)
         if self.enabled and not (self.drop_text or self.drop_trajectory or self.drop_recent_actions):
             raise ConfigError("guidance is enabled but the unconditional branch drops nothing "
                               "(set drop_text, drop_trajectory or drop_recent_actions, or enabled=false)")
@@ -121,8 +123,9 @@ def guidance_preset(name: str, **overrides) -> GuidanceConfig:
 
 
 def guidance_from_cli(name: str, scale_start: float | None = None, schedule: ScheduleKind | None = None) -> GuidanceConfig:
-    """The guidance of a sampling command (`resim sample/plan/eval`): preset ``name`` with the command line's
-    ``--guidance-scale`` and ``--guidance-schedule``. A constant preset (vid2world) keeps its scale at every step,
+    """The guidance of a sampling command (`resim sample/plan/eval`, ``rollout.guidance.*`` of its settings, or a
+    distillation's teacher): preset ``name`` with a start scale and a schedule. A constant preset (vid2world)
+    keeps its scale at every step,
     so the scale sets its end too; ``none`` ignores both."""
     if name == "none":
         return guidance_preset(name)

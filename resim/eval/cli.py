@@ -15,17 +15,15 @@ import time
 import warnings
 from pathlib import Path
 
-from resim.argtypes import height_width as _hw, local_dir as _local_dir, positive_int as _positive_int
+from resim.argtypes import add_settings_args, local_dir as _local_dir, positive_int as _positive_int
 from resim.argtypes import torch_device as _torch_device
 from resim.config import ConfigError, apply_overrides, from_dict, to_dict
 from resim.models.policy.variants import HELP as CL_VARIANTS_HELP, VARIANTS as CL_VARIANTS
 from resim.sample.cli import UsageError, resolve_device
-from resim.sample.compile import add_compile_args, maybe_compile
+from resim.sample.compile import maybe_compile
 from resim.shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
-from resim.shipped import shipped_model
+from resim.shipped import PLACEHOLDER_T5, shipped_dir, shipped_model
 
-REPO = Path(__file__).resolve().parents[2]
-DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
 
 EPILOG = """\
 typical flow (held-out = the episodes the IDM did not train on):
@@ -39,11 +37,13 @@ typical flow (held-out = the episodes the IDM did not train on):
   resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --allow-placeholder-networks                                 # plumbing check, random-init networks
   resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
-      --fid-weights W/pt_inception-2015-12-05-6726825d.pth --fvd-weights W/rgb_imagenet.pt \\
-      --lpips-trunk W/vgg16-397923af.pth --lpips-head W/lpips_vgg_v0.1.pth
+      --set quality.fid_weights=W/pt_inception-2015-12-05-6726825d.pth --set quality.fvd_weights=W/rgb_imagenet.pt \\
+      --set quality.lpips_trunk_weights=W/vgg16-397923af.pth --set quality.lpips_head_weights=W/lpips_vgg_v0.1.pth
 
 Weights are never downloaded; docs/eval.md says where to get the standard ones. Without them quality runs
 only with --allow-placeholder-networks (random-init networks, marked as such everywhere).
+Settings beyond the flags of each command: --set rollout.* / runtime.* (resim sample --help lists them) and the
+command's own section (quality.*, commands.*, planning.*, closed_loop.*), or a --config YAML file.
 """
 
 
@@ -54,14 +54,17 @@ examples:
   resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
       --allow-placeholder-networks                 # no weights needed: random-init networks (plumbing only)
   resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
-      --fid-weights W/pt_inception-2015-12-05-6726825d.pth --fvd-weights W/rgb_imagenet.pt \\
-      --lpips-trunk W/vgg16-397923af.pth --lpips-head W/lpips_vgg_v0.1.pth
+      --set quality.fid_weights=W/pt_inception-2015-12-05-6726825d.pth --set quality.fvd_weights=W/rgb_imagenet.pt \\
+      --set quality.lpips_trunk_weights=W/vgg16-397923af.pth --set quality.lpips_head_weights=W/lpips_vgg_v0.1.pth
 
 Weights are never downloaded (docs/eval.md says where to get them); without them, or without
 --allow-placeholder-networks, FID/FVD/LPIPS are refused before anything is loaded. Without --heldout-from the
 clips of --shards the IDM did not train on cannot be told apart: pass --all-clips to evaluate every clip.
 Writes OUT/quality.json (per-horizon metrics + the protocol: clips, world model, rollout, networks) and
 OUT/quality.png (metrics per horizon).
+Settings (--set quality.KEY=VALUE; resim.eval.quality.QualityConfig): horizons_s (default 1 2 4 ... s),
+resolution_hw ([H, W] to score at; default the recorded frames'), fid_weights, fvd_weights, lpips_net (vgg|alex),
+lpips_trunk_weights, lpips_head_weights, dreamsim_dir, feature_batch_size. Also rollout.* and runtime.*.
 """
 
 CONTROL_EPILOG = """\
@@ -94,8 +97,13 @@ without the labeler: each rollout lands on the nearest recorded sibling future (
 sibling had the command it was given ("counterfactual branches"; the VAE does not cap it). Only the fork clips:
   resim eval commands --checkpoint synth-world --shards data/forks --all-clips --counterfactual-only \
       --steps 25 --out out/branches
-Add --trajectory-branches to score ReSim's trajectory conditioning the same way: the forks whose clips carry a
-recorded trajectory (CARLA layout) are also rolled out with the null prompt under each sibling's trajectory.
+Add --set commands.trajectory_branches=true to score ReSim's trajectory conditioning the same way: the forks
+whose clips carry a recorded trajectory (CARLA layout) are also rolled out with the null prompt under each
+sibling's trajectory (about 3 more rollouts per such clip).
+Settings (--set commands.KEY=VALUE; resim.eval.command_following.CommandsEvalConfig): horizons_s (fidelity
+horizons after the last history frame, default [0.5, 1, 2, 4]), trajectory_branches, group_ends (diagnostic:
+also read every video with the frames inside each latent group redrawn by optical-flow interpolation between
+the group ends; ~1 s more per video). Also rollout.* and runtime.*.
 """
 
 COMMAND_LOSS_EPILOG = """\
@@ -121,7 +129,13 @@ with your own policy (and an under-trained one beside it) and IDM:
   resim eval closed-loop --checkpoint synth-world --shards data/forks --policy runs/policy \\
       --also runs/policy-1-epoch --idm runs/idm --reward runs/reward --out out/closed-loop --steps 10
 --shards gives the prompt table and the VAE the world model was trained with; the starting states are built
-from --state-seed, not read from it. Writes OUT/closed_loop.json and OUT/closed_loop.png (true score against
+from closed_loop.state_seed, not read from it.
+Settings (--set closed_loop.KEY=VALUE; resim.eval.policy_ranking.ClosedLoopRun): states (starting states,
+default 6), state_seed (default 5000: use one no training data came from), variants (which graded policies
+drive, default all: {variants}), true_only (the true world only, no world model), world_command (prompt the
+world model with the itinerary's command too; default the null prompt, so the policy's plan alone says where
+the car goes), replay (also drive the world model with the true loop's own plans: tells the world model's
+answer to an action apart from the policy's answer to its frames; twice the world-model time). Writes OUT/closed_loop.json and OUT/closed_loop.png (true score against
 each world-model reading, one point per policy).
 """
 
@@ -143,6 +157,8 @@ example:
 
 Writes OUT/planning.json (ADE/FDE of the video-prediction policy, the VO planner, constant velocity and the
 IDM on the recorded future; the protocol) and OUT/planning.png (bar chart).
+Settings: --set planning.with_command=true gives the policy the clip's command prompt (default: none);
+rollout.* and runtime.* as for every rollout command.
 """
 
 # `resim train idm --preset` (resim.models.idm.IDM_PRESETS; listed here so that --help needs no torch import).
@@ -156,37 +172,33 @@ IDM_PRESET_HELP = ("IDM preset: tiny (32x48 input, 48 k parameters, odometry hea
                    "and 168 clips: tiny about 3-7 min, small about 10 min")
 
 
-def _world_args(p: argparse.ArgumentParser) -> None:
+def _world_args(p: argparse.ArgumentParser, sections: tuple[str, ...] = (), clips: bool = True) -> None:
+    """The world-model arguments of the commands that roll it out; ``sections``: the command's own settings sections
+    (``--set NAME.KEY=VALUE``, beside rollout and runtime: resim.sample.settings); ``clips``: it reads evaluation
+    clips (held-out split, limit)."""
     p.add_argument("--checkpoint", required=True,
                    help="world-model run folder (or its final/), or a shipped model name (synth-world)")
     p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--heldout-from", default=None,
-                   help="an IDM run folder or idm_report.json: evaluate only its held-out episodes "
-                        "(default for control/planning: the --idm run's)")
-    p.add_argument("--all-clips", action="store_true",
-                   help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
-    p.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, taken round-robin over the episodes (key order within each)")
+    if clips:
+        p.add_argument("--heldout-from", default=None,
+                       help="an IDM run folder or idm_report.json: evaluate only its held-out episodes "
+                            "(default for control/planning: the --idm run's)")
+        p.add_argument("--all-clips", action="store_true",
+                       help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
+        p.add_argument("--limit", type=_positive_int, default=None,
+                       help="at most N clips, taken round-robin over the episodes (key order within each)")
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
     p.add_argument("--steps", type=_positive_int, default=None,
                    help="DDIM steps (default: the preset's 50; a distilled student: its own, e.g. 4)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
-    p.add_argument("--guidance-scale", type=float, default=None,
-                   help="start guidance scale (default: the preset's, 7.5 for resim, decreasing linearly to 1; 15 "
-                        "in a resim-preset closed loop whose world model gets the null prompt: closed-loop, simulate)")
-    p.add_argument("--guidance-schedule", default=None, choices=["linear", "constant", "cosine"],
-                   help="how the scale goes from the start to 1 over the DDIM steps (default: the preset's, linear "
-                        "for resim; constant keeps the start scale at every step)")
-    p.add_argument("--batch-size", type=_positive_int, default=4, help="clips rolled out together")
     p.add_argument("--seed", type=int, default=0, help="seed of the rollouts' noise (default 0)")
     p.add_argument("--vae", type=_local_dir, default=None,
                    help="local CogVideoX VAE folder (default: the one that encoded --shards, from its config.yaml; "
                         "nothing is downloaded)")
-    p.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
-                   help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     p.add_argument("--device", type=_torch_device, default=None,
                    help="cpu, cuda or cuda:N (default: cuda if available)")
-    add_compile_args(p)
+    add_settings_args(p, sections)
 
 
 def _probe_args(p: argparse.ArgumentParser) -> None:
@@ -198,7 +210,7 @@ def _probe_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
     p.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
     p.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
-    p.add_argument("--text-encoder", type=_local_dir, default=str(DEFAULT_T5),
+    p.add_argument("--text-encoder", type=_local_dir, default=str(shipped_dir(PLACEHOLDER_T5)),
                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
     p.add_argument("--device", type=_torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
 
@@ -214,16 +226,8 @@ def register(subparsers) -> None:
                        description="Roll the world model out from each evaluation clip's history (its recorded "
                                    "command) and compare the generated future with the recorded one, per horizon.",
                        epilog=QUALITY_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _world_args(q)
+    _world_args(q, ("quality",))
     q.add_argument("--metrics", nargs="+", default=["psnr", "ssim", "lpips", "fid", "fvd", "dreamsim"])
-    q.add_argument("--resolution", type=_hw, default=None, help="HxW to score at (default: the recorded frames' size)")
-    q.add_argument("--horizons", type=float, nargs="+", default=None, help="horizons in s (default 1 2 4 ...)")
-    q.add_argument("--fid-weights", default=None, help="pytorch-fid pt_inception-2015-12-05-6726825d.pth")
-    q.add_argument("--fvd-weights", default=None, help="pytorch-i3d rgb_imagenet.pt")
-    q.add_argument("--lpips-net", default="vgg", choices=["vgg", "alex"])
-    q.add_argument("--lpips-trunk", default=None, help="torchvision vgg16-397923af.pth / alexnet-owt-7be5be79.pth")
-    q.add_argument("--lpips-head", default=None, help="lpips weights/v0.1/{vgg,alex}.pth")
-    q.add_argument("--dreamsim-dir", default=None, help="local DreamSim cache with the extracted checkpoint")
     q.add_argument("--allow-placeholder-networks", action="store_true",
                    help="use random-init networks where no weights are given (plumbing only; marked in the report)")
     q.set_defaults(func=_cmd_quality)
@@ -243,21 +247,11 @@ def register(subparsers) -> None:
                                     "the optical-flow labeler (and the IDM), report confusion matrices, accuracy "
                                     "and fidelity per horizon against copy-last-frame.",
                         epilog=COMMANDS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _world_args(cm)
+    _world_args(cm, ("commands",))
     cm.add_argument("--idm", default=None, help="IDM run folder: also classify by the IDM's trajectory")
-    cm.add_argument("--horizons", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0],
-                    help="fidelity horizons in s after the last history frame (default 0.5 1 2 4)")
     cm.add_argument("--counterfactual-only", action="store_true",
                     help="only the clips whose history other clips share under another command (the synthetic "
                          "world's forks), whole groups; --limit then caps the clips, group by group")
-    cm.add_argument("--trajectory-branches", action="store_true",
-                    help="also roll each fork's history out with the null prompt under each sibling's recorded "
-                         "trajectory and score the branch it lands on (forks whose clips carry trajectories: the "
-                         "CARLA layout's; about 3 more rollouts per such clip)")
-    cm.add_argument("--group-ends", action="store_true",
-                    help="diagnostic: also read every video with the frames inside each 4-frame latent group "
-                         "redrawn by optical-flow interpolation between the group ends (what the latents turn, "
-                         "without the decoder's cross-fade inside a group; adds ~1 s per video)")
     cm.set_defaults(func=_cmd_commands)
 
     cl = sub.add_parser("command-loss", help="does the model use the command? its loss under each command (no sampling)",
@@ -314,10 +308,9 @@ def register(subparsers) -> None:
                                     "path off it with the IDM, and compare it (ADE/FDE) with the recorded one, next "
                                     "to a history-only VO planner and a constant-velocity baseline.",
                         epilog=PLANNING_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _world_args(pl)
+    _world_args(pl, ("planning",))
     pl.add_argument("--idm", required=True, help="IDM run folder (resim train idm)")
     pl.add_argument("--planner", default=None, help="VO-style planner run folder (resim train idm --window history)")
-    pl.add_argument("--with-command", action="store_true", help="give the policy the clip's command prompt")
     pl.set_defaults(func=_cmd_planning)
 
     cl = sub.add_parser("closed-loop", help="policies driven in the true synthetic world and inside the world model: "
@@ -327,44 +320,37 @@ def register(subparsers) -> None:
                                     "simulator and inside the world model; score each by the true rules and by the "
                                     "IDM proxy on the video; report Spearman's rho across policies with a bootstrap "
                                     "over states (docs/closed_loop.md).",
-                        epilog=CLOSED_LOOP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _world_args(cl)
+                        epilog=CLOSED_LOOP_EPILOG.replace("{variants}", CL_VARIANTS_HELP),
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    _world_args(cl, ("closed_loop",), clips=False)
     cl.add_argument("--policy", required=True,
                     help="policy run folder (resim train policy) or synth-policy (shipped)")
     cl.add_argument("--also", nargs="*", default=[], metavar="POLICY_RUN",
                     help="more policy runs to rank beside it (e.g. an under-trained one)")
     cl.add_argument("--idm", required=True,
                     help="IDM run folder (resim train idm) or synth-idm (shipped): reads the driven path off video")
-    cl.add_argument("--variants", nargs="+", default=list(CL_VARIANTS), choices=list(CL_VARIANTS), metavar="NAME",
-                    help=f"which of the graded policies drive (default all): {CL_VARIANTS_HELP}")
     cl.add_argument("--reward", default=None, metavar="REWARD_RUN",
                     help="Video2Reward run (resim train reward): a second world-model reading, beside the IDM proxy")
-    cl.add_argument("--states", type=_positive_int, default=6, help="starting states (fork worlds; default 6)")
-    cl.add_argument("--state-seed", type=int, default=5000,
-                    help="seed of the starting-state worlds (default 5000: use one no training data came from)")
     cl.add_argument("--seconds", type=float, default=8.0, help="seconds the policy drives after the 0.8-s history "
                     "(>= 4; default 8)")
-    cl.add_argument("--true-only", action="store_true", help="the true world only (no world model: seconds)")
-    cl.add_argument("--world-command", action="store_true",
-                    help="prompt the world model with the itinerary's command too (default: the null prompt, so "
-                         "the policy's plan alone says where the car goes; the policy is always told the command; "
-                         "docs/closed_loop.md)")
-    cl.add_argument("--replay", action="store_true",
-                    help="also drive the world model with the true loop's own plans (no policy reads its frames): "
-                         "tells the world model's answer to an action apart from the policy's answer to its "
-                         "frames (twice the world-model time)")
     cl.set_defaults(func=_cmd_closed_loop)
 
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _device(args, name: str) -> bool:
-    """Resolve --device in place (cuda on a CPU-only build, a missing cuda:N: one line, before any loading)."""
+def _device(args, name: str, sections: dict | None = None) -> bool:
+    """Resolve --device in place (cuda on a CPU-only build, a missing cuda:N: one line, before any loading), and,
+    for a command that rolls the world model out, its settings into ``args.settings`` (--config / --set:
+    resim.sample.settings; ``sections``: the command's own, name -> config class)."""
+    from resim.sample.settings import resolve_settings
+
     try:
         args.device = resolve_device(args.device)
-    except UsageError as e:
-        print(f"resim eval {name}: {e}", file=sys.stderr)
+        if hasattr(args, "overrides"):
+            args.settings = resolve_settings(args, sections)
+    except (UsageError, ConfigError) as e:
+        print(f"{'resim' if name == 'simulate' else 'resim eval'} {name}: {e}", file=sys.stderr)
         return False
     return True
 
@@ -426,33 +412,40 @@ def _heldout_items(path: str | None, all_clips: bool = False):
 
 def _runner(args):
     """The rollout set-up of every `resim eval` protocol (and of `simulate` / `eval closed-loop`, through
-    ``make_runner``): the world model as one bundle (resim.sample.bundle), its rollout config, the runner."""
+    ``make_runner``): the world model as one bundle (resim.sample.bundle), its rollout config (``args.settings``,
+    resolved by :func:`_device`), the runner."""
+    import torch
+
     from resim.eval.worldeval import WorldRollouts
     from resim.sample.bundle import BundleLoadError, WorldModelBundle
-    from resim.sample.load import PromptSource
 
-    device = args.device
+    device, st = args.device, args.settings
+    rt, cfg = st.runtime, st.rollout
+    say = lambda m: print(f"[resim eval] {m}", file=sys.stderr, flush=True)   # noqa: E731
     try:
-        wm = WorldModelBundle.from_pretrained(args.checkpoint, device=device, vae=args.vae,
-                                              text_encoder=args.text_encoder, shards=args.shards)
+        wm = WorldModelBundle.from_pretrained(args.checkpoint, device=device, dtype=getattr(torch, rt.dtype),
+                                              vae=args.vae, text_encoder=rt.text_encoder, shards=args.shards)
     except BundleLoadError as e:
         raise SystemExit(f"resim eval: --{e.part}: {e}") from None
-    cfg = wm.rollout_config(args.preset, args.steps, args.guidance_scale, args.no_guidance, args.guidance_schedule,
-                            log=lambda m: print(f"[resim eval] {m}", file=sys.stderr))
+    try:
+        wm.check_rollout_config(cfg)   # steps and levels against the run's noise schedule
+    except ConfigError as e:
+        raise SystemExit(f"resim eval: {e}") from None
+    if st.origin:
+        say(st.origin)
     model, vae = wm.model, wm.vae
-    info = {**wm.info, **maybe_compile(model, args.compile, device, mode=args.compile_mode,
-                                       log=lambda m: print(f"[resim eval] {m}", file=sys.stderr))}
-    prompts = PromptSource(Path(args.shards), args.text_encoder, device=device,
-                           max_tokens=model.cfg.max_text_seq_length)
+    if rt.attention is not None:
+        model.set_attention_backend(rt.attention)
+    info = {**wm.info, **maybe_compile(model, rt.compile, device, mode=rt.compile_mode, log=say)}
+    prompts = wm.prompts()   # --shards' prompt table, else the text encoder
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,
-                           batch_size=args.batch_size, schedule=wm.objective.schedule,
-                           log=lambda m: print(f"[resim eval] {m}", file=sys.stderr, flush=True))
+                           batch_size=rt.batch_size, schedule=wm.objective.schedule, log=say)
     guidance = args.preset if cfg.guidance.enabled else "none"
     meta = {**info, "vae_id": vae.info.vae_id, "vae_placeholder": vae.info.placeholder, "device": device,
             "rollout": {k: v for k, v in to_dict(cfg).items() if k != "guidance"},
-            "guidance": guidance, "guidance_scale_start": args.guidance_scale,
+            "guidance": guidance, "guidance_scale_start": cfg.guidance.scale_start if guidance != "none" else None,
             "guidance_schedule": cfg.guidance.schedule if guidance != "none" else None,
-            "seed": args.seed}
+            "runtime": to_dict(rt), "seed": args.seed}
     return runner, meta
 
 
@@ -502,19 +495,20 @@ def _cmd_quality(args) -> int:
     from resim.eval.worldeval import quality_eval
 
     # inputs first (clips, config, weight files), so a mistake costs no model load and no rollout
-    if not _device(args, "quality"):
+    if not _device(args, "quality", {"quality": dict}):
         return 2
     clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips))
+    # what the clips and the flags decide is not a setting: the rest of QualityConfig is (--set quality.KEY=VALUE)
+    given = {"value_range": "uint8", "fps_hz": clips[0].fps_hz, "num_conditioning_frames": clips[0].num_history_frames,
+             "metrics": list(args.metrics), "allow_placeholder_networks": args.allow_placeholder_networks,
+             "device": args.device}
+    user = args.settings.section("quality")
     try:
-        qcfg = QualityConfig(value_range="uint8", fps_hz=clips[0].fps_hz,
-                             num_conditioning_frames=clips[0].num_history_frames,
-                             horizons_s=tuple(args.horizons or ()), resolution_hw=args.resolution or (0, 0),
-                             metrics=tuple(args.metrics),
-                             lpips_net=args.lpips_net, lpips_trunk_weights=args.lpips_trunk,
-                             lpips_head_weights=args.lpips_head, fid_weights=args.fid_weights,
-                             fvd_weights=args.fvd_weights, dreamsim_dir=args.dreamsim_dir,
-                             allow_placeholder_networks=args.allow_placeholder_networks,
-                             device=args.device)
+        taken = sorted(set(user) & set(given))
+        if taken:
+            raise ConfigError(f"quality.{taken[0]}: set by the clips or the flags, not a setting (the settings of "
+                              f"quality: the other keys of QualityConfig)")
+        qcfg = from_dict(QualityConfig, {**user, **given}, prefix="quality")
         nets = build_networks(qcfg, qcfg.device)
     except ConfigError as e:
         print(f"resim eval quality: {e}", file=sys.stderr)
@@ -631,14 +625,15 @@ def _cmd_control(args) -> int:
 
 def _cmd_commands(args) -> int:
     # commands.py imports counterfactual_groups from resim.eval.branches (one import line here, as for the others)
-    from resim.eval.command_following import balanced_clips, commands_eval, counterfactual_groups
+    from resim.eval.command_following import (CommandsEvalConfig, balanced_clips, commands_eval,
+                                              counterfactual_groups)
     from resim.eval.command_following_report import command_gif, command_strip, format_commands, plot_commands
     from resim.eval.report import format_protocol
     from resim.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
 
     from resim.shards.reader import ShardReadError
 
-    if not _device(args, "commands"):
+    if not _device(args, "commands", {"commands": CommandsEvalConfig}):
         return 2
     items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
     try:
@@ -674,8 +669,9 @@ def _cmd_commands(args) -> int:
     print(f"[resim eval commands] {len(clips)} clips x 4 prompts = {4 * len(clips)} rollouts of "
           f"{clips[0].latents.shape[0]} latent frames, {runner.cfg.num_steps} DDIM steps ...", file=sys.stderr)
     t0 = time.perf_counter()
-    rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=args.horizons,
-                        trajectory_branches=args.trajectory_branches, group_ends=args.group_ends)
+    opts = args.settings.section("commands")
+    rep = commands_eval(runner, clips, labeler, idm=idm, horizons_s=opts.horizons_s,
+                        trajectory_branches=opts.trajectory_branches, group_ends=opts.group_ends)
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     recorded = [c.command for c in clips]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
@@ -686,7 +682,7 @@ def _cmd_commands(args) -> int:
                        "world_model": meta, "idm": idm_info,
                        "conditions": "each history x {left, forward, right} (no trajectory) + the null prompt" +
                                      ("; forks with trajectories: the null prompt x each sibling's recorded "
-                                      "trajectory" if args.trajectory_branches else ""),
+                                      "trajectory" if opts.trajectory_branches else ""),
                        "labeler": "resim.labeling.flow.FlowLabeler preset default on the last history frame + the "
                                   "generated future",
                        "seconds": round(time.perf_counter() - t0, 2)}
@@ -754,15 +750,13 @@ def _cmd_drift(args) -> int:
 
 
 def _cmd_closed_loop(args) -> int:
-    from resim.eval.policy_ranking import ClosedLoopInputError, plot_closed_loop, run_closed_loop
+    from resim.eval.policy_ranking import ClosedLoopInputError, ClosedLoopRun, plot_closed_loop, run_closed_loop
 
-    if not _device(args, "closed-loop"):
-        return 2
-    if args.replay and args.true_only:
-        print("resim eval closed-loop: --replay drives the world model; it cannot go with --true-only", file=sys.stderr)
+    if not _device(args, "closed-loop", {"closed_loop": ClosedLoopRun}):
         return 2
     try:
-        rep, text = run_closed_loop(args, None if args.true_only else _runner)
+        true_only = args.settings.section("closed_loop").true_only
+        rep, text = run_closed_loop(args, None if true_only else _runner)
     except ClosedLoopInputError as e:
         print(f"resim eval closed-loop: {e}", file=sys.stderr)
         return 2
@@ -827,11 +821,11 @@ def _cmd_vae(args) -> int:
 def _cmd_planning(args) -> int:
     from resim.eval.report import format_protocol
     from resim.train.metrics import plot_bars
-    from resim.eval.worldeval import check_idm_window, planning_eval
+    from resim.eval.worldeval import PlanningEvalConfig, check_idm_window, planning_eval
 
 
     # inputs first: clips and the IDM's / planner's windows are checked before any rollout
-    if not _device(args, "planning"):
+    if not _device(args, "planning", {"planning": PlanningEvalConfig}):
         return 2
     device = args.device
     idm, idm_info = _load_idm(args.idm, device)
@@ -853,11 +847,12 @@ def _cmd_planning(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     runner, meta = _runner(args)
     t0 = time.perf_counter()
-    rep = planning_eval(runner, idm, planner, clips, with_command=args.with_command)
+    with_command = args.settings.section("planning").with_command
+    rep = planning_eval(runner, idm, planner, clips, with_command=with_command)
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
                        "heldout_from": "ALL CLIPS (--all-clips)" if args.all_clips else args.heldout_from or args.idm,
                        "idm": idm_info, "planner": planner_info,
-                       "policy_conditions": "clip command prompt" if args.with_command
+                       "policy_conditions": "clip command prompt" if with_command
                        else "none (null prompt, no trajectory)",
                        "constant_velocity": "straight at |waypoint_1| / 0.5 s (oracle initial speed)",
                        "world_model": meta, "seconds": round(time.perf_counter() - t0, 2)}

@@ -31,11 +31,13 @@ The rollouts are done by :class:`resim.eval.worldeval.WorldRollouts`, so they us
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 
+from resim.config import ConfigError
 from resim.eval.branches import (branch_matching, counterfactual_groups, sibling_trajectory_requests,
                                     trajectory_groups)
 from resim.eval.fidelity import psnr, ssim
@@ -115,6 +117,18 @@ def fidelity_per_horizon(gen: np.ndarray, ref: np.ndarray, num_history_frames: i
             row[f"ssim_{name}"] = float(ssim(video[:, sl], r[:, sl], "uint8").mean())
         rows.append(row)
     return {"per_horizon": rows, "clips": int(len(gen))}
+
+
+@dataclass
+class CommandsEvalConfig:
+    """`resim eval commands`' settings beyond its flags (``--set commands.KEY=VALUE``)."""
+    horizons_s: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)   # fidelity horizons after the last history frame
+    trajectory_branches: bool = False   # also roll the forks out under their siblings' recorded trajectories
+    group_ends: bool = False            # diagnostic: also read each video redrawn between its latent group ends
+
+    def __post_init__(self) -> None:
+        if not self.horizons_s or any(not h > 0 for h in self.horizons_s):
+            raise ConfigError(f"horizons_s={list(self.horizons_s)}: give one or more horizons > 0 s")
 
 
 def commands_eval(runner: WorldRollouts, clips: Sequence[EvalClip], labeler: Any, *, idm: Any = None,

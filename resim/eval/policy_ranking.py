@@ -34,6 +34,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from resim.config import ConfigError
 from resim.media.frames import cover_crop
 from resim.synthworld.closed_loop import LoopConfig, Observation, drive
 from resim.synthworld.drivers import Trace, simulate
@@ -49,6 +50,7 @@ from resim.models.policy.variants import VARIANTS
 from resim.models.reward.checkpoint import load_checkpoint as load_reward
 from resim.sample.load import sampling_defaults, trained_size_hw
 from resim.sample.reward_score import score_videos
+from resim.sample.settings import with_guidance_start
 from resim.sample.simulate import WorldModelLoop, loop_guidance_start
 from resim.train.tasks.idm import load_idm
 from resim.train.tasks.policy import load_policy
@@ -79,6 +81,26 @@ class ClosedLoopConfig:
         """The true loop of an episode of ``total_s``: the expert for ``history_s``, a decision every ``decision_s``."""
         return LoopConfig(seconds=total_s, handover_s=self.history_s, sim_hz=self.sim_hz, fps_hz=self.fps_hz,
                           replan_hz=1.0 / self.decision_s, history_frames=9)
+
+
+@dataclass
+class ClosedLoopRun:
+    """`resim eval closed-loop`'s settings beyond its flags (``--set closed_loop.KEY=VALUE``)."""
+    states: int = 6                   # starting states (fork worlds), >= 2
+    state_seed: int = 5000            # seed of the starting-state worlds: use one no training data came from
+    variants: tuple[str, ...] = tuple(VARIANTS)   # which graded policies drive (resim.models.policy.variants)
+    true_only: bool = False           # the true world only (no world model)
+    world_command: bool = False       # prompt the world model with the itinerary's command too (default: null)
+    replay: bool = False              # also drive the world model with the true loop's own plans
+
+    def __post_init__(self) -> None:
+        bad = [v for v in self.variants if v not in VARIANTS]
+        if bad or not self.variants:
+            raise ConfigError(f"variants={list(self.variants)}: give one or more of {', '.join(VARIANTS)}")
+        if self.states < 2:
+            raise ConfigError(f"states={self.states}: the ranking needs >= 2 starting states")
+        if self.replay and self.true_only:
+            raise ConfigError("replay drives the world model; it cannot go with true_only")
 
 
 @dataclass
@@ -304,35 +326,41 @@ def graded_policies(pixel: PixelPolicy, variants: Sequence[str] = tuple(VARIANTS
     return {VARIANTS[v]: make[v]() for v in variants}
 
 
-def loop_guidance(args: Any) -> None:
-    """``args.guidance_scale`` for a closed loop in the world model (``resim eval closed-loop``, ``resim simulate``):
-    the command line's, else ``loop_guidance_start``'s (15 with the null prompt; resim/sample/simulate.py)."""
+def loop_guidance(args: Any, world_command: bool) -> None:
+    """The start guidance scale of a closed loop in the world model (``resim eval closed-loop``, ``resim simulate``):
+    ``rollout.guidance.scale_start`` where the user set it, else ``loop_guidance_start``'s (15 with the null prompt;
+    resim/sample/simulate.py), written into ``args.settings``."""
+    st = args.settings
+    if st.scale_start_given:
+        return
     unguided = sampling_defaults(args.checkpoint).get("guidance") == "none"
-    args.guidance_scale = loop_guidance_start(args.guidance_scale, args.preset, args.no_guidance, args.world_command,
-                                              unguided)
+    start = loop_guidance_start(None, args.preset, args.no_guidance, world_command, unguided)
+    if start is not None:
+        st.rollout = with_guidance_start(st.rollout, start)
 
 
 def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]:
     """``resim eval closed-loop``: parsed ``args``; ``make_runner(args) -> (WorldRollouts, meta)`` builds the
     world model, its VAE and prompts (None: the true world only). Returns (report, text)."""
     try:
-        cfg = ClosedLoopConfig(seed=args.state_seed, states=args.states, seconds=args.seconds)
+        run = args.settings.section("closed_loop")
+        cfg = ClosedLoopConfig(seed=run.state_seed, states=run.states, seconds=args.seconds)
         pixel, pinfo = load_policy(args.policy, args.device)
         extra = {Path(r).name: load_policy(r, args.device)[0] for r in args.also}
         idm, _ = load_idm(args.idm, args.device)
         reward = load_reward(args.reward, args.device) if args.reward else None
     except (ValueError, FileNotFoundError) as e:
         raise ClosedLoopInputError(str(e)) from None
-    policies = {**graded_policies(PixelPolicy(pixel, args.device), args.variants),
+    policies = {**graded_policies(PixelPolicy(pixel, args.device), run.variants),
                 **{name: PixelPolicy(m, args.device) for name, m in extra.items()}}
     clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(pixel.cfg.frame_hw)
     loop, vae, meta = None, None, {}
     if make_runner is not None:
-        loop_guidance(args)
+        loop_guidance(args, run.world_command)
         runner, meta = make_runner(args)
         vae = runner.vae
         loop = WorldModelLoop(runner.model, vae, runner.text_for, runner.cfg, schedule=runner.schedule,
-                              device=args.device, command_to_world=args.world_command)
+                              device=args.device, command_to_world=run.world_command)
     n = len(policies) * cfg.states
     print(f"[resim eval closed-loop] {len(policies)} policies x {cfg.states} starting states x {cfg.seconds:g} s, "
           f"{'true world only' if loop is None else 'true world and world model'} ...", file=sys.stderr)
@@ -343,10 +371,10 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
         done[0] += 1
         print(f"[{done[0]}/{n}, {time.perf_counter() - t0:.0f} s] {msg}", file=sys.stderr)
 
-    rep = closed_loop_eval(policies, cfg, idm, clip_hw, loop=loop, vae=vae, reward=reward, replay=args.replay,
+    rep = closed_loop_eval(policies, cfg, idm, clip_hw, loop=loop, vae=vae, reward=reward, replay=run.replay,
                            seed=args.seed, say=say)
     rep["protocol"] = {"policy": pinfo, "also": list(args.also), "idm": str(args.idm), "reward": args.reward,
-                       "replay": args.replay, "world_command": args.world_command,
+                       "replay": run.replay, "world_command": run.world_command, "variants": list(run.variants),
                        "clip_hw": list(clip_hw),
                        "config": dict(vars(cfg)), "world_model": meta or None, "device": args.device,
                        "seconds": round(time.perf_counter() - t0, 1)}

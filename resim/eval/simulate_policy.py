@@ -19,16 +19,19 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 
+from resim.config import ConfigError
 from resim.eval.drive import PixelPolicy, itinerary
 from resim.eval.policy_ranking import (ClosedLoopConfig, ClosedLoopInputError, graded_policies, history_of,
                                        loop_guidance, starting_states)
 from resim.media.frames import cover_crop
+from resim.models.policy.variants import VARIANTS
 from resim.models.reward.checkpoint import load_checkpoint as load_reward
 from resim.sample.load import SamplingInputError, history_from_shard, history_from_video, trained_size_hw
 from resim.sample.outputs import decode_latents, write_rollout
@@ -39,6 +42,24 @@ from resim.synthworld.drivers import simulate
 from resim.train.tasks.policy import load_policy
 
 DEFAULT_SPEED_MPS = 8.0        # the synthetic world's cruising speeds are 7-10 m/s
+
+
+@dataclass
+class SimulateRun:
+    """`resim simulate`'s settings beyond its flags (``--set simulate.KEY=VALUE``)."""
+    state: int = 0                    # which starting state of state_seed (0, 1, ...)
+    state_seed: int = 5000            # seed of the starting-state fork worlds
+    variant: str = "policy"           # which version of the policy drives (resim.models.policy.variants)
+    world_command: bool = False       # prompt the world model with the navigation command too (default: null)
+    speed_mps: Optional[float] = None   # with --history: the speedometer at the start (default: the clip's, else 8)
+
+    def __post_init__(self) -> None:
+        if self.state < 0:
+            raise ConfigError(f"state={self.state}: must be >= 0")
+        if self.variant not in VARIANTS:
+            raise ConfigError(f"variant={self.variant!r}: one of {', '.join(VARIANTS)}")
+        if self.speed_mps is not None and not 0 <= self.speed_mps < 60:
+            raise ConfigError(f"speed_mps={self.speed_mps}: must be in [0, 60)")
 
 
 def reward_over_time(reward: Any, frames: np.ndarray, first: int, fps_hz: float, every_s: float = 1.0,
@@ -91,7 +112,7 @@ def _recorded_history(args: Any, vae: Any, clip_hw: tuple[int, int], fps_hz: flo
     frames = h.frames
     if frames is None:    # a shard written without frames.mp4: what the VAE makes of the latents
         frames = decode_latents(vae, h.latents, batch_size=1)[0]
-    speed = args.speed_mps
+    speed = args.settings.section("simulate").speed_mps
     if speed is None:   # the first waypoint is 0.5 s ahead
         speed = float(np.hypot(*h.trajectory[0, :2]) / 0.5) if h.trajectory is not None else DEFAULT_SPEED_MPS
     command = args.command or (h.meta or {}).get("command") or "Moving forward"
@@ -104,23 +125,24 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
     gif, contact sheet, meta with the per-decision plans and commands; OUT/simulate.json; with ``--reward``,
     OUT/reward_over_time.png. Returns the summary text."""
     try:
-        cfg = ClosedLoopConfig(seed=args.state_seed, states=max(2, args.state + 1), seconds=max(4.0, args.seconds))
+        run = args.settings.section("simulate")
+        cfg = ClosedLoopConfig(seed=run.state_seed, states=max(2, run.state + 1), seconds=max(4.0, args.seconds))
         policy_model, pinfo = load_policy(args.policy, args.device)
         reward = load_reward(args.reward, args.device) if args.reward else None
     except (ValueError, FileNotFoundError) as e:
         raise ClosedLoopInputError(str(e)) from None
-    label, policy = next(iter(graded_policies(PixelPolicy(policy_model, args.device), [args.variant]).items()))
+    label, policy = next(iter(graded_policies(PixelPolicy(policy_model, args.device), [run.variant]).items()))
     clip_hw = trained_size_hw(args.checkpoint, args.shards) or tuple(policy_model.cfg.frame_hw)
-    loop_guidance(args)
+    loop_guidance(args, run.world_command)
     runner, meta = make_runner(args)
     loop = WorldModelLoop(runner.model, runner.vae, runner.text_for, runner.cfg, schedule=runner.schedule,
-                          device=args.device, command_to_world=args.world_command)
+                          device=args.device, command_to_world=run.world_command)
     st = expert = None
     if args.history:
         latents, frames, speed, command, where = _recorded_history(args, runner.vae, clip_hw, cfg.fps_hz)
         command_at, t0 = (lambda t: command), 0.0    # noqa: E731
     else:
-        st = starting_states(cfg)[args.state]
+        st = starting_states(cfg)[run.state]
         total = cfg.history_s + args.seconds
         command_at, t0, where = itinerary(st.world, total, cfg.sim_hz), cfg.history_s, st.name
         expert = simulate(st.world, total, cfg.sim_hz, np.random.default_rng(0), "expert")
@@ -140,7 +162,7 @@ def run_simulate(args: Any, make_runner: Callable) -> str:
     write_rollout(out, "world_model", w.frames, w.latents[0].numpy(), num_history_px=nh, fps_hz=cfg.fps_hz,
                   title=f"world model: {label} ({where})", meta={"plans": plans})
     summary = {"start": where, "policy": pinfo, "variant": label, "seconds": args.seconds,
-               "world_command": args.world_command,
+               "world_command": run.world_command,
                "decisions": len(w.plans), "wall_s": round(w.seconds, 1),
                "wall_s_per_generated_s": round(w.seconds / args.seconds, 2), "world_model": meta,
                "device": args.device, "torch_threads": torch.get_num_threads()}

@@ -377,6 +377,12 @@ def control_eval(runner: WorldRollouts, idm: Any, clips: Sequence[EvalClip], see
     return rep
 
 
+@dataclass
+class PlanningEvalConfig:
+    """`resim eval planning`'s settings beyond its flags (``--set planning.KEY=VALUE``)."""
+    with_command: bool = False   # give the video-prediction policy the clip's command prompt (default: none)
+
+
 def planning_eval(runner: WorldRollouts, idm: Any, planner: Any | None, clips: Sequence[EvalClip],
                   with_command: bool = False) -> dict:
     clips = [c for c in clips if c.trajectory is not None]

@@ -30,19 +30,14 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from resim.config import from_dict
-from resim.diffusion.guidance import guidance_from_cli
 from resim.media.encoders import MissingWeightsError, VideoVAE
 from resim.sample.load import (History, PromptSource, SamplingInputError, check_same_encoding, encoded_with,
-                               history_from_shard, history_from_video, load_world_model, resolve_steps_and_guidance,
-                               run_objective, trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
+                               history_from_shard, history_from_video, load_world_model, run_objective,
+                               trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
 from resim.sample.outputs import decode_rollout
-from resim.sample.rollout import (ROLLOUT_PRESETS, Condition, RolloutConfig, ddim_schedule, rollout,
-                                  rollout_num_future_frames)
+from resim.sample.rollout import Condition, RolloutConfig, ddim_schedule, rollout, rollout_num_future_frames
+from resim.sample.settings import DEFAULT_TEXT_ENCODER, rollout_config_for
 from resim.shards.schema import COMMANDS, pixel_frame_count
-from resim.shipped import configs_dir
-
-DEFAULT_TEXT_ENCODER = configs_dir("models", "placeholder-t5-tiny")
 
 
 class BundleLoadError(SamplingInputError):
@@ -122,8 +117,9 @@ class WorldModelBundle:
         return history_from_shard(self.shards, str(source), num_latent_frames)
 
     def prompts(self, history: History | None = None) -> PromptSource:
-        """Command → ``(1, L, D)`` T5 embedding: the history's dataset prompt table first, else the text encoder."""
-        root = history.prompt_root if history is not None else None
+        """Command → ``(1, L, D)`` T5 embedding: the prompt table of the history's dataset (without a history: of
+        the ``shards`` given at load) first, else the text encoder."""
+        root = history.prompt_root if history is not None else self.shards
         return PromptSource(root, self.text_encoder, device=self.device, max_tokens=self.model.cfg.max_text_seq_length)
 
     def rollout_config(self, preset: str = "resim", steps: int | None = None, guidance_scale: float | None = None,
@@ -131,16 +127,21 @@ class WorldModelBundle:
                        log: Callable[[str], None] | None = None, **overrides: Any) -> RolloutConfig:
         """The preset's :class:`RolloutConfig` under the given overrides (None: keep the preset's), with this
         export's own sampling defaults where the caller gives none (a distilled student: its steps, no guidance;
-        ``log`` is told so); checked against the run's noise schedule."""
-        steps, guidance, origin = resolve_steps_and_guidance(self.checkpoint, steps, preset, no_guidance,
-                                                             guidance_scale)
+        ``log`` is told so); checked against the run's noise schedule. The same resolution as the CLIs'
+        ``--set rollout.*`` (:func:`resim.sample.settings.rollout_config_for`)."""
+        user: dict = {k: v for k, v in overrides.items() if v is not None}
+        g = {k: v for k, v in (("scale_start", guidance_scale), ("schedule", guidance_schedule)) if v is not None}
+        if g:
+            user["guidance"] = g
+        cfg, origin = rollout_config_for(self.checkpoint, preset, steps, no_guidance, user)
         if origin and log is not None:
             log(origin)
-        rc = {**ROLLOUT_PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None}}
-        if steps is not None:   # not `if steps`: 0 must not quietly mean the preset's 50
-            rc["num_steps"] = steps
-        rc["guidance"] = guidance_from_cli(guidance, guidance_scale, guidance_schedule)
-        cfg = from_dict(RolloutConfig, rc)
+        ddim_schedule(cfg, self.objective.schedule)
+        return cfg
+
+    def check_rollout_config(self, cfg: RolloutConfig) -> RolloutConfig:
+        """``cfg``'s steps and noise levels against this run's noise schedule (:class:`ConfigError` naming them);
+        a config resolved elsewhere (the CLIs' settings) is checked here before any rollout starts."""
         ddim_schedule(cfg, self.objective.schedule)
         return cfg
 

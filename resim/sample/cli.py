@@ -11,32 +11,37 @@ import sys
 import time
 from pathlib import Path
 
-from resim.argtypes import (height_width, local_dir, non_negative_float, non_negative_int, positive_float,
-                            positive_int, torch_device)
-from resim.config import ConfigError, from_dict, save, to_dict
-from resim.sample.compile import add_compile_args, maybe_compile   # no torch: see its imports
+from resim.argtypes import add_settings_args, local_dir, positive_float, positive_int, torch_device
+from resim.config import ConfigError, save, to_dict
+from resim.sample.compile import maybe_compile   # no torch: see its imports
 from resim.shards.schema import latent_frame_count, pixel_frame_count, temporal_compression_of
 
-REPO = Path(__file__).resolve().parents[2]
-DEFAULT_T5 = REPO / "configs/models/placeholder-t5-tiny"
 
 SAMPLE_EPILOG = """\
 examples:
   resim sample --checkpoint runs/wm --history clip.mp4 --command "Turning left" --seconds 4 --out out/s1
   resim sample --checkpoint runs/wm --shards out/shards --history KEY --trajectory turn_right --out out/s2
   resim sample ... --command "Moving forward" --command "Turning left" --seconds 8    # one command per 4-s round
-  resim sample ... --preset vid2world --actions-from-trajectory                      # frame by frame + actions
+  resim sample ... --preset vid2world --set runtime.actions_from_trajectory=true     # frame by frame + actions
 
 History: a video file (resampled to the model's training clip rate, 10 Hz for CogVideoX-style video sources; its
-last 1 + r (N - 1) frames, N = --history-frames (default 3), r = the VAE's temporal ratio (4: 9 frames; 1: 3
+last 1 + r (N - 1) frames, N = rollout.history_frames (default 3), r = the VAE's temporal ratio (4: 9 frames; 1: 3
 frames), are encoded with --vae; files below that rate
 are refused) or, with --shards, a sample key (its stored history latents, at the shard's rate: --seconds and the
 actions follow it). A key's clip must hold N latent history frames: video sources (OpenDV, CARLA) keep 9 pixel
-frames = 3; a NAVSIM key keeps 1 (2 Hz), so sample it with --history-frames 1.
+frames = 3; a NAVSIM key keeps 1 (2 Hz), so sample it with --set rollout.history_frames=1.
 --command / --trajectory may be repeated: round r uses the r-th (the last one repeats).
+Settings beyond the flags (--set KEY=VALUE, or a --config YAML file with these sections):
+  rollout.chunk_frames (default: the preset's, 10 resim / 1 vid2world), rollout.history_frames (3 = 9 video
+  frames; 1 for a NAVSIM shard key), rollout.history_noise_level (0 = clean), rollout.kv_cache (auto|on|off),
+  rollout.guidance.scale_start / .schedule (linear|constant|cosine);
+  runtime.text_encoder (local T5 folder for prompts not in a table), runtime.max_text_tokens (226),
+  runtime.size_hw ([H, W] of a video history; default the model's training clips'), runtime.dtype
+  (float32|bfloat16|float16), runtime.attention (sdpa|flex), runtime.compile (auto|on|off; auto: CUDA only),
+  runtime.compile_mode, runtime.actions_from_trajectory (also feed per-frame actions; action-conditioned models).
 A trajectory is a candidate name (keep_lane, turn_left, turn_right, brake, swerve), an (8, 3) .npy file, a .json
 file or inline JSON [[x_m, y_m, yaw_rad], ...] at 0.5 s steps in the ego frame (x forward, y left).
---vae and --text-encoder are local folders (nothing is downloaded).
+--vae and runtime.text_encoder are local folders (nothing is downloaded).
 Writes DIR/sample.mp4, .gif, _sheet.png, _latents.npy (exact float32 latents: compare runs bit for bit),
 _meta.json, rollout.yaml (the resolved sampling config) and run.json (checkpoint, history, seed, device, dtype,
 VAE, prompt sources, timings).
@@ -50,7 +55,7 @@ Rolls out every candidate (default: keep_lane turn_left turn_right brake swerve)
 the same noise, scores each imagined future with Video2Reward and writes DIR/ranking.md, ranking.json,
 plan_grid.png (one row per candidate, best first, with its reward), plan_latents.npy, rollout.yaml and run.json.
 --reward is a `resim train reward` run folder (checked before the world model is loaded). History, --vae,
---device etc. as for `resim sample` (see its --help).
+--device, --set etc. as for `resim sample` (see its --help).
 """
 
 
@@ -68,40 +73,12 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "rescale 0.7 (default resim)")
     p.add_argument("--steps", type=positive_int, default=None,
                    help="DDIM steps >= 1 (default 50; a distilled student: its own, e.g. 4)")
-    p.add_argument("--chunk-frames", type=positive_int, default=None,
-                   help="latent frames denoised together, 1..10 (default: the preset's, 10 resim / 1 vid2world)")
-    p.add_argument("--history-frames", type=positive_int, default=None,
-                   help="latent history frames the rollout keeps (default 3 = 9 video frames); 1 for a NAVSIM "
-                        "shard key, whose clips hold one")
-    p.add_argument("--history-noise-level", type=non_negative_int, default=None,
-                   help="noise level of history frames (default 0 = clean)")
-    p.add_argument("--guidance-scale", type=non_negative_float, default=None,
-                   help="override the start guidance scale, >= 0 (default: the preset's)")
-    p.add_argument("--guidance-schedule", default=None, choices=["linear", "constant", "cosine"],
-                   help="how the scale goes from the start to its end over the DDIM steps (default: the preset's: "
-                        "linear 7.5->1 for resim, constant for vid2world)")
     p.add_argument("--no-guidance", action="store_true", help="conditional branch only")
-    p.add_argument("--no-kv-cache", action="store_true", help="recompute the history at every step")
-    p.add_argument("--actions-from-trajectory", action="store_true",
-                   help="also feed per-frame actions derived from the trajectory (action-conditioned models)")
     p.add_argument("--vae", type=local_dir, default=None,
                    help="local CogVideoX VAE folder (default: the VAE that encoded the model's training data, "
-                        "from --shards or the checkpoint's final/data_encode.yaml; else the tiny placeholder)")
-    p.add_argument("--text-encoder", type=local_dir, default=str(DEFAULT_T5),
-                   help="local T5 folder for prompts not in the table (default: tiny placeholder)")
-    p.add_argument("--max-text-tokens", type=positive_int, default=226, help="T5 padding length (CogVideoX: 226)")
-    p.add_argument("--size", type=height_width, default=None,
-                   help="HxW pixels for a video history, e.g. 64x96 (default: the size of the model's training clips, "
-                        "from --shards or the run's final/data_encode.yaml; else its sample size). The video is "
-                        "cover-resized and centre-cropped as training clips were; another size than the training "
-                        "clips' is refused")
+                        "from --shards or the checkpoint's final/data_encode.yaml)")
     p.add_argument("--device", type=torch_device, default=None, help="cpu, cuda or cuda:N (default: cuda if available)")
-    p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16", "float16"],
-                   help="world-model weights and compute dtype (default float32; bfloat16/float16 for GPUs)")
-    p.add_argument("--attention", default=None, choices=["sdpa", "flex"],
-                   help="kernel for the block-causal attention (default: the checkpoint's model config); flex is "
-                        "1.29x faster per rollout on an H100 (docs/benchmarks.md) and slower than sdpa on a CPU")
-    add_compile_args(p)
+    add_settings_args(p)
     p.add_argument("--out", required=True, help="output folder")
 
 
@@ -185,38 +162,17 @@ def _trajectories(specs: list[str] | None) -> list:
     return out
 
 
-def _rollout_config(args, resolved: tuple):
-    """The resolved RolloutConfig from the preset and the overrides; checked before any model is loaded (the
-    bounds that depend on the model's schedule, e.g. --steps <= 1000, are checked once it is loaded).
-    ``resolved``: (steps, guidance preset) from ``resolve_steps_and_guidance``: the command line, else a distilled
-    student's own sampling section."""
-    from resim.diffusion.guidance import guidance_from_cli
-    from resim.sample.rollout import ROLLOUT_PRESETS, RolloutConfig
-
-    rc = dict(ROLLOUT_PRESETS[args.preset])
-    steps, guidance = resolved
-    for k, v in (("num_steps", steps), ("chunk_frames", args.chunk_frames),
-                 ("history_frames", args.history_frames), ("history_noise_level", args.history_noise_level)):
-        if v is not None:
-            rc[k] = v
-    if rc["chunk_frames"] > rc["frames_per_round"]:
-        raise UsageError(f"--chunk-frames {rc['chunk_frames']}: at most the {rc['frames_per_round']} latent frames "
-                         "of a round")
-    rc["kv_cache"] = "off" if args.no_kv_cache else "auto"
-    try:
-        rc["guidance"] = guidance_from_cli(guidance, args.guidance_scale, args.guidance_schedule)
-        return from_dict(RolloutConfig, rc)
-    except ConfigError as e:
-        raise UsageError(str(e)) from None
-
-
 def _check_args(args, command: str):
-    """Everything about the command line that needs no model: returns (device, rollout config, trajectories)."""
+    """Everything about the command line that needs no model: returns (device, settings, trajectories)."""
+    from resim.sample.settings import resolve_settings
+
+    settings = resolve_settings(args)   # ConfigError: one line naming the key
     trajectory = getattr(args, "trajectory", None)
-    if command == "sample" and args.actions_from_trajectory and not trajectory:
-        raise UsageError("--actions-from-trajectory derives the actions from a trajectory: add --trajectory")
-    if args.preset == "vid2world" and not args.no_guidance and not args.actions_from_trajectory:
-        raise UsageError("--preset vid2world guides on actions; add --actions-from-trajectory "
+    from_traj = settings.runtime.actions_from_trajectory
+    if command == "sample" and from_traj and not trajectory:
+        raise UsageError("runtime.actions_from_trajectory derives the actions from a trajectory: add --trajectory")
+    if args.preset == "vid2world" and settings.rollout.guidance.enabled and not from_traj:
+        raise UsageError("--preset vid2world guides on actions; add --set runtime.actions_from_trajectory=true "
                          "(and --trajectory) or --no-guidance")
     if not Path(args.history).is_file():
         if not args.shards:
@@ -225,14 +181,11 @@ def _check_args(args, command: str):
         if not Path(args.shards).is_dir():
             raise UsageError(f"--shards {args.shards}: no such folder")
     trajs = _trajectories(trajectory)
-    from resim.sample.load import _checkpoint_dir, resolve_steps_and_guidance
-    steps, guidance, origin = resolve_steps_and_guidance(args.checkpoint, args.steps, args.preset, args.no_guidance,
-                                                         args.guidance_scale)
-    cfg = _rollout_config(args, (steps, guidance))
+    from resim.sample.load import _checkpoint_dir
     _checkpoint_dir(args.checkpoint)   # the world-model checkpoint's files exist
-    if origin:
-        _say(command)(origin)
-    return resolve_device(args.device), cfg, trajs
+    if settings.origin:
+        _say(command)(settings.origin)
+    return resolve_device(args.device), settings, trajs
 
 
 def _shard_history_frames(root: str, key: str) -> tuple[int, int, float] | None:
@@ -251,7 +204,7 @@ def _shard_history_frames(root: str, key: str) -> tuple[int, int, float] | None:
 class _Setup:
     """Everything both commands build from the common arguments (after :func:`_check_args`)."""
 
-    def __init__(self, args, device: str, cfg):
+    def __init__(self, args, device: str, settings):
         import torch
 
         from resim.sample.bundle import WorldModelBundle
@@ -259,31 +212,33 @@ class _Setup:
         from resim.sample.rollout import ddim_schedule, rollout_num_future_frames
 
         self.device = device
+        rt = self.runtime = settings.runtime
         # the model, its objective (its schedule is what DDIM steps over), the VAE that encoded its training data
-        self.bundle = WorldModelBundle.from_pretrained(args.checkpoint, device=device, dtype=getattr(torch, args.dtype),
-                                                       vae=args.vae, text_encoder=args.text_encoder,
+        self.bundle = WorldModelBundle.from_pretrained(args.checkpoint, device=device, dtype=getattr(torch, rt.dtype),
+                                                       vae=args.vae, text_encoder=rt.text_encoder,
                                                        shards=args.shards)
         self.model, self.objective, self.vae = self.bundle.model, self.bundle.objective, self.bundle.vae
-        if args.attention is not None:
-            self.model.set_attention_backend(args.attention)
+        if rt.attention is not None:
+            self.model.set_attention_backend(rt.attention)
         self.model_info = {**self.bundle.info, "attention_backend": self.model.cfg.attention_backend,
-                           **maybe_compile(self.model, args.compile, self.device, mode=args.compile_mode,
+                           **maybe_compile(self.model, rt.compile, self.device, mode=rt.compile_mode,
                                            log=lambda m: print(f"[resim] {m}", file=sys.stderr))}
-        self.cfg = cfg
-        ddim_schedule(self.cfg, self.objective.schedule)   # --steps / --history-noise-level vs the run's schedule, now
+        self.cfg = settings.rollout
+        self.settings = settings
+        ddim_schedule(self.cfg, self.objective.schedule)   # steps / history_noise_level vs the run's schedule, now
         if Path(args.history).is_file():
             # the size the model's training clips were encoded at (its data's encode section), else its sample size
             trained = trained_size_hw(args.checkpoint, args.shards)
-            if args.size and trained and tuple(args.size) != trained:
-                raise UsageError(f"--size {args.size[0]}x{args.size[1]}: the model was trained on {trained[0]}x"
-                                 f"{trained[1]} clips (its training data's encode size); leave --size out or give "
-                                 f"{trained[0]}x{trained[1]}")
-            size = tuple(args.size) if args.size else self.bundle.size_hw
+            if rt.size_hw and trained and tuple(rt.size_hw) != trained:
+                raise UsageError(f"runtime.size_hw={list(rt.size_hw)}: the model was trained on {trained[0]}x"
+                                 f"{trained[1]} clips (its training data's encode size); leave it out or give "
+                                 f"[{trained[0]}, {trained[1]}]")
+            size = tuple(rt.size_hw) if rt.size_hw else self.bundle.size_hw
             sc = self.vae.info.spatial_compression
             mult = sc * int(getattr(self.model.cfg, "patch_size", 1) or 1)
             if size[0] % mult or size[1] % mult:
                 ms = self.bundle.size_hw
-                raise UsageError(f"--size {size[0]}x{size[1]}: both sides must be multiples of {mult} (the VAE's "
+                raise UsageError(f"runtime.size_hw={list(size)}: both sides must be multiples of {mult} (the VAE's "
                                  f"{sc}x downsampling times the model's patch size), e.g. the model's sample size "
                                  f"{ms[0]}x{ms[1]}")
             self.history = self.bundle.history(args.history, self.cfg.history_frames, size)
@@ -297,23 +252,23 @@ class _Setup:
                 h, px, fps = have
                 raise SamplingInputError(
                     f"history {args.history!r}: its clip holds {h} latent history frame(s) ({px} pixel frames at "
-                    f"{fps:g} Hz), the rollout keeps {self.cfg.history_frames}: pass --history-frames {h}, or use "
-                    f"a clip with {self.cfg.history_frames} latent history frames (a video source)") from None
-        self.prompts = PromptSource(self.history.prompt_root, args.text_encoder, device=self.device,
-                                    max_tokens=args.max_text_tokens)
+                    f"{fps:g} Hz), the rollout keeps {self.cfg.history_frames}: pass --set rollout.history_frames={h}, "
+                    f"or use a clip with {self.cfg.history_frames} latent history frames (a video source)") from None
+        self.prompts = PromptSource(self.history.prompt_root, rt.text_encoder, device=self.device,
+                                    max_tokens=rt.max_text_tokens)
         self.num_future = rollout_num_future_frames(args.seconds, self.history.fps_hz, self.vae.info.temporal_compression)
         # seconds one latent frame spans: the same formula as training's Batch.latent_frame_dt_s (temporal
         # compression / the clip's fps): 0.4 s for a 10 Hz history, 2 s for a NAVSIM (2 Hz) shard history
         self.latent_frame_dt_s = self.vae.info.temporal_compression / self.history.fps_hz
         self.waypoint_dt_s = getattr(getattr(self.model, "objective", None), "waypoint_dt_s", 0.5)
-        self.actions_from_trajectory = args.actions_from_trajectory
+        self.actions_from_trajectory = rt.actions_from_trajectory
         self.args = args
 
     def text_for(self, command):
         t = self.prompts(command)
         if t.shape[-1] != self.model.cfg.text_embed_dim:
             raise SystemExit(f"resim: prompt embedding dim {t.shape[-1]} != the model's text_embed_dim "
-                             f"{self.model.cfg.text_embed_dim} (wrong --text-encoder or prompt table)")
+                             f"{self.model.cfg.text_embed_dim} (wrong runtime.text_encoder or prompt table)")
         return t.to(self.device)
 
     def policy_for(self, trajs_per_round):
@@ -328,7 +283,7 @@ class _Setup:
         def policy(inp):
             traj = trajs_per_round(inp.round_index)
             if traj is None:
-                raise SystemExit("resim: --actions-from-trajectory needs a --trajectory")
+                raise SystemExit("resim: runtime.actions_from_trajectory needs a --trajectory")
             # offset of this chunk inside its round (rounds start right after the given history)
             off = (inp.frame_index - self.history.latents.shape[1]) % cfg.frames_per_round
             acts, valid = actions_from_trajectory(traj.float(), cfg.frames_per_round, 0, self.latent_frame_dt_s,
@@ -348,7 +303,8 @@ def _save_config(setup: _Setup, out: Path, extra: dict) -> None:
                                               "seconds": setup.args.seconds, "seed": setup.args.seed,
                                               "history_fps_hz": setup.history.fps_hz,
                                               "latent_frame_dt_s": setup.latent_frame_dt_s,
-                                              "device": setup.device, "dtype": setup.args.dtype,
+                                              "device": setup.device, "dtype": setup.runtime.dtype,
+                                              "runtime": to_dict(setup.runtime),
                                               "vae_id": setup.vae.info.vae_id,
                                               "vae_placeholder": setup.vae.info.placeholder,
                                               "prompts": setup.prompts.used, "rollout": to_dict(setup.cfg),
@@ -370,9 +326,9 @@ def _cmd_sample(args) -> int:
             return 2
     t_start = time.perf_counter()
     try:
-        device, cfg, trajs = _check_args(args, "sample")   # no model is loaded for a command-line mistake
+        device, settings, trajs = _check_args(args, "sample")   # no model is loaded for a command-line mistake
         _say("sample")("loading the world model and VAE, reading the history ...")
-        s = _Setup(args, device, cfg)
+        s = _Setup(args, device, settings)
         enc = getattr(s.model, "trajectory_encoder", None)
         want = (enc.cfg.num_waypoints, enc.cfg.waypoint_dim) if enc is not None else None
         for spec, t in zip(args.trajectory or [], trajs):
@@ -464,12 +420,12 @@ def _cmd_plan(args) -> int:
         print(f"resim plan: unknown candidate(s) {bad}; known: {', '.join(CANDIDATE_NAMES)}", file=sys.stderr)
         return 2
     try:
-        device, cfg, _ = _check_args(args, "plan")
+        device, settings, _ = _check_args(args, "plan")
         try:   # the reward model first: it loads in a moment, the world model and VAE take longer
             reward = load_checkpoint(args.reward, device=device)
         except CheckpointError as e:
             raise UsageError(f"--reward: {e}") from None
-        s = _Setup(args, device, cfg)
+        s = _Setup(args, device, settings)
         out = make_out(args.out)
     except (UsageError, SamplingInputError, ConfigError) as e:
         print(f"resim plan: {e}", file=sys.stderr)
@@ -482,10 +438,10 @@ def _cmd_plan(args) -> int:
         print(f"resim plan: {e}", file=sys.stderr)
         return 2
     with s.progress(total, f"imagining {len(cands)} futures") as bar:
-        policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if args.actions_from_trajectory else None
+        policy_for = (lambda trajs: s.policy_for(lambda r: trajs)) if s.actions_from_trajectory else None
         res = plan(s.model, reward, s.vae, s.history.latents.to(s.device), texts.__getitem__, cands, s.cfg,
                    s.num_future, seed=args.seed, policy_for=policy_for, progress=bar,
-                   actions_from_trajectory=args.actions_from_trajectory, log=_say("plan", bar),
+                   actions_from_trajectory=s.actions_from_trajectory, log=_say("plan", bar),
                    schedule=s.objective.schedule)
     bad = [r.name for r in res.rows if not (np.isfinite(r.latents).all() and np.isfinite(r.score))]
     if bad:   # finite inputs and weights, and still: say so, write nothing

@@ -1,4 +1,5 @@
-"""``torch.compile`` of a model's blocks, applied from outside the model: for sampling (``--compile``) and, through
+"""``torch.compile`` of a model's blocks, applied from outside the model: for sampling (``runtime.compile``) and,
+through
 ``compile_modules``, for training (``trainer.compile``).
 
 Why per block (torchtitan's ``apply_compile``) rather than the whole forward: the blocks are where the time goes
@@ -17,26 +18,26 @@ it is reused by every rollout of the process (``resim eval`` rolls out hundreds)
 ``mode="reduce-overhead"`` adds CUDA graphs (recorded per static shape); it is offered, not the default, until it
 is measured on a GPU (docs/benchmarks.md lists the command).
 
-Where: ``resim sample``/``plan``/``simulate``/``eval`` take ``--compile auto|on|off``; ``auto`` (the default)
+Where: ``resim sample``/``plan``/``simulate``/``eval`` take ``--set runtime.compile=auto|on|off`` (and
+``runtime.compile_mode``; resim.sample.settings); ``auto`` (the default)
 compiles on CUDA only. On the 2-core CPU the compile costs 13-20 s per process for 1.19-1.22x on a ReSim-chunk
 rollout of the shipped synthetic-world model and 1.01-1.06x frame by frame (bench/compile_rollout.py,
 docs/benchmarks.md), and it needs a C++ compiler and the Python headers.
 """
 from __future__ import annotations
 
-import argparse
 import time
 from typing import Any
 
-# no torch import here: the CLIs import the choices below for their --help, which stays fast; the functions get
-# torch modules and devices from their callers
+# no torch import here: the CLIs' settings (resim.sample.settings) import the choices below, and --help stays fast;
+# the functions get torch modules and devices from their callers
 COMPILE_CHOICES = ("auto", "on", "off")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune")
 _MARK = "_resim_compiled"
 
 
 def wants_compile(flag: str, device: Any) -> bool:
-    """``--compile`` → whether to compile: ``auto`` = on CUDA only."""
+    """``runtime.compile`` → whether to compile: ``auto`` = on CUDA only."""
     if flag not in COMPILE_CHOICES:
         raise ValueError(f"compile={flag!r}: expected one of {', '.join(COMPILE_CHOICES)}")
     if flag == "auto":
@@ -80,7 +81,7 @@ def is_compiled(model: Any) -> bool:
 
 def maybe_compile(model: Any, flag: str, device: Any, *, mode: str = "default",
                   log: Any = None) -> dict:
-    """Apply ``--compile`` to a loaded world model; returns what to record in an output's protocol."""
+    """Apply ``runtime.compile`` to a loaded world model; returns what to record in an output's protocol."""
     on = wants_compile(flag, device)
     info = {"compile": on, "compile_flag": flag}
     if on:
@@ -91,12 +92,3 @@ def maybe_compile(model: Any, flag: str, device: Any, *, mode: str = "default",
             log(f"torch.compile: {len(model.transformer_blocks)} blocks, mode {mode} (compiled at the first "
                 f"step, {time.perf_counter() - t0:.1f} s set-up)")
     return info
-
-
-def add_compile_args(p: argparse.ArgumentParser) -> None:
-    """``--compile`` and ``--compile-mode`` of every command that samples a world model."""
-    p.add_argument("--compile", default="auto", choices=COMPILE_CHOICES,
-                   help="torch.compile the world model's blocks: auto = on CUDA only (default; on a CPU it costs "
-                        "~15 s of compiling per rollout geometry for ~1.2x, bench/compile_rollout.py)")
-    p.add_argument("--compile-mode", default="default", choices=COMPILE_MODES,
-                   help="torch.compile mode; reduce-overhead adds CUDA graphs (default: default)")

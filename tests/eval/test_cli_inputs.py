@@ -54,8 +54,13 @@ def _error(capsys, needle):
 
 
 def test_malformed_values_are_usage_errors(ds, capsys):
-    _usage_error(capsys, ["eval", "quality", *_world(ds, "--resolution", "64")], "expected HxW")   # was IndexError
-    _usage_error(capsys, ["eval", "quality", *_world(ds, "--resolution", "0x64")], "both >= 1")
+    # was IndexError
+    assert main(["eval", "quality", *_world(ds, "--set", "quality.resolution_hw=64")]) == 2
+    _error(capsys, "quality.resolution_hw: expected a list")
+    assert main(["eval", "quality", *_world(ds, "--set", "quality.fps_hz=5")]) == 2   # the clips decide it
+    _error(capsys, "quality.fps_hz: set by the clips or the flags")
+    assert main(["eval", "commands", *_world(ds, "--set", "commands.horizons_s=[0]")]) == 2
+    _error(capsys, "horizons_s=[0.0]: give one or more horizons > 0 s")
     _usage_error(capsys, ["eval", "quality", *_world(ds, "--steps", "0")], "--steps: must be >= 1")  # was: 50 steps
     _usage_error(capsys, ["eval", "quality", *_world(ds, "--limit", "0")], "--limit: must be >= 1")  # was: all clips
     _usage_error(capsys, ["eval", "control", *_world(ds, "--limit", "-1"), "--idm", "x"], "--limit: must be >= 1")
@@ -71,7 +76,8 @@ def test_bad_heldout_list_and_weight_files(ds, tmp_path, capsys):
     with pytest.raises(SystemExit, match="not valid JSON"):
         main(["eval", "quality", *_world(ds, "--heldout-from", str(q))])
     # was FileNotFoundError, after the world model had been loaded
-    assert main(["eval", "quality", *_world(ds, "--metrics", "fid", "--fid-weights", str(tmp_path / "no.pth"))]) == 2
+    assert main(["eval", "quality", *_world(ds, "--metrics", "fid", "--set",
+                                            f"quality.fid_weights={tmp_path / 'no.pth'}")]) == 2
     _error(capsys, "no.pth is not a file")
 
 
@@ -120,7 +126,7 @@ def test_idm_configs_validate_without_dividing_by_zero():
 
 
 def test_device_and_model_folders_are_checked_first(ds, capsys):
-    """--device typos / a CUDA device this build lacks, and missing --vae / --text-encoder folders: one line,
+    """--device typos / a CUDA device this build lacks, and missing --vae / runtime.text_encoder folders: one line,
     exit 2, before anything is loaded (were a torch RuntimeError / AssertionError traceback, and an attempt to
     download the folder name from huggingface.co)."""
     idm = ["--idm", str(ds / "idm-fits")]
@@ -128,7 +134,8 @@ def test_device_and_model_folders_are_checked_first(ds, capsys):
         argv = _world(ds, "--all-clips", *extra)
         _usage_error(capsys, ["eval", sub, *argv, "--device", "cudaa"], "--device: expected cpu, cuda")
         _usage_error(capsys, ["eval", sub, *argv, "--vae", str(ds / "nope")], "--vae: ")
-        _usage_error(capsys, ["eval", sub, *argv, "--text-encoder", str(ds / "nope")], "no such folder")
+        assert main(["eval", sub, *argv, "--set", f"runtime.text_encoder={ds / 'nope'}"]) == 2
+        _error(capsys, "no such local folder")
         # no GPU: a CPU build says it has no CUDA support, a CUDA build that no GPU is visible
         dev, needle = (("cuda:99", "CUDA device(s) here") if torch.cuda.is_available() else
                        ("cuda", "has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"))

@@ -113,13 +113,14 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert r.returncode == 0, r.stderr[-2000:]
     r = run("eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
             str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl"),
-            "--states", "2", "--seconds", "4", "--steps", "1", "--device", "cpu", "--replay",   # the shipped model too
-            "--variants", "policy", "bias2")   # two of the five graded policies: each drive costs seconds here
+            "--set", "closed_loop.states=2", "--seconds", "4", "--steps", "1", "--device", "cpu",
+            "--set", "closed_loop.replay=true",   # the shipped model too
+            "--set", "closed_loop.variants=[policy, bias2]")   # two of the five graded policies: seconds each
     assert r.returncode == 0, r.stderr[-2000:]
     rep = json.loads((tmp_path / "cl" / "closed_loop.json").read_text())
     assert len(rep["rows"]) == 2 * 2 and "Spearman" in r.stdout and (tmp_path / "cl" / "closed_loop.png").is_file()
     assert {row["policy"] for row in rep["rows"]} == {"policy", "policy + steering bias 0.1/m"}
-    # the null prompt's trajectory guidance starts at 15 unless the command line says otherwise
+    # the null prompt's trajectory guidance starts at 15 unless the settings say otherwise
     assert rep["protocol"]["world_model"]["guidance_scale_start"] == 15.0
     assert {"world_model_vs_true", "proxy_vs_true_on_true_frames", "replay_vs_true"} <= set(rep)
     assert "replay gap" in r.stdout and rep["protocol"]["replay"] is True
@@ -127,7 +128,8 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert (tmp_path / "cl" / "closed_loop_strip.png").is_file()
     # the world model as a simulator: two decisions of the shipped synthetic-world model, the true drive beside
     r = run("simulate", "--checkpoint", "synth-world", "--shards", str(root), "--policy", str(tmp_path / "pol"),
-            "--state", "1", "--seconds", "0.8", "--steps", "2", "--out", str(tmp_path / "sim"), "--device", "cpu")
+            "--set", "simulate.state=1", "--seconds", "0.8", "--steps", "2", "--out", str(tmp_path / "sim"),
+            "--device", "cpu")
     assert r.returncode == 0, r.stderr[-2000:]
     sim = json.loads((tmp_path / "sim" / "simulate.json").read_text())
     assert sim["decisions"] == 2 and sim["start"] == "s5000-1-straight" and sim["world_command"] is False
@@ -156,10 +158,10 @@ def test_the_cli_trains_a_policy_and_ranks_it_in_the_true_world(tmp_path, road_w
     assert "no-such-key" in err and len(err.strip().splitlines()) == 1
     assert main(["eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
                  str(tmp_path / "nope"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl2"),
-                 "--true-only"]) == 2
+                 "--set", "closed_loop.true_only=true"]) == 2
     assert "policy checkpoint" in capsys.readouterr().err
     assert main(["eval", "closed-loop", "--checkpoint", "synth-world", "--shards", str(root), "--policy",
-                 str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl3"), "--true-only",
-                 "--replay"]) == 2
+                 str(tmp_path / "pol"), "--idm", str(tmp_path / "idm"), "--out", str(tmp_path / "cl3"),
+                 "--set", "closed_loop.true_only=true", "--set", "closed_loop.replay=true"]) == 2
     err = capsys.readouterr().err
-    assert "--replay" in err and len(err.strip().splitlines()) == 1
+    assert "replay drives the world model" in err and len(err.strip().splitlines()) == 1

@@ -42,7 +42,7 @@ def world(tmp_path_factory, road_world):
 
 def _common(root, ds, out):
     return ["--checkpoint", str(root / "wm"), "--shards", str(ds), "--out", str(out), "--steps", "2",
-            "--no-guidance", "--device", "cpu", "--batch-size", "4"]
+            "--no-guidance", "--device", "cpu", "--set", "runtime.batch_size=4"]
 
 
 def test_idm_run_report_and_split(world):
@@ -245,7 +245,7 @@ def test_commands_command_reports_the_labeler_through_the_vae(world, capsys, roa
     spec = ClipSpec(fps_hz=10.0, num_history_frames=9, num_future_frames=12, waypoint_dt_s=0.15)
     road_world.write_shards(ds, 2, 21, clip_stride_frames=10, seed=1, frames_hw=(64, 96), spec=spec)
     out = root / "commands"
-    assert main(["eval", "commands", *_common(root, ds, out), "--all-clips", "--group-ends"]) == 0
+    assert main(["eval", "commands", *_common(root, ds, out), "--all-clips", "--set", "commands.group_ends=true"]) == 0
     rep = json.loads((out / "commands.json").read_text())
     fl = rep["flow_labeler"]
     n = rep["protocol"]["clips"]

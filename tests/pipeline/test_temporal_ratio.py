@@ -48,7 +48,7 @@ def test_a_dataset_of_either_temporal_ratio_encodes_trains_and_samples(config_fo
     h = latent_frame_count(3, ratio)                                         # 3 history latents, or 1 at 4x
     out = tmp_path / "sample"
     assert main(["sample", "--checkpoint", str(run), "--shards", str(cfg.out), "--history", samples[0]["__key__"],
-                 "--history-frames", str(h), "--command", "Turning left", "--seconds", "2", "--steps", "2",
+                 "--set", f"rollout.history_frames={h}", "--command", "Turning left", "--seconds", "2", "--steps", "2",
                  "--device", "cpu", "--out", str(out)]) == 0
     future = -(-5 // ratio)                                                  # 2 s x 2.5 Hz = 5 frames
     lat = np.load(out / "sample_latents.npy")
@@ -62,7 +62,7 @@ def test_a_dataset_of_either_temporal_ratio_encodes_trains_and_samples(config_fo
     video = tmp_path / "history.mp4"
     video.write_bytes(encode_mp4(np.concatenate([s["frames"] for s in samples[:2]]), 10.0))   # 26 frames
     out = tmp_path / "sample-video"
-    assert main(["sample", "--checkpoint", str(run), "--history", str(video), "--history-frames", str(h),
+    assert main(["sample", "--checkpoint", str(run), "--history", str(video), "--set", f"rollout.history_frames={h}",
                  "--command", "Turning right", "--seconds", "2", "--steps", "2", "--device", "cpu",
                  "--out", str(out)]) == 0
     meta = json.loads((out / "sample_meta.json").read_text())

@@ -65,20 +65,20 @@ def test_sample_cli(setup, capsys, request):
     assert run["prompts"] and set(run["prompts"].values()) == {"prompt_table"}
     # the same seed without the KV cache gives the same latents (within float tolerance)
     out2 = setup["root"] / "s2"
-    assert main(args[:-2] + ["--no-kv-cache", "--out", str(out2)]) == 0
+    assert main(args[:-2] + ["--set", "rollout.kv_cache=off", "--out", str(out2)]) == 0
     np.testing.assert_allclose(np.load(out2 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
     assert "KV cache off" in capsys.readouterr().out
     assert run["attention_backend"] == "sdpa"                # the checkpoint's setting, recorded
-    # --attention flex: the same rollout through flex_attention (uncompiled on a CPU), recorded in run.json
+    # runtime.attention=flex: the same rollout through flex_attention (uncompiled on a CPU), recorded in run.json
     out3 = setup["root"] / "s3"
-    assert main(args[:-2] + ["--attention", "flex", "--out", str(out3)]) == 0
+    assert main(args[:-2] + ["--set", "runtime.attention=flex", "--out", str(out3)]) == 0
     np.testing.assert_allclose(np.load(out3 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
     assert json.loads((out3 / "run.json").read_text())["attention_backend"] == "flex"
-    # --compile: eager by default on a CPU (recorded); on, the compiled blocks give the same rollout
+    # runtime.compile: eager by default on a CPU (recorded); on, the compiled blocks give the same rollout
     assert (run["compile"], run["compile_flag"]) == (False, "auto")
     request.getfixturevalue("needs_inductor")   # skips the rest where inductor cannot build kernels
     out4 = setup["root"] / "s4"
-    assert main(args[:-2] + ["--compile", "on", "--out", str(out4)]) == 0
+    assert main(args[:-2] + ["--set", "runtime.compile=on", "--out", str(out4)]) == 0
     np.testing.assert_allclose(np.load(out4 / "sample_latents.npy"), lat, rtol=1e-4, atol=1e-4)
     assert json.loads((out4 / "run.json").read_text())["compile"] is True
 
@@ -117,9 +117,11 @@ def test_sample_cli_video_history_vid2world(setup):
     video = setup["root"] / "clip.mp4"
     video.write_bytes(encode_mp4(dummy_frames(12, 48, 64, yaw_deg=10.0), 10.0))
     out = setup["root"] / "v"
-    assert main(["sample", "--checkpoint", str(setup["run"]), "--history", str(video), "--size", "32x48",
+    assert main(["sample", "--checkpoint", str(setup["run"]), "--history", str(video),
+                 "--set", "runtime.size_hw=[32, 48]",
                  "--trajectory", "swerve", "--command", "Moving forward", "--preset", "vid2world",
-                 "--actions-from-trajectory", "--max-text-tokens", "8", "--seconds", "0.8", "--steps", "2",
+                 "--set", "runtime.actions_from_trajectory=true", "--set", "runtime.max_text_tokens=8",
+                 "--seconds", "0.8", "--steps", "2",
                  "--device", "cpu", "--out", str(out)]) == 0
     assert np.load(out / "sample_latents.npy").shape == (5, 16, 4, 6)
     run = json.loads((out / "run.json").read_text())
@@ -176,8 +178,10 @@ def test_sample_cli_30fps_video_seconds_at_the_clip_rate(setup, tmp_path, capsys
     """--seconds 0.8 from a 30 fps clip: 2 latent frames (8 frames at 10 Hz), not ceil(0.8 * 30 / 4) = 6."""
     video = _coded_video(tmp_path / "clip30.mp4", 30.0, 40)
     out = tmp_path / "out"
-    assert main(["sample", "--checkpoint", str(setup["run"]), "--history", str(video), "--size", "32x48",
-                 "--command", "Moving forward", "--max-text-tokens", "8", "--seconds", "0.8", "--steps", "1",
+    assert main(["sample", "--checkpoint", str(setup["run"]), "--history", str(video),
+                 "--set", "runtime.size_hw=[32, 48]",
+                 "--command", "Moving forward", "--set", "runtime.max_text_tokens=8", "--seconds", "0.8",
+                 "--steps", "1",
                  "--no-guidance", "--device", "cpu", "--out", str(out)]) == 0
     assert np.load(out / "sample_latents.npy").shape == (3 + 2, 16, 4, 6)
     run = json.loads((out / "run.json").read_text())
@@ -189,7 +193,7 @@ def test_sample_cli_30fps_video_seconds_at_the_clip_rate(setup, tmp_path, capsys
 
 
 def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, monkeypatch):
-    """--actions-from-trajectory on a 5 Hz shard history (latent frame = 0.8 s): the actions are those training
+    """runtime.actions_from_trajectory on a 5 Hz shard history (latent frame = 0.8 s): the actions are those training
     derives for the same clip geometry (Batch.latent_frame_dt_s), frames past the 4-s trajectory get the null
     action, and the rollout is told they are derived (guidance drops them with the trajectory)."""
     from resim.shards.schema import ClipSpec
@@ -217,7 +221,8 @@ def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, 
 
     monkeypatch.setattr(rollout_mod, "rollout", spy)
     assert main(["sample", "--checkpoint", str(setup["run"]), "--shards", str(data), "--history", s["__key__"],
-                 "--trajectory", "keep_lane", "--actions-from-trajectory", "--seconds", "8", "--steps", "1",
+                 "--trajectory", "keep_lane",
+                 "--set", "runtime.actions_from_trajectory=true", "--seconds", "8", "--steps", "1",
                  "--device", "cpu", "--out", str(tmp_path / "out")]) == 0
     res = seen["res"]
     assert seen["kw"]["actions_from_trajectory"] is True
@@ -238,7 +243,7 @@ def test_policy_actions_follow_the_history_rate_as_in_training(setup, tmp_path, 
 def test_video_history_takes_the_training_clips_size_and_crop(setup, tmp_path, capsys):
     """A run whose data was encoded at 32x48: a video history is encoded at 32x48 by default, cover-resized
     and centre-cropped as the pipeline cut its clips (a 32x96 frame keeps its middle, it is not squeezed), and
-    a --size that disagrees is refused in one line."""
+    a runtime.size_hw that disagrees is refused in one line."""
     import shutil
     import types
 
@@ -259,10 +264,11 @@ def test_video_history_takes_the_training_clips_size_and_crop(setup, tmp_path, c
     h = history_from_video(video, vae, 3, (32, 48))
     assert h.frames.shape[1:3] == (32, 48) and h.frames.mean() < 40
     common = ["sample", "--checkpoint", str(run), "--history", str(video), "--command", "Moving forward",
-              "--max-text-tokens", "8", "--seconds", "0.4", "--steps", "1", "--no-guidance", "--device", "cpu"]
+              "--set", "runtime.max_text_tokens=8", "--seconds", "0.4", "--steps", "1", "--no-guidance",
+              "--device", "cpu"]
     assert main([*common, "--out", str(tmp_path / "o")]) == 0
     assert np.load(tmp_path / "o" / "sample_latents.npy").shape[-2:] == (4, 6)     # 32x48 px / 8
     capsys.readouterr()
-    assert main([*common, "--size", "64x96", "--out", str(tmp_path / "o2")]) == 2
+    assert main([*common, "--set", "runtime.size_hw=[64, 96]", "--out", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
     assert "trained on 32x48 clips" in err and "Traceback" not in err

@@ -94,18 +94,43 @@ def _one_line_error(capsys, argv, needle, sub="sample"):
     (["--seconds", "nan"], "--seconds: expected a finite number"),
     (["--steps", "0"], "--steps: must be >= 1"),                     # was ConfigError traceback
     (["--steps", "-3"], "--steps: must be >= 1"),
-    (["--chunk-frames", "0"], "--chunk-frames: must be >= 1"),       # was ConfigError traceback
-    (["--history-frames", "0"], "--history-frames: must be >= 1"),
-    (["--history-noise-level", "-1"], "--history-noise-level: must be >= 0"),
-    (["--guidance-scale", "-3"], "--guidance-scale: must be >= 0"),  # was accepted
     (["--device", "cudaa"], "--device: expected cpu, cuda"),         # was torch RuntimeError traceback
     (["--vae", "/nope"], "--vae: /nope: no such folder"),            # was an attempt to reach huggingface.co
-    (["--text-encoder", "/nope"], "--text-encoder: /nope: no such folder"),
-    (["--size", "64x"], "--size: expected HxW"),                     # was ValueError traceback
-    (["--max-text-tokens", "0"], "--max-text-tokens: must be >= 1"),
 ])
 def test_bad_values_are_usage_errors(env, capsys, no_model_load, sub, extra, needle):
     _usage_error(capsys, _base(env, sub, *extra), needle)
+
+
+@pytest.mark.parametrize("sub", ["sample", "plan"])
+@pytest.mark.parametrize("setting,needle", [
+    ("rollout.chunk_frames=0", "need 1 <= chunk_frames (0)"),
+    ("rollout.chunk_frames=11", "need 1 <= chunk_frames (11) <= frames_per_round (10)"),
+    ("rollout.history_frames=0", "history_frames must be >= 1"),
+    ("rollout.history_noise_level=-1", "history_noise_level=-1 must be >= 0"),
+    ("rollout.guidance.scale_start=-3", "guidance.scale_start must be a finite number >= 0"),   # was accepted
+    ("rollout.guidance.schedule=steep", "rollout.guidance.schedule: 'steep' is not one of"),
+    ("rollout.num_step=3", "unknown config key rollout.num_step"),
+    ("rolout.num_steps=3", "unknown settings section 'rolout'"),
+    ("runtime.text_encoder=/nope", "text_encoder=/nope: no such local folder"),
+    ("runtime.size_hw=64", "runtime.size_hw: expected a list"),       # was ValueError traceback
+    ("runtime.max_text_tokens=0", "max_text_tokens must be a finite number > 0"),
+    ("runtime.dtype=float8", "runtime.dtype: 'float8' is not one of"),
+    ("runtime", "--set 'runtime': expected key=value"),
+])
+def test_bad_settings_are_one_line_errors(env, capsys, no_model_load, sub, setting, needle):
+    _one_line_error(capsys, _base(env, sub, "--set", setting), needle, sub)
+
+
+def test_a_settings_file_is_read_and_checked(env, capsys, no_model_load, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("rollout: [1, 2]\n")
+    _one_line_error(capsys, _base(env, "sample", "--config", str(bad)), "rollout: expected a mapping of keys")
+    _one_line_error(capsys, _base(env, "sample", "--config", str(tmp_path / "nope.yaml")), "nope.yaml: no such file")
+    bad.write_text("rollout: {chunk_frames: 0}\n")
+    _one_line_error(capsys, _base(env, "sample", "--config", str(bad)), "need 1 <= chunk_frames (0)")
+    # --set goes over the file
+    _one_line_error(capsys, _base(env, "sample", "--config", str(bad), "--set", "rollout.chunk_frames=11"),
+                    "chunk_frames (11)")
 
 
 def test_plan_speed_must_be_positive(env, capsys, no_model_load):
@@ -114,15 +139,15 @@ def test_plan_speed_must_be_positive(env, capsys, no_model_load):
 
 
 def test_mistakes_found_before_the_model_is_loaded(env, capsys, no_model_load, tmp_path):
-    _one_line_error(capsys, _base(env, "sample", "--chunk-frames", "11"), "--chunk-frames 11: at most the 10")
     # was "not a candidate name ...: Expecting value"
     _one_line_error(capsys, _base(env, "sample", "--trajectory", str(tmp_path / "nope.npy")), "nope.npy: no such file")
     _one_line_error(capsys, _base(env, "sample", "--trajectory", "nope.json"), "nope.json: no such file")
     (tmp_path / "bad.npy").write_text("not numpy")
     _one_line_error(capsys, _base(env, "sample", "--trajectory", str(tmp_path / "bad.npy")), "not a readable .npy")
     # was found only after the model had been loaded and the rollout had started
-    _one_line_error(capsys, _base(env, "sample", "--actions-from-trajectory"), "add --trajectory")
-    _one_line_error(capsys, _base(env, "sample", "--preset", "vid2world"), "add --actions-from-trajectory")
+    _one_line_error(capsys, _base(env, "sample", "--set", "runtime.actions_from_trajectory=true"), "add --trajectory")
+    _one_line_error(capsys, _base(env, "sample", "--preset", "vid2world"),
+                    "add --set runtime.actions_from_trajectory=true")
     if torch.cuda.is_available():
         _one_line_error(capsys, _base(env, "sample", "--device", "cuda:99"), "CUDA device(s) here")
     else:   # was AssertionError "Torch not compiled with CUDA enabled"
@@ -144,10 +169,11 @@ def test_plan_checks_the_reward_run_before_the_world_model(env, capsys, no_model
 
 
 def test_shard_history_shorter_than_the_rollouts_says_what_to_do(env, capsys):
-    """A NAVSIM-like key (1 latent history frame at 2 Hz): the error names --history-frames, which works."""
-    _one_line_error(capsys, _base(env, "sample", "--history", env["nav"]), "pass --history-frames 1")
+    """A NAVSIM-like key (1 latent history frame at 2 Hz): the error names the setting, which works."""
+    _one_line_error(capsys, _base(env, "sample", "--history", env["nav"]), "pass --set rollout.history_frames=1")
     out = env["root"] / "nav"
-    assert main(_base(env, "sample", "--history", env["nav"], "--history-frames", "1", "--seconds", "2", out=out)) == 0
+    assert main(_base(env, "sample", "--history", env["nav"], "--set", "rollout.history_frames=1", "--seconds", "2",
+                      out=out)) == 0
     assert np.load(out / "sample_latents.npy").shape[0] == 1 + 1        # 2 s at 2 Hz = 4 frames = 1 latent frame
     assert json.loads((out / "run.json").read_text())["rollout"]["history_frames"] == 1
 
@@ -155,8 +181,9 @@ def test_shard_history_shorter_than_the_rollouts_says_what_to_do(env, capsys):
 def test_model_dependent_checks_are_one_line(env, capsys, tmp_path):
     # a video history at a size the VAE + patching cannot take: was "latent size (3, 5) not divisible" traceback
     _one_line_error(capsys, ["sample", "--checkpoint", str(env["run"]), "--history", str(env["video"]),
-                             "--size", "30x45", "--steps", "1", "--device", "cpu", "--out", str(tmp_path / "o")],
-                    "--size 30x45: both sides must be multiples of 16")
+                             "--set", "runtime.size_hw=[30, 45]", "--steps", "1", "--device", "cpu",
+                             "--out", str(tmp_path / "o")],
+                    "runtime.size_hw=[30, 45]: both sides must be multiples of 16")
     # a trajectory the model's encoder cannot take: was ValueError traceback from inside the rollout
     _one_line_error(capsys, _base(env, "sample", "--trajectory", "[[1, 0, 0]]"), "the model takes 8 waypoints")
     _one_line_error(capsys, _base(env, "sample", "--steps", "5000"), "num_train_timesteps=1000")
@@ -176,9 +203,12 @@ def test_help_says_what_works_and_what_is_written(capsys):
     with pytest.raises(SystemExit):
         main(["sample", "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "NAVSIM's 2 Hz" not in out and "--history-frames 1" in out
+    assert "NAVSIM's 2 Hz" not in out and "--set rollout.history_frames=1" in out
     assert "run.json" in out and "nothing is downloaded" in out
-    assert "seed of the rollout's noise" in out and "compute dtype" in out     # --seed, --dtype had no help
+    assert "seed of the rollout's noise" in out and "runtime.dtype (float32|bfloat16|float16)" in out
+    for key in ("rollout.chunk_frames", "rollout.kv_cache", "rollout.guidance.scale_start", "runtime.text_encoder",
+                "runtime.size_hw", "runtime.compile", "runtime.actions_from_trajectory"):   # every setting is named
+        assert key in out, key
     with pytest.raises(SystemExit):
         main(["plan", "--help"])
     out = " ".join(capsys.readouterr().out.split())

@@ -1,15 +1,15 @@
 """Compiled sampling (resim/sample/compile.py): a rollout with compiled blocks equals the eager one, the
-compiled code is what runs, and --compile reaches the model from the command line."""
-import argparse
-
+compiled code is what runs, and runtime.compile reaches the model from the command line."""
 import pytest
 import torch
 
+from resim.config import ConfigError, from_dict
 from resim.diffusion.guidance import guidance_preset
 from resim.models.world.config import preset
 from resim.models.world.dit import WorldModel
-from resim.sample.compile import add_compile_args, compile_blocks, is_compiled, maybe_compile, wants_compile
+from resim.sample.compile import compile_blocks, is_compiled, maybe_compile, wants_compile
 from resim.sample.rollout import Condition, RolloutConfig, rollout
+from resim.sample.settings import RuntimeConfig
 
 B, C, H, W, L, D = 2, 16, 4, 6, 16, 64   # the tiny WorldModel preset's channels, text length and width
 
@@ -47,13 +47,12 @@ def test_off_leaves_the_model_eager(world):
     assert info == {"compile": False, "compile_flag": "auto"} and not is_compiled(model)
 
 
-def test_cli_flags():
-    p = argparse.ArgumentParser()
-    add_compile_args(p)
-    assert vars(p.parse_args([])) == {"compile": "auto", "compile_mode": "default"}
-    assert p.parse_args(["--compile", "on", "--compile-mode", "reduce-overhead"]).compile == "on"
-    with pytest.raises(SystemExit):
-        p.parse_args(["--compile", "yes"])
+def test_the_settings_take_the_compile_choices():
+    """`--set runtime.compile=...` is validated on load against the choices maybe_compile takes."""
+    assert from_dict(RuntimeConfig, {}).compile == "auto"
+    assert from_dict(RuntimeConfig, {"compile": "on", "compile_mode": "reduce-overhead"}).compile == "on"
+    with pytest.raises(ConfigError, match="runtime.compile: 'yes' is not one of"):
+        from_dict(RuntimeConfig, {"compile": "yes"}, prefix="runtime")
 
 
 def test_compiled_rollout_equals_eager(world, needs_inductor):

@@ -89,23 +89,32 @@ def test_presets_and_validation():
 
 @pytest.mark.parametrize("schedule,expect", [(None, [7.5, 4.25, 1.0]), ("constant", [7.5, 7.5, 7.5]),
                                              ("linear", [7.5, 4.25, 1.0])])
-def test_guidance_schedule_flag_reaches_the_rollout_config(schedule, expect):
-    """`resim sample --guidance-schedule` (and `resim eval` through the same preset override) sets the per-step
-    scales: the default stays ReSim's linear 7.5 -> 1."""
+def test_guidance_schedule_setting_reaches_the_rollout_config(schedule, expect, tmp_path):
+    """`resim sample --set rollout.guidance.schedule=...` (and `resim eval`, through the same settings) sets the
+    per-step scales: the default stays ReSim's linear 7.5 -> 1."""
     from resim.cli import build_parser
-    from resim.sample.cli import _rollout_config
+    from resim.sample.settings import resolve_settings
 
-    argv = ["sample", "--checkpoint", "x", "--history", "h.mp4", "--out", "o"]
+    argv = ["sample", "--checkpoint", str(tmp_path), "--history", "h.mp4", "--out", "o", "--steps", "3"]
     if schedule:
-        argv += ["--guidance-schedule", schedule]
-    args = build_parser().parse_args(argv)
-    cfg = _rollout_config(args, (3, "resim"))
-    assert cfg.guidance.scales(3) == pytest.approx(expect)
+        argv += ["--set", f"rollout.guidance.schedule={schedule}"]
+    cfg = resolve_settings(build_parser().parse_args(argv)).rollout
+    assert cfg.num_steps == 3 and cfg.guidance.scales(3) == pytest.approx(expect)
 
+
+def test_a_constant_schedule_keeps_the_given_start_scale(tmp_path):
+    """vid2world's constant guidance: a start scale set alone is its scale at every step."""
+    from resim.sample.settings import rollout_config_for
+
+    cfg, _ = rollout_config_for(tmp_path, "vid2world", 2, overrides={"guidance": {"scale_start": 3.0}})
+    assert cfg.guidance.scales(2) == [3.0, 3.0] and cfg.guidance.scale_end == 3.0 and cfg.chunk_frames == 1
+    cfg, _ = rollout_config_for(tmp_path, "resim", None, no_guidance=True, overrides={"chunk_frames": 5})
+    assert not cfg.guidance.enabled and cfg.num_steps == 50 and cfg.chunk_frames == 5
 
 
 def test_guidance_from_cli_is_shared_by_eval_and_sample():
-    """One place turns --guidance-scale/--guidance-schedule into a GuidanceConfig, for `resim eval` too."""
+    """One place turns a guidance preset, a start scale and a schedule into a GuidanceConfig (the settings of
+    every sampling command, and distillation's teacher)."""
     from resim.diffusion.guidance import guidance_from_cli
 
     assert guidance_from_cli("resim").scales(3) == pytest.approx([7.5, 4.25, 1.0])
