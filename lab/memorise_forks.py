@@ -87,7 +87,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--ddim-steps", type=int, default=25)
     ap.add_argument("--group-ends", action="store_true",
-                    help="also the group-end reading of resim eval commands --group-ends (diagnostic)")
+                    help="also the group-end reading of resim eval commands --set commands.group_ends=true "
+                         "(diagnostic)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     out = Path(args.out)

@@ -23,10 +23,10 @@
 #             `resim pipeline run` with the local executor (Ray is not installed there; the VAE encodes on the
 #             GPU, the flow labeler runs in sequence on one core), as FORKS81-83 were built on the CPU
 #             (docs/lab/2026-11-26-synth-world-stage-chain.md). Give the command this step's time as well.
-#   EVAL=1    each world run is then read by `resim eval commands --group-ends` on the 36 fork clips of seed 3005,
-#             the clips of the command ladder in docs/lab/2026-11-26-synth-world-stage-chain.md (built there beside
-#             the training data); its commands.json and pictures go into RUN.logs.tgz (`gpu_unpack.py` puts them
-#             in DEST/logs/eval).
+#   EVAL=1    each world run is then read by `resim eval commands --set commands.group_ends=true` on the 36 fork
+#             clips of seed 3005, the clips of the command ladder in docs/lab/2026-11-26-synth-world-stage-chain.md
+#             (built there beside the training data); its commands.json and pictures go into RUN.logs.tgz
+#             (`gpu_unpack.py` puts them in DEST/logs/eval).
 #
 # Usage: RUNS="V V2" bash scripts/gpu_synth_round.sh OUT_DIR [WALL_S]
 #        RUNS=WC FORKS=216 EVAL=1 DEADLINE_S=570 bash scripts/gpu_synth_round.sh OUT_DIR   # the command at scale
@@ -136,7 +136,7 @@ evaluate() {   # RUN: the ladder's command reading (docs/lab/2026-11-26-synth-wo
   local n=36 steps=25
   [ "${SMOKE:-0}" = 1 ] && n=3 steps=2
   "${RESIM[@]}" eval commands --checkpoint "$WORK/$1" --shards "$HELDOUT" --all-clips --counterfactual-only \
-      --limit "$n" --steps "$steps" --group-ends --out "$WORK/$1.eval" >"$WORK/$1.eval.log" 2>&1
+      --limit "$n" --steps "$steps" --set commands.group_ends=true --out "$WORK/$1.eval" >"$WORK/$1.eval.log" 2>&1
   echo "[round] $1 eval exit $? after $(( $(date +%s) - t0 )) s"; tail -n 8 "$WORK/$1.eval.log"
 }
 wall=()
