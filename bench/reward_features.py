@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from resim.config import from_dict
-from resim.models.reward.config import RewardTrainConfig
+from resim.train.tasks.reward.config import RewardTrainConfig
 from resim.models.reward.model import Video2Reward
 from resim.train.tasks.reward.features import add_clip_features
 from resim.train.tasks.reward.train import fit

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from resim.config import from_dict
-from resim.models.reward.config import PRESETS, RewardModelConfig
+from resim.models.reward.config import RewardModelConfig
+from resim.train.tasks.reward.config import PRESETS
 from resim.models.reward.model import Video2Reward
 from resim.pipeline.sources.carla import CarlaConfig, CarlaReader
 from resim.train.tasks.reward.data import RewardClip, clips_from_episode, frames_to_tensor, split_by_episode

@@ -174,6 +174,21 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
     raise TypeError(f"config type {tp!r} at {key} is not supported by resim.config")  # our bug
 
 
+def _over_field_default(f: dataclasses.Field, tp: Any, value: Any) -> Any:
+    """A partial mapping for a nested config goes over the *field's* default, not its class's: a task that
+    defaults ``optim`` to ``OptimConfig(lr=2e-3, schedule="cosine")`` keeps its schedule under ``--set optim.lr=...``
+    (with the class's defaults it would quietly become constant)."""
+    if not (isinstance(value, Mapping) and dataclasses.is_dataclass(tp)
+            and f.default_factory is not dataclasses.MISSING):  # type: ignore[misc]
+        return value
+    default = f.default_factory()  # type: ignore[misc]
+    if not isinstance(default, tp):
+        return value
+    merged = to_dict(default)
+    _deep_update(merged, value)
+    return merged
+
+
 def from_dict(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
     """Build dataclass ``cls`` from ``data``, validating keys and types recursively."""
     if not dataclasses.is_dataclass(cls):
@@ -189,7 +204,7 @@ def from_dict(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
     kwargs = {}
     for name, value in data.items():
         key = f"{prefix}.{name}" if prefix else name
-        kwargs[name] = _convert(value, hints[name], key)
+        kwargs[name] = _convert(_over_field_default(fields[name], hints[name], value), hints[name], key)
     missing = [
         n for n, f in fields.items()
         if n not in kwargs and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING  # type: ignore[misc]

@@ -20,7 +20,6 @@ from resim.argtypes import torch_device as _torch_device
 from resim.config import ConfigError, apply_overrides, from_dict, to_dict
 from resim.models.policy.variants import HELP as CL_VARIANTS_HELP, VARIANTS as CL_VARIANTS
 from resim.sample.cli import UsageError, resolve_device
-from resim.sample.compile import maybe_compile
 from resim.shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
 from resim.shipped import PLACEHOLDER_T5, shipped_dir, shipped_model
 
@@ -369,7 +368,8 @@ def add_idm_parser(sub) -> None:
                    help="future: the IDM; history: the VO-style planner baseline (same architecture)")
     i.add_argument("--epochs", type=_positive_int, default=None)
     i.add_argument("--batch-size", type=_positive_int, default=None)
-    i.add_argument("--lr", type=float, default=None)
+    i.add_argument("--lr", type=float, default=None, help="peak learning rate = optim.lr (default 2e-3; AdamW, warmup "
+                   "then cosine)")
     i.add_argument("--heldout-fraction", type=float, default=None, help="share of episodes held out (default 0.25)")
     i.add_argument("--min-heldout-episodes", type=_positive_int, default=None,
                    help="hold out at least this many episodes (default 1; the demo uses 2 so the held-out set "
@@ -412,10 +412,8 @@ def _heldout_items(path: str | None, all_clips: bool = False):
 
 def _runner(args):
     """The rollout set-up of every `resim eval` protocol (and of `simulate` / `eval closed-loop`, through
-    ``make_runner``): the world model as one bundle (resim.sample.bundle), its rollout config (``args.settings``,
-    resolved by :func:`_device`), the runner."""
-    import torch
-
+    ``make_runner``): the world model as one bundle (``WorldModelBundle.for_rollout``, as `resim sample` builds
+    it), its rollout config (``args.settings``, resolved by :func:`_device`), the runner."""
     from resim.eval.worldeval import WorldRollouts
     from resim.sample.bundle import BundleLoadError, WorldModelBundle
 
@@ -423,20 +421,13 @@ def _runner(args):
     rt, cfg = st.runtime, st.rollout
     say = lambda m: print(f"[resim eval] {m}", file=sys.stderr, flush=True)   # noqa: E731
     try:
-        wm = WorldModelBundle.from_pretrained(args.checkpoint, device=device, dtype=getattr(torch, rt.dtype),
-                                              vae=args.vae, text_encoder=rt.text_encoder, shards=args.shards)
+        wm = WorldModelBundle.for_rollout(args.checkpoint, st, device=device, vae=args.vae, shards=args.shards,
+                                          log=say)
     except BundleLoadError as e:
         raise SystemExit(f"resim eval: --{e.part}: {e}") from None
-    try:
-        wm.check_rollout_config(cfg)   # steps and levels against the run's noise schedule
-    except ConfigError as e:
+    except ConfigError as e:   # steps and levels against the run's noise schedule
         raise SystemExit(f"resim eval: {e}") from None
-    if st.origin:
-        say(st.origin)
-    model, vae = wm.model, wm.vae
-    if rt.attention is not None:
-        model.set_attention_backend(rt.attention)
-    info = {**wm.info, **maybe_compile(model, rt.compile, device, mode=rt.compile_mode, log=say)}
+    model, vae, info = wm.model, wm.vae, wm.info
     prompts = wm.prompts()   # --shards' prompt table, else the text encoder
     runner = WorldRollouts(model, vae, cfg, lambda c: prompts(c), device=device, seed=args.seed,
                            batch_size=rt.batch_size, schedule=wm.objective.schedule, log=say)
@@ -870,7 +861,9 @@ def _cmd_idm(args) -> int:
 
     d = {"preset": args.preset if args.window == "future" or args.preset.endswith("-history")
          else f"{args.preset}-history", "seed": args.seed}
-    for k, v in (("epochs", args.epochs), ("batch_size_per_gpu", args.batch_size), ("lr", args.lr),
+    if args.lr is not None:
+        d["optim"] = {"lr": args.lr}   # over the IDM's own optimiser defaults (resim.config.from_dict)
+    for k, v in (("epochs", args.epochs), ("batch_size_per_gpu", args.batch_size),
                  ("heldout_fraction", args.heldout_fraction), ("min_heldout_episodes", args.min_heldout_episodes),
                  ("val_fraction", args.val_fraction), ("hflip_prob", args.hflip_prob),
                  ("decoded_vae", args.decoded_vae), ("decoded_prob", args.decoded_prob)):

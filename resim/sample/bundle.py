@@ -36,7 +36,8 @@ from resim.sample.load import (History, PromptSource, SamplingInputError, check_
                                trained_clip_fps_hz, trained_size_hw, video_clip_fps_hz)
 from resim.sample.outputs import decode_rollout
 from resim.sample.rollout import Condition, RolloutConfig, ddim_schedule, rollout, rollout_num_future_frames
-from resim.sample.settings import DEFAULT_TEXT_ENCODER, rollout_config_for
+from resim.sample.compile import maybe_compile
+from resim.sample.settings import DEFAULT_TEXT_ENCODER, Settings, rollout_config_for
 from resim.shards.schema import COMMANDS, pixel_frame_count
 
 
@@ -98,6 +99,27 @@ class WorldModelBundle:
         size = trained_size_hw(ck, shards) or (mcfg.sample_height * sc, mcfg.sample_width * sc)
         return cls(model, objective, video_vae, checkpoint=ck, info=info, text_encoder=text_encoder,
                    size_hw=size, clip_fps_hz=trained_clip_fps_hz(ck, shards), device=device, shards=shards)
+
+    @classmethod
+    def for_rollout(cls, name_or_path: str | Path, settings: Settings, *, device: str,
+                    vae: str | Path | None = None, shards: str | Path | None = None,
+                    log: Callable[[str], None] | None = None) -> "WorldModelBundle":
+        """The one rollout set-up of every command that samples (sample, plan, simulate, eval, the closed loop):
+        the bundle loaded at ``settings.runtime``'s dtype and text encoder, its attention kernel and compile
+        applied, ``settings.rollout`` checked against the run's noise schedule (:class:`ConfigError` naming the
+        key), and ``info`` recording all of it. ``log`` hears where non-preset defaults came from (a distilled
+        student's) and what was compiled."""
+        rt = settings.runtime
+        wm = cls.from_pretrained(name_or_path, device=device, dtype=getattr(torch, rt.dtype), vae=vae,
+                                 text_encoder=rt.text_encoder, shards=shards)
+        wm.check_rollout_config(settings.rollout)
+        if settings.origin and log is not None:
+            log(settings.origin)
+        if rt.attention is not None:
+            wm.model.set_attention_backend(rt.attention)
+        wm.info = {**wm.info, "attention_backend": wm.model.cfg.attention_backend,
+                   **maybe_compile(wm.model, rt.compile, device, mode=rt.compile_mode, log=log)}
+        return wm
 
     # ------------------------------------------------------------------------------------------- inputs
     @property

@@ -13,7 +13,6 @@ from pathlib import Path
 
 from resim.argtypes import add_settings_args, local_dir, positive_float, positive_int, torch_device
 from resim.config import ConfigError, save, to_dict
-from resim.sample.compile import maybe_compile   # no torch: see its imports
 from resim.shards.schema import latent_frame_count, pixel_frame_count, temporal_compression_of
 
 
@@ -183,8 +182,6 @@ def _check_args(args, command: str):
     trajs = _trajectories(trajectory)
     from resim.sample.load import _checkpoint_dir
     _checkpoint_dir(args.checkpoint)   # the world-model checkpoint's files exist
-    if settings.origin:
-        _say(command)(settings.origin)
     return resolve_device(args.device), settings, trajs
 
 
@@ -205,27 +202,20 @@ class _Setup:
     """Everything both commands build from the common arguments (after :func:`_check_args`)."""
 
     def __init__(self, args, device: str, settings):
-        import torch
-
         from resim.sample.bundle import WorldModelBundle
         from resim.sample.load import PromptSource, SamplingInputError, trained_size_hw
-        from resim.sample.rollout import ddim_schedule, rollout_num_future_frames
+        from resim.sample.rollout import rollout_num_future_frames
 
         self.device = device
         rt = self.runtime = settings.runtime
-        # the model, its objective (its schedule is what DDIM steps over), the VAE that encoded its training data
-        self.bundle = WorldModelBundle.from_pretrained(args.checkpoint, device=device, dtype=getattr(torch, rt.dtype),
-                                                       vae=args.vae, text_encoder=rt.text_encoder,
-                                                       shards=args.shards)
+        self.cfg, self.settings = settings.rollout, settings
+        # the model, its objective (its schedule is what DDIM steps over), the VAE that encoded its training data;
+        # the settings' dtype, kernel and compile applied, steps and levels checked against the run's schedule
+        self.bundle = WorldModelBundle.for_rollout(args.checkpoint, settings, device=device, vae=args.vae,
+                                                   shards=args.shards, log=lambda m: print(f"[resim] {m}",
+                                                                                           file=sys.stderr))
         self.model, self.objective, self.vae = self.bundle.model, self.bundle.objective, self.bundle.vae
-        if rt.attention is not None:
-            self.model.set_attention_backend(rt.attention)
-        self.model_info = {**self.bundle.info, "attention_backend": self.model.cfg.attention_backend,
-                           **maybe_compile(self.model, rt.compile, self.device, mode=rt.compile_mode,
-                                           log=lambda m: print(f"[resim] {m}", file=sys.stderr))}
-        self.cfg = settings.rollout
-        self.settings = settings
-        ddim_schedule(self.cfg, self.objective.schedule)   # steps / history_noise_level vs the run's schedule, now
+        self.model_info = self.bundle.info
         if Path(args.history).is_file():
             # the size the model's training clips were encoded at (its data's encode section), else its sample size
             trained = trained_size_hw(args.checkpoint, args.shards)

@@ -7,11 +7,13 @@ plain dicts of this shape; ``--set key=value`` overrides any leaf.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from resim.config import ConfigError
+from resim.config import ConfigError, check_positive
 
 
 @dataclass
@@ -31,14 +33,39 @@ class OptimConfig:
     implementation: Literal["auto", "for-loop", "foreach", "fused"] = "auto"
 
     def __post_init__(self):
-        if self.lr <= 0:
-            raise ConfigError(f"optim.lr must be > 0, got {self.lr}")
+        # finite: nan passes `<= 0` tests and would train to nan weights without a word
+        check_positive("optim.lr", self.lr)
+        check_positive("optim.weight_decay", self.weight_decay, allow_zero=True)
         if self.warmup_steps < 0:
             raise ConfigError(f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ConfigError(f"optim.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
-        if self.weight_decay < 0:
-            raise ConfigError(f"optim.weight_decay must be >= 0, got {self.weight_decay}")
+        if not math.isfinite(self.grad_clip_norm):   # nan would quietly mean "no clipping"
+            raise ConfigError(f"optim.grad_clip_norm must be a finite number (<= 0: no clipping), got "
+                              f"{self.grad_clip_norm}")
+
+    def for_steps(self, steps: int) -> "OptimConfig":
+        """This optimiser for a run of ``steps`` steps: the warmup ends before the last step."""
+        return dataclasses.replace(self, warmup_steps=min(self.warmup_steps, max(steps - 1, 0)))
+
+
+@dataclass
+class SmallTrainConfig:
+    """How a small model is fitted in one process, over epochs of clips held in memory (``resim.train.smallfit``):
+    Video2Reward, the inverse dynamics model and the driving policy. Each task's config extends it with its model,
+    split and augmentation; the optimiser is the big trainer's :class:`OptimConfig` (``optim.lr``, ...)."""
+
+    epochs: int = 30
+    batch_size_per_gpu: int = 16
+    seed: int = 0
+    optim: OptimConfig = field(default_factory=OptimConfig)
+
+    def __post_init__(self):
+        if self.epochs < 1 or self.batch_size_per_gpu < 1:
+            raise ConfigError(f"epochs and batch_size_per_gpu must be >= 1, got {self.epochs} and "
+                              f"{self.batch_size_per_gpu}")
+        if self.seed < 0:  # numpy's epoch RNG (seed * 1000 + epoch) refuses negative seeds
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")
 
 
 @dataclass

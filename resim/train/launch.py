@@ -225,7 +225,7 @@ def reward_dry_run(args, train: list[str], ns) -> dict:
     print(f"dry run: resim train {' '.join(train)}")
     print(f"  preset {ns.preset}; model Video2Reward: backbone {m.backbone_dir}, {m.image_size_px} px, window "
           f"{m.num_frames} frames every {m.frame_step}, {'frozen' if m.freeze_backbone else 'fine-tuned'} backbone; "
-          f"{cfg.epochs} epochs, batch {cfg.batch_size_per_gpu}, lr {cfg.lr:g}")
+          f"{cfg.epochs} epochs, batch {cfg.batch_size_per_gpu}, lr {cfg.optim.lr:g}")
     print("  memory per GPU: no estimate for reward (the estimate covers models built from resim/train/presets.py; "
           "Video2Reward's size depends on its backbone folder)")
     if world > 1:

@@ -8,7 +8,7 @@ import torch
 import yaml
 
 from resim.cli import main
-from resim.config import ConfigError
+from resim.config import ConfigError, from_dict
 from resim.shards.schema import ClipSpec
 
 
@@ -121,8 +121,8 @@ def test_idm_configs_validate_without_dividing_by_zero():
     with pytest.raises(ConfigError, match="target_scale"):
         idm_preset("tiny", target_scale=(1.0, float("nan"), 1.0))
     for bad in (float("nan"), float("inf"), 0.0):
-        with pytest.raises(ConfigError, match="lr must be a finite number"):
-            IDMTrainConfig(lr=bad)
+        with pytest.raises(ConfigError, match="optim.lr must be a finite number"):
+            from_dict(IDMTrainConfig, {"optim": {"lr": bad}})
 
 
 def test_device_and_model_folders_are_checked_first(ds, capsys):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from resim.config import ConfigError
+from resim.config import ConfigError, from_dict
 from tests.support.shards import dummy_trajectory
 from resim.labeling.trajectory import trajectory_from_poses
 from resim.models.idm import InverseDynamicsModel, idm_preset
@@ -144,7 +144,8 @@ def test_early_stopping_keeps_the_best_validation_epoch(tmp_path, road_world):
     tc = [TrajClip(f"k{i}", c["item_id"], c["frames"], c["traj"], 9, 10.0) for i, c in enumerate(clips)]
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    cfg = IDMTrainConfig(preset="tiny", epochs=3, batch_size_per_gpu=4, lr=3e-3, warmup_steps=1)
+    cfg = from_dict(IDMTrainConfig, {"preset": "tiny", "epochs": 3, "batch_size_per_gpu": 4,
+                                     "optim": {"lr": 3e-3, "warmup_steps": 1}})
     m = InverseDynamicsModel(cfg.model_cfg())
     res = fit(m, tc[2:], cfg, tmp_path, val=tc[:2])["early_stopping"]
     hist = res["val_ade_per_epoch"]

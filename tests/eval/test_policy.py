@@ -10,7 +10,7 @@ from resim.config import from_dict
 from resim.eval.drive import PixelPolicy, itinerary
 from resim.models.policy.model import DrivingPolicy, policy_preset
 from resim.models.reward.checkpoint import save_checkpoint
-from resim.models.reward.config import RewardTrainConfig
+from resim.train.tasks.reward.config import RewardTrainConfig
 from resim.models.reward.model import Video2Reward
 from resim.shards.manifest import read_manifest
 from resim.shards.schema import COMMANDS
@@ -49,7 +49,8 @@ def test_mirroring_swaps_the_turns():
 def test_behaviour_cloning_on_road_world_shards_learns_the_turns(tmp_path, road_world):
     root = tmp_path / "shards"
     road_world.write_shards(root, episodes=12, frames_per_episode=120, frames_hw=(64, 96), clip_stride_frames=6)
-    cfg = PolicyTrainConfig(preset="tiny", overrides=SMALL, epochs=40, lr=3e-3, heldout_fraction=0.25)
+    cfg = from_dict(PolicyTrainConfig, {"preset": "tiny", "overrides": SMALL, "epochs": 40, "optim": {"lr": 3e-3},
+                                        "heldout_fraction": 0.25})
     clips, counts = clips_from_shards([root], cfg.model_cfg())
     assert counts["samples"] == len(clips) > 50 and clips[0].frames.shape == (5, 32, 48, 3)
     res = run_policy_training([root], cfg, tmp_path / "run", clips=clips)

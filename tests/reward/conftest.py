@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from resim.config import from_dict
-from resim.models.reward.config import RewardModelConfig, RewardTrainConfig
+from resim.models.reward.config import RewardModelConfig
+from resim.train.tasks.reward.config import RewardTrainConfig
 
 torch.set_num_threads(1)
 

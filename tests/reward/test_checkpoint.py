@@ -11,9 +11,8 @@ import torch
 import yaml
 from safetensors.torch import load_file
 
-from resim import config as rconfig
 from resim.models.reward.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from resim.models.reward.config import RewardTrainConfig
+from resim.train.tasks.reward.config import RewardTrainConfig
 from resim.models.reward.model import Video2Reward
 from resim.train.run import REWARD_RUN_FILES, check_out_dir, remove_run
 
@@ -35,7 +34,8 @@ def test_a_run_of_the_older_layout_scores_as_it_did():
 def test_saved_again_it_is_the_shared_layout_and_scores_the_same(tmp_path):
     ref = load_file(str(OLD_RUN / "reference.safetensors"))
     old = load_checkpoint(OLD_RUN)
-    train_cfg = rconfig.load(RewardTrainConfig, OLD_RUN / "config.yaml")
+    # its training config is of the older form (flat lr, no optim section): only its model is carried over
+    train_cfg = RewardTrainConfig(model=old.cfg)
     save_checkpoint(old, tmp_path / "run", train_cfg, {"note": "re-saved"})
     run = tmp_path / "run"
     assert sorted(p.name for p in run.iterdir()) == ["config.yaml", "final"]

@@ -21,7 +21,7 @@ def ckpt(tmp_path_factory):
 
     from resim.config import from_dict
     from resim.models.reward.checkpoint import save_checkpoint
-    from resim.models.reward.config import RewardTrainConfig
+    from resim.train.tasks.reward.config import RewardTrainConfig
     from resim.models.reward.model import Video2Reward
 
     root = tmp_path_factory.mktemp("ck")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from resim.config import from_dict
-from resim.models.reward.config import RewardTrainConfig
+from resim.train.tasks.reward.config import RewardTrainConfig
 from tests.support.reward_toy import toy_clips
 from resim.train.tasks.reward.train import SplitError, prepare_training, train_reward
 

@@ -27,7 +27,7 @@ def env(tmp_path_factory):
     from resim.models.world.config import preset
     from resim.models.world.dit import WorldModel
     from resim.models.reward.checkpoint import save_checkpoint
-    from resim.models.reward.config import RewardTrainConfig
+    from resim.train.tasks.reward.config import RewardTrainConfig
     from resim.models.reward.model import Video2Reward
 
     root = tmp_path_factory.mktemp("sampling_errors")

@@ -19,12 +19,14 @@ import json
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from resim import config as rconfig
 from resim.config import to_dict
 from resim.models.exported import (FINAL, META_FILE, ExportError, ExportNotFoundError, load_exported, load_weights,
                                read_weights, write_export)
 from resim.models.reward.backbone import BackboneError
-from resim.models.reward.config import RewardTrainConfig
+from resim.models.reward.config import RewardModelConfig
 from resim.models.reward.model import Video2Reward
 from resim.shards.safejson import plain as _plain, write_json as _write_json
 
@@ -49,9 +51,10 @@ def write_json(obj: Any, path: str | Path, indent: int = 2) -> Path:
     return _write_json(obj, path, null_nonfinite=True, indent=indent)
 
 
-def save_checkpoint(model: Video2Reward, out_dir: str | Path, train_cfg: RewardTrainConfig,
+def save_checkpoint(model: Video2Reward, out_dir: str | Path, train_cfg: Any,
                     extra_meta: dict | None = None, run_cfg: Any = None) -> Path:
-    """Write the run's ``config.yaml`` (``train_cfg``) and ``final/`` (module docstring). ``run_cfg``: the common
+    """Write the run's ``config.yaml`` (``train_cfg``, its resolved training config: a
+    ``resim.train.tasks.reward.config.RewardTrainConfig``) and ``final/`` (module docstring). ``run_cfg``: the common
     trainer's resolved config of the run, saved as ``final/config.yaml`` like every trainer export; without it
     that file holds only ``model_name`` and ``model``, which is all a loader reads."""
     out = Path(out_dir)
@@ -115,12 +118,17 @@ def _load_old(d: Path) -> Video2Reward:
         raise CheckpointError(f"{d} is not a reward checkpoint: config.yaml is missing")
     # Checkpoints saved before the head got its sigmoid (output_activation) were trained with a raw
     # linear output: a config.yaml without the key loads as "none", not as today's default.
+    # Only its model section is read: the rest is how it was trained.
     try:
-        cfg = rconfig.load(RewardTrainConfig, d / "config.yaml", base={"model": {"output_activation": "none"}})
-    except (rconfig.ConfigError, UnicodeDecodeError) as e:  # invalid values / YAML, or not a text file
+        raw = rconfig.safe_yaml((d / "config.yaml").read_text())
+        section = raw.get("model") if isinstance(raw, dict) else None
+        if not isinstance(section, dict):
+            raise rconfig.ConfigError("no model section (a RewardTrainConfig has one)")
+        mcfg = rconfig.from_dict(RewardModelConfig, {"output_activation": "none", **section}, prefix="model")
+    except (rconfig.ConfigError, UnicodeDecodeError, yaml.YAMLError) as e:  # invalid values / YAML, not text
         raise CheckpointError(f"{d / 'config.yaml'}: {e}") from None
     try:
-        model = Video2Reward(cfg.model)
+        model = Video2Reward(mcfg)
     except BackboneError as e:
         raise CheckpointError(f"{d / 'config.yaml'}: model.backbone_dir: {e}") from None
     try:

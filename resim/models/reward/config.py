@@ -1,17 +1,16 @@
 """Typed configs for Video2Reward (ReSim appendix B.2).
 
 ``RewardModelConfig`` fixes everything that changes what the model computes
-(backbone, input size, which frames of a clip it sees, head size);
-``RewardTrainConfig`` the optimisation (ReSim: AdamW, lr 1e-3, 20 epochs) and
-the held-out split. Presets: ``tiny`` (placeholder backbone, 56 px, CPU tests
-and demo), ``synthetic`` (tiny + whole-episode window for `resim synth` worlds) and ``resim`` (DINOv2 at 224x224 as in the paper).
+(backbone, input size, which frames of a clip it sees, head size); ``RewardDataConfig`` which clips carry labels
+and how a window is cut from them. How the model is trained (optimiser, epochs, presets) is
+``resim.train.tasks.reward.config.RewardTrainConfig``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Literal
 
-from resim.config import ConfigError, check_positive
+from resim.config import ConfigError
 
 PLACEHOLDER_BACKBONE_DIR = "configs/models/placeholder-dinov2-tiny"
 
@@ -83,45 +82,3 @@ class RewardDataConfig:
     def __post_init__(self):
         if not 0.0 < self.heldout_fraction < 1.0:  # false for nan too
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
-
-
-@dataclass
-class RewardTrainConfig:
-    model: RewardModelConfig = field(default_factory=RewardModelConfig)
-    data: RewardDataConfig = field(default_factory=RewardDataConfig)
-    # ReSim B.2: AdamW, learning rate 1e-3, 20 epochs.
-    lr: float = 1e-3
-    weight_decay: float = 0.01
-    grad_clip_norm: float = 0.0  # 0: no clipping (ReSim states none)
-    epochs: int = 20
-    batch_size_per_gpu: int = 16
-    seed: int = 0
-    use_stored_features: bool = True  # use dino.npy when every sample has it and the id matches
-
-    def __post_init__(self):
-        # finite: nan passes `<= 0` / `< 0` tests and inf is no learning rate; both would train to nan
-        check_positive("lr", self.lr)
-        check_positive("weight_decay", self.weight_decay, allow_zero=True)
-        check_positive("grad_clip_norm", self.grad_clip_norm, allow_zero=True)   # 0: no clipping
-        if self.epochs < 1 or self.batch_size_per_gpu < 1:
-            raise ConfigError(f"epochs and batch_size_per_gpu must be >= 1, got {self.epochs} and "
-                              f"{self.batch_size_per_gpu}")
-        if self.seed < 0:  # numpy's shuffling RNG (seed * 1000 + epoch) refuses negative seeds
-            raise ConfigError(f"seed must be >= 0, got {self.seed}")
-
-
-PRESETS: dict[str, dict] = {
-    "tiny": {},
-    "resim": {"model": {"image_size_px": 224, "backbone_dir": "models/dinov2-small", "head_dim": 256,
-                        "num_heads": 8, "mlp_hidden_dim": 512, "num_frames": 8, "frame_step": 5},
-              "batch_size_per_gpu": 32},
-    # The synthetic world's CARLA-layout episodes (8 s at 10 Hz, `resim synth --preset tiny`): one window
-    # spans 78 of the 80 frames, so the episode-level infraction (a late crash, a stop of >= 3 s) is in
-    # view (docs/reward.md, "what the frames show"); frozen random placeholder backbone, head only.
-    # temporal_diff: the head also sees each frame's feature change (stops show as little change late in
-    # the episode); it was the change that lifted the ranking on every held-out split
-    # (docs/lab/2026-11-22-reward-synthetic-world.md, "What changed, and what each change did").
-    "synthetic": {"model": {"num_frames": 8, "frame_step": 11, "head_dim": 32, "num_heads": 2,
-                            "mlp_hidden_dim": 64, "dropout": 0.1, "temporal_diff": True},
-                  "epochs": 100},
-}

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import save_file
 
-from resim.config import ConfigError, check_positive, to_dict
+from resim.config import ConfigError, to_dict
 from resim.media.encoders import VideoVAE
 from resim.models.exported import ExportNotFoundError, load_exported
 from resim.models.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
@@ -43,23 +43,22 @@ from resim.shards.reader import iter_samples
 from resim.shards.safejson import write_json
 from resim.shipped import shipped_model
 from resim.train import smallfit
-from resim.train.config import OptimConfig, RunConfig
+from resim.train.config import OptimConfig, RunConfig, SmallTrainConfig
 from resim.train.metrics import plot_bars
 from resim.train.smallfit import frames_to_tensor
 
 
 @dataclass
-class IDMTrainConfig:
+class IDMTrainConfig(SmallTrainConfig):
+    """The IDM's training (`resim train idm`): epochs, batch, seed and ``optim`` as every small model's
+    (:class:`resim.train.config.SmallTrainConfig`), then its network, split and augmentation."""
     preset: str = "small"
     overrides: dict[str, Any] = field(default_factory=dict)   # IDMConfig fields
-    epochs: int = 30
-    batch_size_per_gpu: int = 16
-    lr: float = 2e-3
-    weight_decay: float = 0.01
-    warmup_steps: int = 20
+    # AdamW with a warmup, then cosine to 5 %, clipping at 1
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=2e-3, weight_decay=0.01, warmup_steps=20,
+                                                                   schedule="cosine", min_lr_ratio=0.05))
     heldout_fraction: float = 0.25
     split_seed: int = 0
-    seed: int = 0
     # augmentation: mirror clips left-right (video flipped along W; trajectory y -> -y, yaw -> -yaw). Ego motion
     # is mirror-symmetric, so a mirrored clip is another valid clip (doubles the distinct training clips).
     hflip_prob: float = 0.5
@@ -83,15 +82,7 @@ class IDMTrainConfig:
     min_heldout_episodes: int = 1
 
     def __post_init__(self):
-        if self.epochs < 1 or self.batch_size_per_gpu < 1:
-            raise ConfigError("epochs and batch_size_per_gpu must be >= 1")
-        # finite: nan passes `<= 0` tests and would train to nan weights without a word
-        check_positive("lr", self.lr)
-        check_positive("weight_decay", self.weight_decay, allow_zero=True)
-        if self.warmup_steps < 0:
-            raise ConfigError(f"warmup_steps must be >= 0, got {self.warmup_steps}")
-        if self.seed < 0:  # numpy's epoch RNG (seed * 1000 + epoch) refuses negative seeds
-            raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        super().__post_init__()
         if not 0.0 < self.heldout_fraction < 1.0:
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if not 0.0 <= self.hflip_prob <= 1.0:
@@ -237,8 +228,7 @@ def run_config(tcfg: IDMTrainConfig, steps: int, progress: bool = False) -> RunC
     return smallfit.run_config(
         # the resolved IDMConfig, not just the preset name: a run must load the same network after presets change
         "idm", to_dict(tcfg.model_cfg()), steps=steps, batch_size=tcfg.batch_size_per_gpu, seed=tcfg.seed,
-        optim=OptimConfig(lr=tcfg.lr, weight_decay=tcfg.weight_decay, warmup_steps=min(tcfg.warmup_steps, steps - 1),
-                          schedule="cosine", min_lr_ratio=0.05, grad_clip_norm=1.0),
+        optim=tcfg.optim.for_steps(steps),
         save_final_weights=True, preset=f"idm-{tcfg.preset}", progress=progress, load_frames=True,
         reference={"resim": "IDM: video -> 8 waypoints at 2 Hz (XVO backbone there)"})
 
@@ -435,7 +425,7 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
               out / "idm_report.png", title=f"{key} ({len(held)} held-out clips, {res['protocol']['episodes_heldout']}"
                                              " episodes)")
     (out / "train_config.json").write_text(json.dumps({"preset": tcfg.preset, "overrides": tcfg.overrides,
-                                                        "epochs": tcfg.epochs, "lr": tcfg.lr,
+                                                        "epochs": tcfg.epochs, "lr": tcfg.optim.lr,
                                                         "batch_size_per_gpu": tcfg.batch_size_per_gpu,
                                                         "seed": tcfg.seed, "split_seed": tcfg.split_seed,
                                                         "hflip_prob": tcfg.hflip_prob,

@@ -21,14 +21,14 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from resim.config import ConfigError, check_positive, to_dict
+from resim.config import ConfigError, to_dict
 from resim.models.exported import ExportNotFoundError, load_exported
 from resim.models.policy.model import DrivingPolicy, PolicyConfig, command_index, policy_preset
 from resim.shards.reader import iter_samples
 from resim.shards.safejson import write_json
 from resim.shards.schema import COMMANDS
 from resim.train import smallfit
-from resim.train.config import OptimConfig, RunConfig
+from resim.train.config import OptimConfig, RunConfig, SmallTrainConfig
 from resim.train.smallfit import frames_to_tensor
 from resim.train.tasks.idm import constant_velocity, resize_frames, trajectory_errors
 
@@ -36,26 +36,21 @@ MIRROR = {0: 2, 1: 1, 2: 0}   # command index under a left-right mirror
 
 
 @dataclass
-class PolicyTrainConfig:
+class PolicyTrainConfig(SmallTrainConfig):
+    """The policy's training (`resim train policy`): epochs, batch, seed and ``optim`` as every small model's
+    (:class:`resim.train.config.SmallTrainConfig`), then its network, split and augmentation."""
     preset: str = "tiny"
     overrides: dict[str, Any] = field(default_factory=dict)   # PolicyConfig fields
-    epochs: int = 30
     batch_size_per_gpu: int = 32
-    lr: float = 2e-3
-    weight_decay: float = 0.01
-    warmup_steps: int = 20
+    # AdamW with a warmup, then cosine to 5 %, clipping at 1
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=2e-3, weight_decay=0.01, warmup_steps=20,
+                                                                   schedule="cosine", min_lr_ratio=0.05))
     heldout_fraction: float = 0.2
     split_seed: int = 0
-    seed: int = 0
     hflip_prob: float = 0.5
 
     def __post_init__(self):
-        if self.epochs < 1 or self.batch_size_per_gpu < 1:
-            raise ConfigError("epochs and batch_size_per_gpu must be >= 1")
-        check_positive("lr", self.lr)
-        check_positive("weight_decay", self.weight_decay, allow_zero=True)
-        if self.seed < 0 or self.warmup_steps < 0:
-            raise ConfigError("seed and warmup_steps must be >= 0")
+        super().__post_init__()
         if not 0.0 < self.heldout_fraction < 1.0:
             raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if not 0.0 <= self.hflip_prob <= 1.0:
@@ -148,8 +143,7 @@ def errors_by_command(model: DrivingPolicy, clips: Sequence[PolicyClip]) -> dict
 def run_config(tcfg: PolicyTrainConfig, steps: int, progress: bool = False) -> RunConfig:
     return smallfit.run_config(
         "policy", to_dict(tcfg.model_cfg()), steps=steps, batch_size=tcfg.batch_size_per_gpu, seed=tcfg.seed,
-        optim=OptimConfig(lr=tcfg.lr, weight_decay=tcfg.weight_decay, warmup_steps=min(tcfg.warmup_steps, steps - 1),
-                          schedule="cosine", min_lr_ratio=0.05, grad_clip_norm=1.0),
+        optim=tcfg.optim.for_steps(steps),
         save_final_weights=True, preset=f"policy-{tcfg.preset}", progress=progress, load_frames=True,
         reference={"cil": "Codevilla et al. 2018: command-branched imitation policy",
                    "vid2world": "policies of graded quality ranked inside the world model (Real2Sim)"})
@@ -187,7 +181,7 @@ def run_policy_training(roots: Sequence[str | Path], tcfg: PolicyTrainConfig, ou
                      "constant_velocity": "straight ahead at |waypoint_1| / 0.5 s (oracle initial speed)",
                      **counts},
         "training": {"steps": fitted["steps"], "seconds": fitted["seconds"], "epochs": tcfg.epochs,
-                     "lr": tcfg.lr, "batch_size": tcfg.batch_size_per_gpu, "seed": tcfg.seed},
+                     "lr": tcfg.optim.lr, "batch_size": tcfg.batch_size_per_gpu, "seed": tcfg.seed},
         "checkpoint": str(out / "final"),
     }
     write_json(res, out / "policy_report.json")

@@ -36,7 +36,7 @@ def add_train_parser(sub) -> None:
 
 
 def _cmd_train(args) -> int:
-    from resim.config import ConfigError
+    from resim.config import ConfigError, from_dict
     from resim.train.tasks.policy import PolicyDataError, PolicyTrainConfig, run_policy_training
 
     prog = "resim train policy"
@@ -45,8 +45,8 @@ def _cmd_train(args) -> int:
         print(f"{prog}: {out} exists and is not empty; choose a new folder", file=sys.stderr)
         return 2
     try:
-        tcfg = PolicyTrainConfig(preset=args.preset, epochs=args.epochs, lr=args.lr, seed=args.seed,
-                                 split_seed=args.split_seed)
+        tcfg = from_dict(PolicyTrainConfig, {"preset": args.preset, "epochs": args.epochs, "seed": args.seed,
+                                             "split_seed": args.split_seed, "optim": {"lr": args.lr}})
         tcfg.model_cfg()
     except ConfigError as e:
         print(f"{prog}: config error: {e}", file=sys.stderr)

@@ -18,7 +18,7 @@ from resim.argtypes import non_negative_int as _non_negative_int, positive_int a
 
 def _load_train_cfg(args):
     from resim import config as rconfig
-    from resim.models.reward.config import PRESETS, RewardTrainConfig
+    from resim.train.tasks.reward.config import PRESETS, RewardTrainConfig
 
     if args.preset not in PRESETS:
         raise rconfig.ConfigError(f"unknown preset {args.preset!r}; known: {', '.join(PRESETS)}")

@@ -21,7 +21,8 @@ import torch
 
 from resim.config import from_dict, to_dict
 from resim.models.reward.checkpoint import save_checkpoint, write_json
-from resim.models.reward.config import RewardModelConfig, RewardTrainConfig
+from resim.models.reward.config import RewardModelConfig
+from resim.train.tasks.reward.config import RewardTrainConfig
 from resim.models.reward.model import Video2Reward
 from resim.train import smallfit
 from resim.train.config import OptimConfig, RunConfig
@@ -58,10 +59,10 @@ def epoch_batches(clips: Sequence[RewardClip], cfg: RewardTrainConfig, use_featu
 
 
 def run_config(cfg: RewardTrainConfig, steps: int, progress: bool = False) -> RunConfig:
-    """The common trainer's RunConfig for a reward run (AdamW at cfg.lr, constant LR, fp32)."""
+    """The common trainer's RunConfig for a reward run (AdamW at cfg.optim, constant LR, fp32)."""
     return smallfit.run_config(
         "reward", to_dict(cfg.model), steps=steps, batch_size=cfg.batch_size_per_gpu, seed=cfg.seed,
-        optim=OptimConfig(lr=cfg.lr, weight_decay=cfg.weight_decay, grad_clip_norm=cfg.grad_clip_norm),
+        optim=cfg.optim.for_steps(steps),
         save_final_weights=False, preset="reward", progress=progress, load_frames=True, load_dino=True,
         reference={"resim_b2": "AdamW, lr 1e-3, 20 epochs, 35K CARLA samples, 224x224"})
 
