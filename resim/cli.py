@@ -48,6 +48,52 @@ RETIRED: dict[tuple[str, ...], str] = {
     ("eval", "idm"): "renamed; use `resim train idm`",
 }
 
+# flags the sampling commands no longer take: their settings moved under --set (resim.sample.settings); an old
+# script gets one line naming the setting, not argparse's "unrecognized arguments". {section} is the command's own.
+SETTINGS_COMMANDS: dict[tuple[str, ...], str] = {
+    ("sample",): "", ("plan",): "", ("simulate",): "simulate", ("eval", "quality"): "quality",
+    ("eval", "control"): "", ("eval", "commands"): "commands", ("eval", "drift"): "", ("eval", "planning"): "planning",
+    ("eval", "closed-loop"): "closed_loop",
+}
+RETIRED_FLAGS: dict[str, str] = {
+    "--chunk-frames": "rollout.chunk_frames=N", "--history-frames": "rollout.history_frames=N",
+    "--history-noise-level": "rollout.history_noise_level=N", "--no-kv-cache": "rollout.kv_cache=off",
+    "--guidance-scale": "rollout.guidance.scale_start=S", "--guidance-schedule": "rollout.guidance.schedule=KIND",
+    "--text-encoder": "runtime.text_encoder=DIR", "--max-text-tokens": "runtime.max_text_tokens=N",
+    "--size": "runtime.size_hw=[H, W]", "--dtype": "runtime.dtype=D", "--attention": "runtime.attention=KERNEL",
+    "--compile": "runtime.compile=auto|on|off", "--compile-mode": "runtime.compile_mode=MODE",
+    "--actions-from-trajectory": "runtime.actions_from_trajectory=true", "--batch-size": "runtime.batch_size=N",
+    "--horizons": "{section}.horizons_s=[S, ...]", "--resolution": "quality.resolution_hw=[H, W]",
+    "--fid-weights": "quality.fid_weights=FILE", "--fvd-weights": "quality.fvd_weights=FILE",
+    "--lpips-net": "quality.lpips_net=vgg|alex", "--lpips-trunk": "quality.lpips_trunk_weights=FILE",
+    "--lpips-head": "quality.lpips_head_weights=FILE", "--dreamsim-dir": "quality.dreamsim_dir=DIR",
+    "--trajectory-branches": "commands.trajectory_branches=true", "--group-ends": "commands.group_ends=true",
+    "--with-command": "planning.with_command=true", "--states": "closed_loop.states=N",
+    "--variants": "closed_loop.variants=[NAME, ...]", "--true-only": "closed_loop.true_only=true",
+    "--replay": "closed_loop.replay=true", "--state-seed": "{section}.state_seed=S",
+    "--world-command": "{section}.world_command=true", "--state": "simulate.state=N",
+    "--variant": "simulate.variant=NAME", "--speed-mps": "simulate.speed_mps=X",
+}
+
+
+def retired_flag(argv: list[str]) -> str | None:
+    """The one-line answer to a flag a sampling command no longer takes (see ``RETIRED_FLAGS``), else None."""
+    words = tuple(a for a in argv if not a.startswith("-"))
+    cmd = next((c for c in SETTINGS_COMMANDS if words[:len(c)] == c), None)
+    if cmd is None:
+        return None
+    for a in argv:
+        flag = a.split("=", 1)[0]
+        if flag not in RETIRED_FLAGS:
+            continue
+        own = SETTINGS_COMMANDS[cmd]
+        now = RETIRED_FLAGS[flag].format(section=own)
+        if now.split(".")[0] not in ("rollout", "runtime", own or "rollout"):   # another command's: argparse says
+            continue
+        return f"resim {' '.join(cmd)}: {flag} is now a setting: --set {now} (or a --config file; --help lists them)"
+    return None
+
+
 EPILOG = """\
 typical flow (from the repository root, in this order; small settings that run on a CPU in minutes):
   resim synth --out data/synth --preset tiny --episodes 12     # a synthetic world in the three real layouts
@@ -101,6 +147,10 @@ def main(argv: list[str] | None = None) -> int:
         if words[:len(old)] == old:
             print(f"resim {' '.join(old)}: {now}", file=sys.stderr)
             return 2
+    moved = retired_flag(list(sys.argv[1:] if argv is None else argv))
+    if moved:
+        print(moved, file=sys.stderr)
+        return 2
     parser = build_parser()
     args = None
     try:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from resim.cli import RETIRED, build_parser, main
+from resim.cli import RETIRED, RETIRED_FLAGS, SETTINGS_COMMANDS, build_parser, main, retired_flag
 
 REPO = Path(__file__).resolve().parents[1]
 SNAPSHOT = REPO / "tests" / "support" / "cli_snapshot.json"
@@ -123,6 +123,29 @@ def test_the_option_count_is_read_from_the_parser():
     p = argparse.ArgumentParser()
     p.add_argument("-q", "--quiet", action="store_true")
     assert option_count(p) == 1
+
+
+def test_a_flag_that_became_a_setting_answers_with_the_setting(capsys):
+    """Every flag the sampling commands gave up: not an option of them any more, and an old script's use of it
+    gets one line naming the --set that replaced it, which the command accepts."""
+    paths = command_paths(build_parser())
+    for cmd in SETTINGS_COMMANDS:
+        assert not set(RETIRED_FLAGS) & set(usage_options(paths[cmd])) - {"--speed-mps"}, cmd
+    assert "--speed-mps" in usage_options(paths[("plan",)])   # plan's own: no answer shadows it
+    assert retired_flag(["plan", "--speed-mps", "3"]) is None
+    cases = [(["sample", "--guidance-scale", "3"], "--set rollout.guidance.scale_start=S"),
+             (["eval", "closed-loop", "--states", "2"], "--set closed_loop.states=N"),
+             (["simulate", "--state-seed", "5"], "--set simulate.state_seed=S"),
+             (["eval", "commands", "--horizons", "1"], "--set commands.horizons_s="),
+             (["eval", "quality", "--fid-weights=w.pth"], "--set quality.fid_weights=FILE")]
+    for argv, needle in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"resim {argv[0]}") and needle in err and len(err.splitlines()) == 1, err
+    # not retired where the command never had it, nor on commands that keep it (eval vae --group-ends)
+    assert retired_flag(["sample", "--horizons", "1"]) is None
+    assert retired_flag(["eval", "vae", "--group-ends"]) is None
+    assert retired_flag(["eval", "command-loss", "--batch-size", "4"]) is None
 
 
 RENAMED = {("reward",): ("score",), ("reward-features",): ("shards", "features"), ("eval", "idm"): ("train", "idm")}
