@@ -123,6 +123,8 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         raise ConfigError(f"{key}: {value!r} matches none of {_type_name(tp)} ({'; '.join(errors)})")
     if origin is Literal:
         allowed = get_args(tp)
+        if isinstance(value, bool) and {"on", "off"} <= set(allowed):   # YAML 1.1 reads `on` / `off` as booleans
+            value = "on" if value else "off"
         if value not in allowed:
             raise ConfigError(f"{key}: {value!r} is not one of {list(allowed)}")
         return value
@@ -277,22 +279,28 @@ def _parse_value(v: str) -> Any:
     return out
 
 
+def read_mapping(path: str | Path) -> dict:
+    """A YAML config file's top-level mapping; :class:`ConfigError` naming the file when it is missing, not a
+    regular file, not YAML or not a mapping."""
+    p = Path(path)
+    if not p.is_file():   # is_file() is a stat: it never blocks on a FIFO, as opening one would
+        what = "is not a regular file" if p.exists() else "does not exist"
+        raise ConfigError(f"config file {p} {what}")
+    try:
+        loaded = safe_yaml(p.read_text()) or {}
+    except yaml.YAMLError as e:   # names the file, with the line and column YAML gives
+        raise ConfigError(f"config file {p}: invalid YAML: {e}".replace('"<unicode string>"', str(p))) from None
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"config file {p}: top level must be a mapping")
+    return loaded
+
+
 def load(cls: type[T], path: str | Path | None = None, overrides: typing.Iterable[str] = (),
          base: Mapping[str, Any] | None = None) -> T:
     """Load ``cls`` from a YAML file (optional) + a base dict (e.g. a preset) + overrides."""
     data: dict = json.loads(json.dumps(to_dict(dict(base or {}))))  # deep copy
     if path is not None:
-        p = Path(path)
-        if not p.is_file():   # is_file() is a stat: it never blocks on a FIFO, as opening one would
-            what = "is not a regular file" if p.exists() else "does not exist"
-            raise ConfigError(f"config file {p} {what}")
-        try:
-            loaded = safe_yaml(p.read_text()) or {}
-        except yaml.YAMLError as e:   # names the file, with the line and column YAML gives
-            raise ConfigError(f"config file {p}: invalid YAML: {e}".replace('"<unicode string>"', str(p))) from None
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"config file {p}: top level must be a mapping")
-        _deep_update(data, loaded)
+        _deep_update(data, read_mapping(path))
     apply_overrides(data, overrides)
     return from_dict(cls, data)
 

@@ -158,8 +158,7 @@ class WorldModelBundle:
         cfg, origin = rollout_config_for(self.checkpoint, preset, steps, no_guidance, user)
         if origin and log is not None:
             log(origin)
-        ddim_schedule(cfg, self.objective.schedule)
-        return cfg
+        return self.check_rollout_config(cfg)
 
     def check_rollout_config(self, cfg: RolloutConfig) -> RolloutConfig:
         """``cfg``'s steps and noise levels against this run's noise schedule (:class:`ConfigError` naming them);

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Optional
 
-from resim.config import ConfigError, apply_overrides, check_positive, from_dict, safe_yaml, to_dict
+from resim.config import ConfigError, apply_overrides, check_positive, from_dict, read_mapping, to_dict
 from resim.diffusion.guidance import GUIDANCE_PRESETS, guidance_from_cli
 from resim.sample.compile import COMPILE_CHOICES, COMPILE_MODES
 from resim.sample.load import resolve_steps_and_guidance
@@ -78,28 +78,10 @@ class Settings:
                 **{k: to_dict(v) for k, v in self.sections.items()}}
 
 
-def _on_off(section: dict, key: str) -> None:
-    """YAML 1.1 reads ``on`` / ``off`` as true / false: for the settings whose values are the words auto / on /
-    off (``rollout.kv_cache``, ``runtime.compile``), a bool means the word."""
-    if isinstance(section.get(key), bool):
-        section[key] = "on" if section[key] else "off"
-
-
 def read_user_settings(config: str | Path | None, overrides: list[str] | tuple[str, ...] = ()) -> dict:
     """The raw mapping of ``--config`` (optional) with ``--set`` applied; :class:`ConfigError` naming the file or
     the key for an unreadable file or a malformed override."""
-    data: dict = {}
-    if config is not None:
-        p = Path(config)
-        if not p.is_file():
-            raise ConfigError(f"--config {p}: {'not a regular file' if p.exists() else 'no such file'}")
-        try:
-            data = safe_yaml(p.read_text()) or {}
-        except Exception as e:   # YAMLError or a decoding error: one line naming the file
-            raise ConfigError(f"--config {p}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"--config {p}: the top level must be a mapping of sections (rollout, runtime, ...)")
-    return apply_overrides(data, overrides)
+    return apply_overrides(read_mapping(config) if config is not None else {}, overrides)
 
 
 def rollout_config_for(checkpoint: str | Path, preset: str = "resim", steps: int | None = None,
@@ -123,7 +105,6 @@ def rollout_config_for(checkpoint: str | Path, preset: str = "resim", steps: int
     data["guidance"] = to_dict(guidance_from_cli(guidance))
     if scale is not None and guidance != "none" and GUIDANCE_PRESETS[guidance].get("schedule") == "constant":
         g_user.setdefault("scale_end", scale)   # a constant schedule keeps its scale at every step
-    _on_off(user, "kv_cache")
     for k, v in user.items():
         if k == "guidance":
             data["guidance"].update(g_user)
@@ -148,9 +129,7 @@ def resolve_settings(args: argparse.Namespace, sections: dict[str, type] | None 
     rollout, origin = rollout_config_for(args.checkpoint, getattr(args, "preset", "resim"),
                                          getattr(args, "steps", None), getattr(args, "no_guidance", False),
                                          user.get("rollout"))
-    rt = dict(user.get("runtime") or {})
-    _on_off(rt, "compile")
-    runtime = from_dict(RuntimeConfig, rt, prefix="runtime")
+    runtime = from_dict(RuntimeConfig, user.get("runtime") or {}, prefix="runtime")
     built = {}
     for name, cls in sections.items():
         raw = user.get(name) or {}

@@ -125,7 +125,7 @@ def test_a_settings_file_is_read_and_checked(env, capsys, no_model_load, tmp_pat
     bad = tmp_path / "bad.yaml"
     bad.write_text("rollout: [1, 2]\n")
     _one_line_error(capsys, _base(env, "sample", "--config", str(bad)), "rollout: expected a mapping of keys")
-    _one_line_error(capsys, _base(env, "sample", "--config", str(tmp_path / "nope.yaml")), "nope.yaml: no such file")
+    _one_line_error(capsys, _base(env, "sample", "--config", str(tmp_path / "nope.yaml")), "nope.yaml does not exist")
     bad.write_text("rollout: {chunk_frames: 0}\n")
     _one_line_error(capsys, _base(env, "sample", "--config", str(bad)), "need 1 <= chunk_frames (0)")
     # --set goes over the file
