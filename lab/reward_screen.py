@@ -30,7 +30,8 @@ from resim.models.reward.config import RewardModelConfig
 from resim.train.tasks.reward.config import PRESETS
 from resim.models.reward.model import Video2Reward
 from resim.pipeline.sources.carla import CarlaConfig, CarlaReader
-from resim.train.tasks.reward.data import RewardClip, clips_from_episode, frames_to_tensor, split_by_episode
+from resim.train.smallfit import split_by_episode as _split
+from resim.train.tasks.reward.data import RewardClip, clips_from_episode, frames_to_tensor
 from resim.train.tasks.reward.metrics import reward_metrics
 
 
@@ -53,6 +54,10 @@ def run(feats, score, hazard, items, mcfg, split: int, epochs=100, lr=1e-3, wd=0
         eval_every=10) -> dict:
     clips = [RewardClip(key=str(items[i]), item_id=str(items[i]), infraction_score=float(score[i]),
                         hazard=bool(hazard[i]), dino=np.array([i])) for i in range(len(score))]
+    # the hazard-stratified split this screen was run with (the datasets' split.json came later)
+    def split_by_episode(cs, fraction, seed):
+        return _split(cs, fraction, seed, stratum=lambda c: bool(c.hazard))
+
     train, held = split_by_episode(clips, 0.25, split)
     train, val = split_by_episode(train, 0.2, 1000 + split)  # validation from the training episodes only
     idx = (feats.shape[1] - mcfg.window_frames) + mcfg.frame_step * np.arange(mcfg.num_frames)  # last window

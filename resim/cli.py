@@ -76,9 +76,27 @@ RETIRED_FLAGS: dict[str, str] = {
 }
 
 
+# The held-out split is the dataset's own (resim/shards/split.py, written by the pipeline to DIR/split.json): the
+# flags that made a run's own split answer with where it is set now.
+SPLIT_FLAGS: dict[str, str] = {
+    "--heldout-fraction": "--heldout-fraction F", "--min-heldout-episodes": "--min-heldout-episodes N",
+    "--split-seed": "--seed S", "--heldout-from": None,
+}
+SPLIT_FLAG_COMMANDS = (("train", "idm"), ("train", "policy"), ("eval",), ("simulate",))
+
+
 def retired_flag(argv: list[str]) -> str | None:
-    """The one-line answer to a flag a sampling command no longer takes (see ``RETIRED_FLAGS``), else None."""
+    """The one-line answer to a flag a command no longer takes (``RETIRED_FLAGS``: now a setting of a sampling
+    command; ``SPLIT_FLAGS``: the held-out split, now the dataset's), else None."""
     words = tuple(a for a in argv if not a.startswith("-"))
+    if any(words[:len(c)] == c for c in SPLIT_FLAG_COMMANDS):
+        for a in argv:
+            flag = a.split("=", 1)[0]
+            if flag in SPLIT_FLAGS:
+                how = (f"`resim shards split DIR {SPLIT_FLAGS[flag]}` rewrites it" if SPLIT_FLAGS[flag] else
+                       "the held-out side of --shards is evaluated, every episode with --all-clips")
+                return (f"resim {' '.join(words[:2])}: {flag} is gone: the held-out split is the dataset's own "
+                        f"(DIR/split.json, written by the pipeline); {how}")
     cmd = next((c for c in SETTINGS_COMMANDS if words[:len(c)] == c), None)
     if cmd is None:
         return None
@@ -104,8 +122,8 @@ typical flow (from the repository root, in this order; small settings that run o
   resim train reward --preset tiny --shards out/shards --out runs/reward
   resim sample --checkpoint runs/wm --shards out/shards --history KEY --command "Turning left" --steps 4 --out out/samples
   resim plan --checkpoint runs/wm --reward runs/reward --shards out/shards --history KEY --steps 4 --out out/plan
-  resim train idm --preset tiny --epochs 1 --shards out/shards --out runs/idm  # held-out split for eval
-  resim eval quality --checkpoint runs/wm --shards out/shards --heldout-from runs/idm --limit 2 --steps 4 \\
+  resim train idm --preset tiny --epochs 1 --shards out/shards --out runs/idm  # on the split in split.json
+  resim eval quality --checkpoint runs/wm --shards out/shards --limit 2 --steps 4 \\
       --allow-placeholder-networks --out out/eval              # random-init metric networks: plumbing only
   resim demo                                                   # all of the above, small, with an HTML report
 

@@ -56,11 +56,12 @@ class DemoConfig:
     ddim_steps: int = 20
     plan_candidates: tuple[str, ...] = ("keep_lane", "turn_left", "turn_right", "brake", "swerve")
     workers: int = 2
-    # evaluation: the IDM trains on the shards' 10 Hz clips with trajectories (CARLA-layout
-    # episodes), holding out >= 2 whole episodes; `resim eval control|quality` roll the world model out on
-    # `eval_clips` of the held-out clips (spread over the held-out episodes) with `ddim_steps` steps
+    # evaluation: the pipeline's split holds out `heldout_episodes` whole episodes of each (source, hazard)
+    # stratum of 2 or more (split.json); the IDM trains on the train side's 10 Hz clips with trajectories
+    # (CARLA-layout episodes); `resim eval control|quality` roll the world model out on `eval_clips` of the
+    # held-out clips (spread over the held-out episodes) with `ddim_steps` steps
     idm_epochs: int = 15
-    idm_heldout_episodes: int = 2
+    heldout_episodes: int = 2
     eval_clips: int = 6            # control: 2 rollouts + 2 VAE decodes per clip (~5 s per decode on 2 cores)
     quality_clips: int = 6         # quality: 1 rollout + decode per clip
     command_clips: int = 12        # commands: 4 rollouts per clip (left, forward, right, null prompt)
@@ -96,8 +97,8 @@ class DemoConfig:
         if unknown or len(self.closed_loop_variants) < 2:
             raise ConfigError(f"closed_loop_variants: two or more of {', '.join(VARIANTS)}; got "
                               f"{list(self.closed_loop_variants)}")
-        if self.idm_heldout_episodes < 2:
-            raise ConfigError("idm_heldout_episodes must be >= 2 (non-expert trajectories come from another "
+        if self.heldout_episodes < 2:
+            raise ConfigError("heldout_episodes must be >= 2 (non-expert trajectories come from another "
                               "held-out episode)")
 
 
@@ -237,7 +238,8 @@ def build_steps(cfg: DemoConfig, out: Path) -> list[Step]:
                                 "--set", f"sources.synthetic.root={world}",
                                 "--set", f"sources.synthetic.episodes={cfg.episodes}",
                                 "--set", f"sources.synthetic.seed={cfg.seed}",
-                                "--set", f"sources.synthetic.preset={cfg.synth_preset}"]),
+                                "--set", f"sources.synthetic.preset={cfg.synth_preset}",
+                                "--set", f"split.min_heldout_episodes={cfg.heldout_episodes}"]),
         Step("world model", out / "world_model", ["train", "world", "--preset", "tiny", "--shards", str(data),
                                                   "--out", str(out / "world_model"), "--steps", str(cfg.world_steps),
                                                   "--checkpoint-every", str(cfg.world_steps)]),
@@ -264,19 +266,18 @@ def rollout_steps(cfg: DemoConfig, out: Path, key: str) -> list[Step]:
 
 def eval_steps(cfg: DemoConfig, out: Path) -> list[Step]:
     """IDM on the demo's shards, then Trajectory Difference and video quality of the world model on the
-    clips of the episodes the IDM held out (on a tiny trained world model)."""
+    clips of the episodes the shards' split holds out."""
     data, ev = out / "shards", out / "eval"
     wm = ["--checkpoint", str(world_model_dir(cfg.world_model, out)), "--shards", str(data), "--steps",
           str(cfg.ddim_steps), "--seed", str(cfg.seed), "--set", "runtime.batch_size=4"]
-    world = [*wm, "--heldout-from", str(ev / "idm")]
+    world = wm    # the held-out side of the shards' split, which the IDM and the demo's world model never saw
     return [
         # every clip of the demo's world is held out from the shipped model (trained on other seeds)
         Step("eval: command accuracy", ev / "commands",
              ["eval", "commands", *wm, "--all-clips", "--limit", str(cfg.command_clips), "--out", str(ev / "commands")]),
         Step("eval: inverse dynamics model", ev / "idm",
              ["train", "idm", "--shards", str(data), "--out", str(ev / "idm"), "--preset", "tiny",
-              "--epochs", str(cfg.idm_epochs), "--batch-size", "8", "--seed", str(cfg.seed),
-              "--min-heldout-episodes", str(cfg.idm_heldout_episodes)]),
+              "--epochs", str(cfg.idm_epochs), "--batch-size", "8", "--seed", str(cfg.seed)]),
         Step("eval: controllability", ev / "control",
              ["eval", "control", *world, "--limit", str(cfg.eval_clips), "--idm", str(ev / "idm"),
               "--out", str(ev / "control")]),

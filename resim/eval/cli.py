@@ -20,6 +20,7 @@ from resim.argtypes import torch_device as _torch_device
 from resim.config import ConfigError, apply_overrides, from_dict, to_dict
 from resim.models.policy.variants import HELP as CL_VARIANTS_HELP, VARIANTS as CL_VARIANTS
 from resim.sample.cli import UsageError, resolve_device
+from resim.shards.errors import ShardReadError   # standard library only: `resim --help` stays fast
 from resim.shards.schema import COMMANDS   # standard library only: `resim --help` stays fast
 from resim.shipped import PLACEHOLDER_T5, shipped_dir, shipped_model
 
@@ -33,9 +34,9 @@ typical flow (held-out = the episodes the IDM did not train on):
   resim eval planning --checkpoint runs/wm --idm runs/idm --planner runs/vo --shards DATA --out out/planning
   resim eval commands --checkpoint runs/wm --shards DATA --all-clips --limit 20 --out out/commands
   resim eval drift    --checkpoint runs/wm --shards DATA --all-clips --limit 4 --out out/drift   # 30 s rollouts
-  resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+  resim eval quality  --checkpoint runs/wm --shards DATA --out out/quality \\
       --allow-placeholder-networks                                 # plumbing check, random-init networks
-  resim eval quality  --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+  resim eval quality  --checkpoint runs/wm --shards DATA --out out/quality \\
       --set quality.fid_weights=W/pt_inception-2015-12-05-6726825d.pth --set quality.fvd_weights=W/rgb_imagenet.pt \\
       --set quality.lpips_trunk_weights=W/vgg16-397923af.pth --set quality.lpips_head_weights=W/lpips_vgg_v0.1.pth
 
@@ -50,15 +51,15 @@ QUALITY_EPILOG = """\
 examples:
   resim pipeline run configs/pipeline/synthetic.yaml --out DATA       # the synthetic world's shards
   resim train idm --shards DATA --out runs/idm --preset tiny           # the IDM and its held-out split
-  resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+  resim eval quality --checkpoint runs/wm --shards DATA --out out/quality \\
       --allow-placeholder-networks                 # no weights needed: random-init networks (plumbing only)
-  resim eval quality --checkpoint runs/wm --shards DATA --heldout-from runs/idm --out out/quality \\
+  resim eval quality --checkpoint runs/wm --shards DATA --out out/quality \\
       --set quality.fid_weights=W/pt_inception-2015-12-05-6726825d.pth --set quality.fvd_weights=W/rgb_imagenet.pt \\
       --set quality.lpips_trunk_weights=W/vgg16-397923af.pth --set quality.lpips_head_weights=W/lpips_vgg_v0.1.pth
 
 Weights are never downloaded (docs/eval.md says where to get them); without them, or without
---allow-placeholder-networks, FID/FVD/LPIPS are refused before anything is loaded. Without --heldout-from the
-clips of --shards the IDM did not train on cannot be told apart: pass --all-clips to evaluate every clip.
+--allow-placeholder-networks, FID/FVD/LPIPS are refused before anything is loaded.  The clips are the held-out
+side of --shards' own split (its split.json: `resim shards split DATA`); --all-clips takes every episode.
 Writes OUT/quality.json (per-horizon metrics + the protocol: clips, world model, rollout, networks) and
 OUT/quality.png (metrics per horizon).
 Settings (--set quality.KEY=VALUE; resim.eval.quality.QualityConfig): horizons_s (default 1 2 4 ... s),
@@ -70,8 +71,8 @@ CONTROL_EPILOG = """\
 example:
   resim eval control --checkpoint runs/wm --idm runs/idm --shards DATA --out out/control
 
---idm is a `resim train idm` run; its held-out episodes are evaluated (--heldout-from another run, or
---all-clips). Writes OUT/control.json (Trajectory Difference for expert / non-expert trajectories, the IDM on
+--idm is a `resim train idm` run. The held-out side of --shards' split is evaluated (the episodes the IDM, which
+reads the same split, never trained on), or every episode with --all-clips. Writes OUT/control.json (Trajectory Difference for expert / non-expert trajectories, the IDM on
 the recorded video as the floor, the expert rollouts and the recorded video against another episode's trajectory,
 one they were not given, and the two bounds: expert <= 1.5 x floor, expert < 0.5 x against the one not given;
 command accuracy, the protocol) and OUT/control.png (bar chart).
@@ -180,11 +181,9 @@ def _world_args(p: argparse.ArgumentParser, sections: tuple[str, ...] = (), clip
     p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
     p.add_argument("--out", required=True, help="output folder")
     if clips:
-        p.add_argument("--heldout-from", default=None,
-                       help="an IDM run folder or idm_report.json: evaluate only its held-out episodes "
-                            "(default for control/planning: the --idm run's)")
         p.add_argument("--all-clips", action="store_true",
-                       help="evaluate every clip of --shards, ignoring held-out splits (flagged in the protocol)")
+                       help="evaluate every episode of --shards (a world held out whole), not only the held-out "
+                            "side of its split (split.json; flagged in the protocol)")
         p.add_argument("--limit", type=_positive_int, default=None,
                        help="at most N clips, taken round-robin over the episodes (key order within each)")
     p.add_argument("--preset", default="resim", choices=["resim", "vid2world"], help="rollout preset (default resim)")
@@ -206,8 +205,8 @@ def _probe_args(p: argparse.ArgumentParser) -> None:
                    help="world-model run folder (or its final/), or a shipped model name (synth-world)")
     p.add_argument("--shards", required=True, help="dataset folder with the evaluation clips (and prompt table)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--heldout-from", default=None, help="an IDM run folder or idm_report.json: only its held-out episodes")
-    p.add_argument("--all-clips", action="store_true", help="every clip of --shards (flagged in the protocol)")
+    p.add_argument("--all-clips", action="store_true", help="every episode of --shards, not only the held-out side "
+                   "of its split (flagged in the protocol)")
     p.add_argument("--limit", type=_positive_int, default=None, help="at most N clips, the recorded commands in turn")
     p.add_argument("--text-encoder", type=_local_dir, default=str(shipped_dir(PLACEHOLDER_T5)),
                    help="local T5 folder for prompts not in the table (default: tiny placeholder)")
@@ -358,7 +357,8 @@ def add_idm_parser(sub) -> None:
     """`resim train idm ...`: it trains a model, so it sits under `resim train` (joined there by resim/cli.py: the
     train package sits below eval in the layers of docs/architecture.md); its held-out report is eval's."""
     i = sub.add_parser("idm", help="train + evaluate the inverse dynamics model (or the VO planner) on shards",
-                       description="Trains through the common Trainer on clips with traj.npy, split by episode; "
+                       description="Trains through the common Trainer on clips with traj.npy of the train side of "
+                                   "the dataset's split (split.json, `resim shards split`); "
                                    "reports held-out ADE/FDE next to the constant-velocity baseline.")
     i.add_argument("--shards", required=True, help="dataset folder")
     i.add_argument("--out", required=True, help="run folder (final/ weights, idm_report.json/.png)")
@@ -370,10 +370,6 @@ def add_idm_parser(sub) -> None:
     i.add_argument("--batch-size", type=_positive_int, default=None)
     i.add_argument("--lr", type=float, default=None, help="peak learning rate = optim.lr (default 2e-3; AdamW, warmup "
                    "then cosine)")
-    i.add_argument("--heldout-fraction", type=float, default=None, help="share of episodes held out (default 0.25)")
-    i.add_argument("--min-heldout-episodes", type=_positive_int, default=None,
-                   help="hold out at least this many episodes (default 1; the demo uses 2 so the held-out set "
-                        "has more than one clip and non-expert trajectories from another held-out episode)")
     i.add_argument("--val-fraction", type=float, default=None,
                    help="share of the training episodes set aside for early stopping (default 0.15; 0: off)")
     i.add_argument("--hflip-prob", type=float, default=None,
@@ -390,24 +386,21 @@ def add_idm_parser(sub) -> None:
     i.set_defaults(func=_cmd_idm)
 
 
-def _heldout_items(path: str | None, all_clips: bool = False):
-    if path is None or all_clips:
+def _eval_items(args) -> list[str] | None:
+    """The episodes to evaluate: the held-out side of --shards' own split (its split.json, resim/shards/split.py),
+    or every episode with --all-clips (a whole world held out from training). Sets ``args.split_record``, what
+    the report's protocol keeps."""
+    if args.all_clips:
+        args.split_record = {"side": "all", "note": "ALL CLIPS of --shards (--all-clips)"}
         return None
-    p = Path(path)
-    if p.is_dir():
-        p = p / "idm_report.json"
-    if not p.is_file():
-        raise SystemExit(f"resim eval: {p} not found (expected an IDM run folder with idm_report.json)")
+    from resim.shards import split
+
     try:
-        rep = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SystemExit(f"resim eval: --heldout-from {p}: not valid JSON ({e})") from None
-    proto = rep.get("protocol") if isinstance(rep, dict) else None
-    items = proto.get("heldout_items") if isinstance(proto, dict) else None
-    if not isinstance(items, list):  # e.g. a quality.json: it names no held-out episodes
-        raise SystemExit(f"resim eval: --heldout-from {p}: no protocol.heldout_items (expected the "
-                         "idm_report.json of a `resim train idm` run, or its folder)")
-    return items
+        s = split.read(args.shards)
+    except (FileNotFoundError, ShardReadError) as e:
+        raise SystemExit(f"resim eval: --shards: {e}") from None
+    args.split_record = s.record("heldout")
+    return sorted(s.heldout)
 
 
 def _runner(args):
@@ -444,8 +437,6 @@ def _clips(args, items, need_trajectory: bool = True, round_robin_limit: bool = 
     """The clips of --shards (held-out ``items``); --limit takes them round-robin over episodes unless
     ``round_robin_limit`` is False (the caller then applies it, e.g. balanced over commands)."""
     from resim.eval.worldeval import eval_clips_from_dataset
-
-    from resim.shards.reader import ShardReadError
 
     try:
         clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit if round_robin_limit else None,
@@ -488,7 +479,7 @@ def _cmd_quality(args) -> int:
     # inputs first (clips, config, weight files), so a mistake costs no model load and no rollout
     if not _device(args, "quality", {"quality": dict}):
         return 2
-    clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips))
+    clips = _clips(args, _eval_items(args))
     # what the clips and the flags decide is not a setting: the rest of QualityConfig is (--set quality.KEY=VALUE)
     given = {"value_range": "uint8", "fps_hz": clips[0].fps_hz, "num_conditioning_frames": clips[0].num_history_frames,
              "metrics": list(args.metrics), "allow_placeholder_networks": args.allow_placeholder_networks,
@@ -514,7 +505,7 @@ def _cmd_quality(args) -> int:
         warnings.simplefilter("ignore", UserWarning)
         rep = quality_eval(runner, clips, qcfg, nets)
     rep["protocol"]["world_model"] = meta
-    rep["protocol"]["heldout_from"] = "all clips" if args.all_clips or not args.heldout_from else args.heldout_from
+    rep["protocol"]["split"] = args.split_record
     rep["protocol"]["seconds"] = round(time.perf_counter() - t0, 2)
     _finish(out, "quality", rep, format_quality(rep),
             lambda p: plot_quality(rep, p, title=f"rollouts vs recorded ({Path(args.checkpoint).name})"))
@@ -573,7 +564,7 @@ def _cmd_control(args) -> int:
     # inputs first: clips, their non-expert pairs and the IDM's window are checked before any rollout
     if not _device(args, "control"):
         return 2
-    items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
+    items = _eval_items(args)
     clips = _clips(args, items)
     idm, idm_info = _load_idm(args.idm, args.device)
     try:
@@ -588,7 +579,7 @@ def _cmd_control(args) -> int:
     t0 = time.perf_counter()
     rep = control_eval(runner, idm, clips, seed=args.seed)
     rep["protocol"] = {"clips": len({c.key for c in clips}), "episodes": len({c.item_id for c in clips}),
-                       "heldout_from": "ALL CLIPS (--all-clips)" if args.all_clips else args.heldout_from or args.idm,
+                       "split": args.split_record,
                        "idm": idm_info, "world_model": meta,
                        "non_expert": "trajectory + command of a clip of another episode (seeded hash)",
                        "trajectory_difference": "L2 (x, y) between IDM(generated video) and the conditioning "
@@ -622,11 +613,9 @@ def _cmd_commands(args) -> int:
     from resim.eval.report import format_protocol
     from resim.eval.worldeval import eval_clips_from_dataset, flow_labeler_status
 
-    from resim.shards.reader import ShardReadError
-
     if not _device(args, "commands", {"commands": CommandsEvalConfig}):
         return 2
-    items = _heldout_items(args.heldout_from or args.idm, args.all_clips)
+    items = _eval_items(args)
     try:
         clips = eval_clips_from_dataset(args.shards, items=items, need_trajectory=False)
     except (FileNotFoundError, ShardReadError) as e:
@@ -668,8 +657,7 @@ def _cmd_commands(args) -> int:
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
                        "recorded_commands": {c: recorded.count(c) for c in sorted(set(recorded))},
                        "shards": str(args.shards),
-                       "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else
-                                       args.heldout_from or args.idm,
+                       "split": args.split_record,
                        "world_model": meta, "idm": idm_info,
                        "conditions": "each history x {left, forward, right} (no trajectory) + the null prompt" +
                                      ("; forks with trajectories: the null prompt x each sibling's recorded "
@@ -693,14 +681,11 @@ def _cmd_command_loss(args) -> int:
 
     if not _device(args, "command-loss"):
         return 2
-    items = _heldout_items(args.heldout_from, args.all_clips)
-    if items is None and not args.all_clips:
-        raise SystemExit("resim eval command-loss: give --heldout-from (the episodes to evaluate) or --all-clips")
+    items = _eval_items(args)
     try:
         rep, text = run_command_loss(args.checkpoint, args.shards, items, limit=args.limit, levels=args.levels,
                                      seed=args.seed, batch_size=args.batch_size, text_encoder=args.text_encoder,
-                                     device=args.device, heldout_from="ALL CLIPS of --shards (--all-clips)"
-                                     if args.all_clips else args.heldout_from)
+                                     device=args.device, split=args.split_record)
     except CommandLossInputError as e:
         raise SystemExit(f"resim eval command-loss: {e}") from None
     out = Path(args.out)
@@ -721,7 +706,7 @@ def _cmd_drift(args) -> int:
     command = None if args.command.lower() == "none" else args.command
     if command is not None and command not in COMMANDS:
         raise SystemExit(f"resim eval drift: --command {args.command!r} is not one of {list(COMMANDS)} or 'none'")
-    clips = _clips(args, _heldout_items(args.heldout_from, args.all_clips), need_trajectory=False)
+    clips = _clips(args, _eval_items(args), need_trajectory=False)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     runner, meta = _runner(args)
@@ -731,7 +716,7 @@ def _cmd_drift(args) -> int:
     rep = drift_eval(runner, clips, seconds=args.seconds, command=command)
     nh, fps = clips[0].num_history_frames, clips[0].fps_hz
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}), "shards": str(args.shards),
-                       "heldout_from": "ALL CLIPS of --shards (--all-clips)" if args.all_clips else args.heldout_from,
+                       "split": args.split_record,
                        "world_model": meta, "seconds": round(time.perf_counter() - t0, 2)}
     drift_strip(rep["_videos"], nh, fps, out / "drift_strip.png",
                 times_s=[s for s in (0, 2, 5, 10, 20, 30) if s <= args.seconds])
@@ -757,7 +742,6 @@ def _cmd_closed_loop(args) -> int:
 
 def _cmd_vae(args) -> int:
     from resim.media.encoders import VideoVAE
-    from resim.shards.reader import ShardReadError
     from resim.shards.safejson import write_json
     from resim.eval.vae_eval import (format_vae_difference, format_vae_eval, paired_vae_difference,
                                         plot_vae_eval, vae_eval)
@@ -826,7 +810,7 @@ def _cmd_planning(args) -> int:
               "planner must see history frames only (train it with `resim train idm --window history`)",
               file=sys.stderr)
         return 2
-    clips = _clips(args, _heldout_items(args.heldout_from or args.idm, args.all_clips))
+    clips = _clips(args, _eval_items(args))
     try:
         check_idm_window(idm, clips)
         if planner is not None:
@@ -841,7 +825,7 @@ def _cmd_planning(args) -> int:
     with_command = args.settings.section("planning").with_command
     rep = planning_eval(runner, idm, planner, clips, with_command=with_command)
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
-                       "heldout_from": "ALL CLIPS (--all-clips)" if args.all_clips else args.heldout_from or args.idm,
+                       "split": args.split_record,
                        "idm": idm_info, "planner": planner_info,
                        "policy_conditions": "clip command prompt" if with_command
                        else "none (null prompt, no trajectory)",
@@ -864,7 +848,6 @@ def _cmd_idm(args) -> int:
     if args.lr is not None:
         d["optim"] = {"lr": args.lr}   # over the IDM's own optimiser defaults (resim.config.from_dict)
     for k, v in (("epochs", args.epochs), ("batch_size_per_gpu", args.batch_size),
-                 ("heldout_fraction", args.heldout_fraction), ("min_heldout_episodes", args.min_heldout_episodes),
                  ("val_fraction", args.val_fraction), ("hflip_prob", args.hflip_prob),
                  ("decoded_vae", args.decoded_vae), ("decoded_prob", args.decoded_prob)):
         if v is not None:
@@ -876,7 +859,6 @@ def _cmd_idm(args) -> int:
     except ConfigError as e:
         print(f"resim train idm: config error: {e}", file=sys.stderr)
         return 2
-    from resim.shards.reader import ShardReadError
     from resim.train.tasks.idm import IDMDataError, prepare_idm_data
 
     try:   # the data and its split are checked before anything is trained

@@ -126,9 +126,10 @@ def format_command_loss(rep: dict) -> str:
 def run_command_loss(checkpoint: str, shards: str | Path, items: Sequence[str] | None, *, limit: int | None = None,
                      levels: Sequence[int] = DEFAULT_LEVELS, seed: int = 0, batch_size: int = 8,
                      text_encoder: str | Path | None = None, device: str = "cpu",
-                     heldout_from: str | None = None) -> tuple[dict, str]:
+                     split: dict | None = None) -> tuple[dict, str]:
     """``resim eval command-loss`` without the printing: the clips of ``shards`` with a recorded command (of the
-    episodes ``items``; ``None``: all), at most ``limit`` with the commands in turn; the report and its text."""
+    episodes ``items``; ``None``: all; ``split``: which side of the dataset's split they are, for the protocol), at
+    most ``limit`` with the commands in turn; the report and its text."""
     try:
         clips = eval_clips_from_dataset(shards, items=items, need_trajectory=False)
     except (FileNotFoundError, ShardReadError) as e:
@@ -160,7 +161,7 @@ def run_command_loss(checkpoint: str, shards: str | Path, items: Sequence[str] |
                        for i, c in enumerate(clips)]
     rep["protocol"] = {"clips": len(clips), "episodes": len({c.item_id for c in clips}),
                        "recorded_commands": {c: recorded.count(c) for c in sorted(set(recorded))},
-                       "shards": str(shards), "heldout_from": heldout_from, "world_model": {**info, "device": device},
+                       "shards": str(shards), "split": split, "world_model": {**info, "device": device},
                        "conditions": "future noised to each level (one draw per clip and level, shared by the "
                                      "prompts), history clean, no trajectory; prompts left/forward/right/null",
                        "seconds": round(time.perf_counter() - t0, 2)}

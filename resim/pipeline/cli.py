@@ -27,7 +27,7 @@ examples:
 
 Rerunning the same command after a crash resumes: committed units are skipped, the rest redone.
 A second run into an OUT that a live run is writing is refused at once (OUT/.lock); wait, or use another --out.
-Output: OUT/{shards,index,manifest,prompts,quarantine,commits}/, config.yaml, stats.json, report.png.
+Output: OUT/{shards,index,manifest,prompts,quarantine,commits}/, config.yaml, split.json, stats.json, report.png.
 """
 
 
@@ -64,7 +64,7 @@ def _load(args):
 # resim.pipeline.out_lock.LOCK_NAME included): a folder holding only these is an earlier (maybe unfinished) run of
 # the pipeline, which a rerun resumes.
 RUN_OUTPUT_NAMES = {"commits", "shards", "index", "manifest", "quarantine", "prompts", "_staging", "dedup",
-                    "config.yaml", "config_hash.txt", "stats.json", "report.png", ".lock"}
+                    "config.yaml", "config_hash.txt", "stats.json", "report.png", "split.json", ".lock"}
 
 
 def foreign_out(out) -> str | None:

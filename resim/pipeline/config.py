@@ -32,6 +32,7 @@ from typing import Literal, Optional
 from resim.config import ConfigError, check_positive, from_dict, to_dict
 from resim.labeling.config import CutConfig, LabelerConfig, StillConfig
 from resim.shards.schema import ClipSpec
+from resim.shards.split import SplitConfig
 from resim.shipped import shipped_dir, shipped_model
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -407,6 +408,9 @@ class PipelineConfig:
     encode: EncodeConfig = field(default_factory=EncodeConfig)
     shards: ShardsConfig = field(default_factory=ShardsConfig)
     quarantine: QuarantineConfig = field(default_factory=QuarantineConfig)
+    # the train / held-out split by episode, written to OUT/split.json at the end of each run (not hashed: it
+    # changes no sample, and a rerun rewrites it)
+    split: SplitConfig = field(default_factory=SplitConfig)
     ray: RayConfig = field(default_factory=RayConfig)
 
     def __post_init__(self):

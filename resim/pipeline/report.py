@@ -205,6 +205,8 @@ def format_summary(stats: dict, out: Path, report_png: Path | None) -> str:
         *([f"scene cuts        {sc['cuts']} in {sc['videos_with_cuts']} video(s): {sc['windows_dropped']} window(s) "
            "across one dropped"] if sc["cuts"] else []),
         f"turning share     {_pct(ts['before'])} before → {_pct(ts['after'])} after {ts['turn_factor']}x balance",
+        *([f"split             {sp['episodes_train']} episode(s) train, {sp['episodes_heldout']} held out "
+           f"(split.json; seed {sp['seed']}, fraction {sp['heldout_fraction']})"] if (sp := stats.get("split")) else []),
         (f"throughput        {run.get('clips_per_s')} clips/s ({run.get('clips_per_s_per_core')} per core), "
          f"wall {run.get('wall_s', 0):.1f} s" if run.get("units_run", 0) else
          f"throughput        n/a: nothing to run (every unit already committed), wall {run.get('wall_s', 0):.1f} s"),

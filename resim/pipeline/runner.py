@@ -38,6 +38,7 @@ from resim.pipeline.stages.encode import data_config_hash
 from resim.pipeline.stages.prompts import PromptStage, all_prompts
 from resim.pipeline.submit import JOB_ENV, package_dirs
 from resim.pipeline.units import OUTPUT_DIRS, dumps, loads, make_reader, new_state, source_specs
+from resim.shards import split as dataset_split
 from resim.shards.prompts import PromptTable
 from resim.shards.schema import make_key, prompt_id
 
@@ -511,6 +512,9 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
         dedup_dataset(out, cfg.dedup.max_bits, cfg.clip.num_frames, cfg.dedup.band_bits)
         dedup_s = time.perf_counter() - t_dedup
 
+    # the train / held-out split over every committed episode (resim/shards/split.py): a rerun that adds
+    # episodes rewrites it, and the hash rule keeps every earlier episode on its side
+    split = dataset_split.write(out, cfg.split)
     staging = out / "_staging"
     if staging.is_dir() and not any(staging.iterdir()):
         staging.rmdir()
@@ -528,6 +532,7 @@ def _run_units(cfg: PipelineConfig, force: bool, progress: bool, t0: float, have
                                            "clips_written": done["clips_written"], "dedup_s": round(dedup_s, 3),
                                            "curation_sheet_s": round(sheet_s, 3), "cpus": cpus},
                                  cfg=cfg)
+    stats["split"] = split.summary()     # episodes on each side (OUT/split.json lists them)
     report.write_stats(out, stats)
     png = report.write_report_png(out, stats)
     return RunResult(out=out, stats=stats, enumerated=len(states), ran=len(todo), skipped=len(skipped),

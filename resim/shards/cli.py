@@ -175,6 +175,34 @@ def _cmd_verify(args) -> int:
     return 0
 
 
+def _cmd_split(args) -> int:
+    from resim.config import ConfigError
+    from resim.shards import split
+
+    if args.heldout_fraction is None and args.seed is None and args.min_heldout_episodes is None:
+        s = split.read(args.dir)
+    else:
+        old = split.read(args.dir).config
+        try:
+            cfg = split.SplitConfig(
+                heldout_fraction=old.heldout_fraction if args.heldout_fraction is None else args.heldout_fraction,
+                seed=old.seed if args.seed is None else args.seed,
+                min_heldout_episodes=(old.min_heldout_episodes if args.min_heldout_episodes is None
+                                      else args.min_heldout_episodes))
+        except ConfigError as e:
+            print(f"resim shards split: error: {e}", file=sys.stderr)
+            return 2
+        s = split.write(args.dir, cfg)
+    if args.json:
+        print(json.dumps({**s.summary(), "heldout": sorted(s.heldout), "topped_up": sorted(s.topped_up)}, indent=1))
+        return 0
+    c = s.config
+    print(f"split of {args.dir}: {len(s.train)} episode(s) train, {len(s.heldout)} held out "
+          f"(fraction {c.heldout_fraction}, seed {c.seed}, at least {c.min_heldout_episodes} per source"
+          + (f"; {len(s.topped_up)} topped up" if s.topped_up else "") + f"); from {s.origin}")
+    return 0
+
+
 def _cmd_preview(args) -> int:
     import random
 
@@ -250,7 +278,7 @@ def _on_dataset(cmd):
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "shards",
-        help="inspect shard datasets (ls, stats, show, verify, preview, schema); copy one adding features",
+        help="inspect shard datasets (ls, stats, show, verify, preview, split, schema); copy one adding features",
         description="Inspect a resim shard dataset (a folder with shards/, index/, manifest/, prompts/). "
         "The format is described in docs/data_format.md; `resim shards schema` prints it as JSON. "
         "`resim shards features` copies a dataset adding the reward model's DINOv2 features.",
@@ -316,6 +344,24 @@ def register(subparsers) -> None:
     s.add_argument("--out", help="PNG path for KEY (default preview-KEY.png; an existing folder: FOLDER/KEY.png); "
                    "folder for --random (default previews/)")
     s.set_defaults(func=_on_dataset(_cmd_preview))
+
+    s = sub.add_parser("split", help="show the train / held-out split by episode, or write it (split.json)",
+                       description=_wrap("Show the dataset's train / held-out split: whole episodes (item_id) on one "
+                       "side, held out when a seeded hash of the id falls below the fraction, each source topped up "
+                       "to a minimum (docs/data_format.md, \"The split\"). The pipeline writes it to DIR/split.json; "
+                       "every trainer and evaluator reads it. With any option, (re)write split.json: for a dataset "
+                       "older than the split, or another split of the same episodes."),
+                       epilog="examples:\n  resim shards split out/shards\n"
+                       "  resim shards split out/shards --heldout-fraction 0.25 --seed 1",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("dir", help=DATASET_HELP)
+    s.add_argument("--heldout-fraction", type=float, default=None, metavar="F",
+                   help="share of the episodes held out, by hash (default: the dataset's, else 0.2)")
+    s.add_argument("--seed", type=int, default=None, help="seed of the hash (default: the dataset's, else 0)")
+    s.add_argument("--min-heldout-episodes", type=int, default=None, metavar="N",
+                   help="at least N held-out episodes per source of 2 or more (default: the dataset's, else 1)")
+    s.add_argument("--json", action="store_true", help="print the split's summary and held-out episodes as JSON")
+    s.set_defaults(func=_on_dataset(_cmd_split))
 
     s = sub.add_parser("schema", help="print the sample schema (members, metadata fields) as JSON",
                        description=_wrap("Print the shard sample schema as JSON: the members of a sample (meta.json, "

@@ -142,6 +142,10 @@ class DataConfig:
     load_frames: bool = False              # decode frames.mp4 into Batch.frames (reward model)
     load_dino: bool = False                # Batch.dino from dino.npy (reward model)
     skip_duplicates: bool = True           # skip the clips OUT/dedup/duplicates.parquet lists (resim/pipeline/dedup.py)
+    # which side of the dataset's train / held-out split (DIR/split.json, resim/shards/split.py) is streamed:
+    # "train" leaves the held-out episodes to evaluation; "all" for a dataset held out whole elsewhere (a world
+    # of another seed) or to reproduce a run made before the split
+    split: Literal["train", "all"] = "train"
     # the shuffled-command control: each clip's command prompt replaced by the same prefix under a command drawn
     # from a hash of (seed, key), uniform over the commands the prompt table holds, fixed for the run and any
     # resume. A model trained so can learn no command; if the evaluation still reads one, it reads something else

@@ -25,7 +25,9 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from resim.shards import split as dataset_split
 from resim.shards.duplicates import duplicate_keys
+from resim.shards.manifest import read_manifest
 from resim.shards.npy import stored_to_float32
 from resim.shards.prompts import PromptTable, PromptTableError
 from resim.shards.schema import COMMANDS, latent_frame_count, temporal_compression_of
@@ -209,6 +211,29 @@ class _EpochStream(IterableDataset):
             yield out
 
 
+def _train_side(root: Path, paths: list[str], counts: list[dict[str, int]]):
+    """(shard paths, per-shard source counts, held-out sample keys, the split's record) of the train side of
+    ``root``'s split: shards wholly held out are left out, and the others' counts lose their held-out samples."""
+    split = dataset_split.read(root)
+    t = read_manifest(root)
+    held_keys, held_n = set(), {}
+    for key, shard, src, item in zip(t["key"].to_pylist(), t["shard"].to_pylist(), t["source"].to_pylist(),
+                                     t["item_id"].to_pylist()):
+        if item in split.heldout:
+            held_keys.add(key)
+            held_n[(shard, src)] = held_n.get((shard, src), 0) + 1
+    kept_paths, kept_counts = [], []
+    for p, c in zip(paths, counts):
+        name = Path(p).name
+        left = {s: n - held_n.get((name, s), 0) for s, n in c.items()}
+        if sum(left.values()) > 0:
+            kept_paths.append(p)
+            kept_counts.append({s: n for s, n in left.items() if n > 0})
+    if paths and not kept_paths:
+        raise DataError(f"{root}: every episode is on the held-out side of its split ({split.origin})")
+    return kept_paths, kept_counts, frozenset(held_keys), split.record("train")
+
+
 class StreamLoader:
     """Batches for rank ``rank`` of ``world_size`` from the shards of ``cfg``; resumable."""
 
@@ -221,6 +246,11 @@ class StreamLoader:
         if not root.is_dir():
             raise DataError(f"data.shards={root} is not a folder")
         paths, counts = dataset_counts(root, strict=cfg.strict)
+        exclude = duplicate_keys(root) if cfg.skip_duplicates else frozenset()
+        self.split = {"side": "all"}
+        if cfg.split == "train":   # the held-out episodes stay out of training (resim/shards/split.py)
+            paths, counts, held_keys, self.split = _train_side(root, paths, counts)
+            exclude = exclude | held_keys
         urls = list(cfg.urls) or paths
         if cfg.urls and len(cfg.urls) != len(paths):
             counts = [{"unknown": 1} for _ in urls]  # explicit URLs: no per-shard counts, draw uniformly
@@ -246,7 +276,7 @@ class StreamLoader:
             world_size=world_size, seed=cfg.seed, open_shards=cfg.open_shards_per_worker, strict=cfg.strict,
             max_consecutive_failures=cfg.max_consecutive_failures, load_frames=cfg.load_frames,
             load_dino=cfg.load_dino, mixing=share, max_shape_buckets=cfg.max_shape_buckets,
-            exclude_keys=duplicate_keys(root) if cfg.skip_duplicates else frozenset(), dataset=str(root))
+            exclude_keys=exclude, dataset=str(root))
         self.cfg, self.rank, self.world_size, self.pin_memory = cfg, rank, world_size, pin_memory
         self.epoch = 0
         self.batches_in_epoch = 0
@@ -259,8 +289,13 @@ class StreamLoader:
             raise DataError(f"data.shuffle_commands: the prompt table of {root} holds no command prompts to shuffle")
         if verbose and rank == 0:
             mix = ", ".join(f"{s} {v:.0%}" for s, v in sorted(share.items()))
-            print(f"[resim data] {len(urls)} shards, {total} samples ({mix}); {self.plan.batches_per_rank} batches "
-                  f"of {cfg.batch_size_per_gpu} per rank per epoch ({world_size} ranks x {W} workers)", flush=True)
+            side = (f"the train side of the split: {self.split['episodes_train']} episodes, "
+                    f"{self.split['episodes_heldout']} held out"
+                    + ("; the default split: no split.json" if self.split["origin"].startswith("the default") else "")
+                    if cfg.split == "train" else "every episode")
+            print(f"[resim data] {len(urls)} shards, {total} samples ({mix}; {side}); {self.plan.batches_per_rank} "
+                  f"batches of {cfg.batch_size_per_gpu} per rank per epoch ({world_size} ranks x {W} workers)",
+                  flush=True)
 
     def __len__(self) -> int:
         return self.plan.batches_per_rank

@@ -168,10 +168,11 @@ def finished_step(out: str | Path) -> int | None:
         return None
 
 
-def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
+def save_data_encoding(cfg: RunConfig, out: str | Path, split: dict | None = None) -> Path | None:
     """``RUN/final/data_encode.yaml``: the ``encode`` section (VAE, text encoder, sizes) of the training data's
-    pipeline config, so a sampler decodes with the VAE the model learnt the latents of, at their size; and its
-    ``clip`` geometry (rate and frames), so a video history is resampled to the rate the model learnt motion at."""
+    pipeline config, so a sampler decodes with the VAE the model learnt the latents of, at their size; its
+    ``clip`` geometry (rate and frames), so a video history is resampled to the rate the model learnt motion at;
+    and the side of the dataset's split it trained on (``split``: ``StreamLoader.split``)."""
     if cfg.data.shards is None or not (Path(cfg.data.shards) / "config.yaml").is_file():
         return None
     try:
@@ -191,7 +192,8 @@ def save_data_encoding(cfg: RunConfig, out: str | Path) -> Path | None:
     clip = {k: clip[k] for k in ("fps_hz", "num_history_frames", "num_future_frames")
             if k in clip} if isinstance(clip, dict) else None
     path.write_text(yaml.safe_dump({"shards": str(cfg.data.shards), "encode": enc,
-                                    **({"clip": clip} if clip else {})}, sort_keys=False))
+                                    **({"clip": clip} if clip else {}), **({"split": split} if split else {})},
+                                   sort_keys=False))
     return path
 
 
@@ -214,7 +216,7 @@ def run_training(cfg: RunConfig, out: str | Path, *, resume: bool = False) -> di
                             pin_memory=env.device.type == "cuda", verbose=env.is_main)
         summary = Trainer(model, cfg, out, resume=resume, env=env).fit(data)
         if env.is_main:
-            save_data_encoding(cfg, out)
+            save_data_encoding(cfg, out, data.split)
         if env.is_main and hasattr(model, "export_run"):   # e.g. the VAE's diffusers folder, final/vae/
             exported = model.export_run(out, StreamLoader(cfg.data, rank=0, world_size=1, verbose=False))
             print(f"[resim] exported {exported}", file=sys.stderr)

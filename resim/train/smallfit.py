@@ -3,8 +3,9 @@ and the inverse dynamics model (``resim.train.tasks.idm``).
 
 What the two have in common, and only that, lives here:
 
-* :func:`split_by_episode`: train / held-out with whole episodes (``item_id``) on one side, episodes ordered
-  by a seeded hash of their id (so the split does not depend on the input order), optionally stratified;
+* :func:`split_clips`: train / held-out clips by the dataset's own split (``resim.shards.split``);
+  :func:`split_by_episode`: a split of the training episodes for early stopping, whole episodes (``item_id``)
+  on one side, ordered by a seeded hash of their id, optionally stratified;
 * :func:`usable`: clips the model can use, and ``[{"key", "reason"}]`` of the others (named, never fatal);
 * :func:`frames_to_tensor`: uint8 RGB frames (numpy) to the float [0, 1] tensors both models take;
 * :class:`EpochBatches`: re-iterable shuffled epochs of collated batches for ``Trainer.fit`` (epoch ``e``
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from resim.shards.split import DatasetSplit
 from resim.train.config import DataConfig, OptimConfig, RunConfig, TrainerConfig
 from resim.train.trainer import Trainer, to_device
 
@@ -82,6 +84,21 @@ def split_by_episode(clips: Sequence[C], heldout_fraction: float, seed: int = 0,
             if len(eps) >= 2:
                 held.update(eps[:heldout_count(len(eps), heldout_fraction, min_heldout)])
     return [c for c in clips if c.item_id not in held], [c for c in clips if c.item_id in held]
+
+
+def split_clips(clips: Sequence[C], split: DatasetSplit, what: str) -> tuple[list[C], list[C]]:
+    """(train, held-out) clips, each in input order, by the dataset's own split (``resim.shards.split``: whole
+    episodes on one side). A ``ValueError`` naming ``what`` and the split when a side is empty."""
+    sides = [split.side(c.item_id) for c in clips]
+    train = [c for c, s in zip(clips, sides) if s == "train"]
+    held = [c for c, s in zip(clips, sides) if s == "heldout"]
+    for name, part in (("train", train), ("held-out", held)):
+        if not part:
+            eps = len({c.item_id for c in clips})
+            raise ValueError(f"no {what} of the {eps} episode(s) it can use is on the {name} side of the split "
+                             f"({split.origin}); write another split: `resim shards split DIR --heldout-fraction F "
+                             f"--min-heldout-episodes N`")
+    return train, held
 
 
 def usable(clips: Sequence[C], check: Callable[[C], Any], errors: type[Exception] | tuple = ClipError

@@ -58,7 +58,8 @@ class DataError(RuntimeError):
     """Training data cannot be used (strict mode, nothing readable, inconsistent shapes)."""
 
 
-# The stream gives up when this many samples in a row were unusable (near-duplicates the dedup pass left out, or
+# The stream gives up when this many samples in a row were unusable (left out: near-duplicates the dedup pass
+# marked or clips of held-out episodes in a shard that also holds training ones; or
 # corrupt: NaN latents, unknown prompts, ...). Skipping a bad sample is right; skipping forever is a hang: a
 # dataset whose every key is a duplicate, or whose every latent holds a NaN, spun at full CPU with no batch. A
 # usable sample resets the count. Draws interleave `open_shards_per_worker` shards, so where a share q of the data
@@ -90,7 +91,7 @@ class StreamPlan:
     mixing: dict = field(default_factory=dict)  # source -> effective share of draws (for the log)
     read_unused_members: bool = False      # read frames.mp4/dino.npy bytes even when not loaded (benchmarks)
     max_shape_buckets: int = 16            # distinct batch keys (latent shapes, clip geometries) a worker buffers
-    exclude_keys: frozenset = frozenset()  # near-duplicate clips the dataset's dedup pass left out
+    exclude_keys: frozenset = frozenset()  # clips left out: near-duplicates (dedup), held-out episodes (split)
     dataset: str = ""                      # the dataset folder, for messages
 
     @property
@@ -172,7 +173,7 @@ class WorkerStream:
         self._iters: list[Iterator[dict] | None] = [None] * plan.open_shards
         self._known_prompts = set(plan.prompt_ids)
         self._failures = 0
-        self._unusable = {"near-duplicate": 0, "corrupt": 0}   # in a row, since the last usable sample
+        self._unusable = {"left out": 0, "corrupt": 0}   # in a row, since the last usable sample
         self._scratch = np.empty(_CHUNK, np.uint16)  # for the NaN/inf test of 16-bit latents
         self._h = _hash(*self.key)  # hash prefix: per-sample choices fold in only (index, kind)
         p = np.asarray(plan.probs, dtype=np.float64)
@@ -288,8 +289,9 @@ class WorkerStream:
             raw, shard = self._next_raw(slot)
             rec = self.cur.slots[slot][2] - 1  # record index in the shard: how a buffered sample is re-read
             self.cur.index += 1
-            if raw.get("__key__") in self.plan.exclude_keys:   # a near-duplicate: its copy is trained on
-                self._unusable_sample("near-duplicate", shard, "listed in dedup/duplicates.parquet")
+            if raw.get("__key__") in self.plan.exclude_keys:   # a near-duplicate (its copy is trained on) or held out
+                self._unusable_sample("left out", shard, "a near-duplicate (dedup/duplicates.parquet) or a held-out "
+                                                         "episode's clip (split.json)")
                 continue
             try:
                 sample = self._decode(raw)
@@ -308,8 +310,8 @@ class WorkerStream:
                     _warn(f"skipping corrupt {where}: {e} (skipped on this worker: {n})")
                 self._unusable_sample("corrupt", shard, f"{where}: {e}")
                 continue
-            if self._unusable["near-duplicate"] or self._unusable["corrupt"]:   # no dict built per sample
-                self._unusable = {"near-duplicate": 0, "corrupt": 0}
+            if self._unusable["left out"] or self._unusable["corrupt"]:   # no dict built per sample
+                self._unusable = {"left out": 0, "corrupt": 0}
             yield sample, shard, rec
 
     def _unusable_sample(self, kind: str, shard: int, last: str) -> None:

@@ -1,7 +1,7 @@
 """`resim eval ...` on bad input: argparse refuses malformed values (exit 2), and the commands check clips,
-held-out lists, weight files and the IDM's window before loading the world model or rolling anything out.
+the dataset's split, weight files and the IDM's window before loading the world model or rolling anything out.
 The world-model checkpoint given here does not exist: any test that got as far as loading it would fail."""
-import json
+import shutil
 
 import pytest
 import torch
@@ -67,14 +67,14 @@ def test_malformed_values_are_usage_errors(ds, capsys):
     assert not (ds / "out").exists()
 
 
-def test_bad_heldout_list_and_weight_files(ds, tmp_path, capsys):
-    q = tmp_path / "quality.json"
-    q.write_text(json.dumps({"protocol": {"clips": 1}}))
-    with pytest.raises(SystemExit, match="no protocol.heldout_items"):   # was KeyError 'heldout_items'
-        main(["eval", "quality", *_world(ds, "--heldout-from", str(q))])
-    q.write_text("{not json")
-    with pytest.raises(SystemExit, match="not valid JSON"):
-        main(["eval", "quality", *_world(ds, "--heldout-from", str(q))])
+def test_retired_heldout_flag_bad_split_file_and_weight_files(ds, tmp_path, capsys):
+    assert main(["eval", "quality", *_world(ds, "--heldout-from", "runs/idm")]) == 2
+    _error(capsys, "--heldout-from is gone: the held-out split is the dataset's own")
+    bad = tmp_path / "bad"
+    shutil.copytree(ds / "ds", bad / "ds")
+    (bad / "ds" / "split.json").write_text("{not json")
+    with pytest.raises(SystemExit, match="split.json: not a split file"):   # before the world model loads
+        main(["eval", "quality", *_world(bad)])
     # was FileNotFoundError, after the world model had been loaded
     assert main(["eval", "quality", *_world(ds, "--metrics", "fid", "--set",
                                             f"quality.fid_weights={tmp_path / 'no.pth'}")]) == 2

@@ -12,6 +12,7 @@ from resim.models.policy.model import DrivingPolicy, policy_preset
 from resim.models.reward.checkpoint import save_checkpoint
 from resim.train.tasks.reward.config import RewardTrainConfig
 from resim.models.reward.model import Video2Reward
+from resim.shards import split
 from resim.shards.manifest import read_manifest
 from resim.shards.schema import COMMANDS
 from resim.synthworld.closed_loop import Observation
@@ -49,8 +50,8 @@ def test_mirroring_swaps_the_turns():
 def test_behaviour_cloning_on_road_world_shards_learns_the_turns(tmp_path, road_world):
     root = tmp_path / "shards"
     road_world.write_shards(root, episodes=12, frames_per_episode=120, frames_hw=(64, 96), clip_stride_frames=6)
-    cfg = from_dict(PolicyTrainConfig, {"preset": "tiny", "overrides": SMALL, "epochs": 40, "optim": {"lr": 3e-3},
-                                        "heldout_fraction": 0.25})
+    split.write(root, split.SplitConfig(heldout_fraction=1e-12, min_heldout_episodes=3))   # 3 of the 12 episodes
+    cfg = from_dict(PolicyTrainConfig, {"preset": "tiny", "overrides": SMALL, "epochs": 40, "optim": {"lr": 3e-3}})
     clips, counts = clips_from_shards([root], cfg.model_cfg())
     assert counts["samples"] == len(clips) > 50 and clips[0].frames.shape == (5, 32, 48, 3)
     res = run_policy_training([root], cfg, tmp_path / "run", clips=clips)
@@ -61,7 +62,8 @@ def test_behaviour_cloning_on_road_world_shards_learns_the_turns(tmp_path, road_
     # written). Speed does not generalise from 9 training episodes of 9 nominal speeds (held-out ADE 3.7 m vs 2.8);
     # on the 146 episodes of the real run it does (docs/closed_loop.md: 1.36 m vs 3.12 m)
     assert held["policy"]["n"] == 36 and held["policy"]["yaw_err_deg"] < 0.75 * held["constant_velocity"]["yaw_err_deg"]
-    assert json.loads((tmp_path / "run" / "policy_report.json").read_text())["protocol"]["episodes_heldout"] == 3
+    protocol = json.loads((tmp_path / "run" / "policy_report.json").read_text())["protocol"]
+    assert protocol["episodes_heldout"] == 3 and protocol["split"]["origin"] == str(root / "split.json")
     model, info = load_policy(tmp_path / "run")
     assert model.cfg.input_hw == (32, 48) and len(info["weights_sha256"]) == 64
     # the loaded policy at the wheel: any frame size in, the commanded branch out

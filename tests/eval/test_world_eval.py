@@ -290,13 +290,12 @@ def test_command_loss_command(world, capsys):
     out = root / "command-loss"
     args = ["eval", "command-loss", "--checkpoint", str(root / "wm"), "--shards", str(ds), "--out", str(out),
             "--device", "cpu"]
-    with pytest.raises(SystemExit, match="--heldout-from .* or --all-clips"):
-        main(args)
     with pytest.raises(SystemExit, match="--levels 1000 is outside 0..999"):
         main([*args, "--all-clips", "--levels", "1000"])
     assert main([*args, "--all-clips", "--levels", "900", "300"]) == 0
     rep = json.loads((out / "command_loss.json").read_text())
     assert list(rep["levels"]) == ["900", "300"] and (out / "command_loss.png").is_file()
+    assert rep["protocol"]["split"] == {"side": "all", "note": "ALL CLIPS of --shards (--all-clips)"}
     n = rep["protocol"]["clips"]
     assert n == len(rep["per_clip"]) >= 1 and all(len(c["loss"]) == 2 and len(c["loss"][0]) == 4
                                                  for c in rep["per_clip"])

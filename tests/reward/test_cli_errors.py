@@ -8,6 +8,7 @@ import pytest
 import yaml
 
 from resim.cli import main
+from resim.shards import split
 from tests.support.reward_toy import toy_episode_frames
 
 TINY = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
@@ -37,7 +38,8 @@ def ckpt(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def two_episodes(tmp_path_factory):
-    """Shards of two labelled episodes, one hazardous and one clean: no held-out split possible."""
+    """Shards of two labelled episodes, one hazardous and one clean, whose split holds none out (a tiny fraction
+    and no minimum): nothing to evaluate on."""
     from resim.shards.schema import ClipSpec
     from tests.support.shards import make_dummy_sample
     from resim.shards.video import encode_mp4
@@ -52,6 +54,7 @@ def two_episodes(tmp_path_factory):
             s["frames.mp4"] = encode_mp4(toy_episode_frames(score, 9, 32, 48, rng), 10.0)
             s["meta.json"]["infraction_score"] = score
             w.write(s)
+    split.write(root, split.SplitConfig(heldout_fraction=1e-12, min_heldout_episodes=0))
     return root
 
 
@@ -158,7 +161,7 @@ def test_train_bad_config_is_a_one_line_error(two_episodes, tmp_path, capsys):
 def test_train_unsplittable_data_fails_before_training(two_episodes, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(out), *TINY_SETS]) == 1
-    _one_line_error(capsys, str(two_episodes), "1 hazardous and 1 clean episode(s)")
+    _one_line_error(capsys, str(two_episodes), "of the 2 episode(s) it can use is on the held-out side of the split")
     assert not out.exists()   # nothing written, nothing trained
 
 
@@ -205,7 +208,7 @@ def test_train_into_a_reward_run_needs_overwrite(two_episodes, tmp_path, capsys)
     _one_line_error(capsys, "resim train reward:", f"{rw} holds a reward run (reward.safetensors)", "--overwrite")
     # --overwrite: the old run stays until the new one's data is known to be usable (here it is not: exit 1)
     assert main(["train", "reward", "--shards", str(two_episodes), "--out", str(rw), *TINY_SETS, "--overwrite"]) == 1
-    _one_line_error(capsys, "1 hazardous and 1 clean episode(s)")
+    _one_line_error(capsys, "is on the held-out side of the split")
     assert (rw / "reward.safetensors").read_bytes() == b"old"
 
 

@@ -18,7 +18,7 @@ from resim.train.tasks.reward.config import RewardTrainConfig
     ("lr=1e-3", "unknown config key lr .*optim"),               # the optimiser is one nested section
     ("seed=-1", "seed must be >= 0"),
     ("model.dropout=.nan", "dropout must be in"),
-    ("data.heldout_fraction=.nan", "heldout_fraction must be in"),
+    ("data.heldout_fraction=0.3", "unknown config key data.heldout_fraction"),   # the dataset's split now
 ])
 def test_bad_values_are_config_errors(override, match):
     with pytest.raises(ConfigError, match=match):

@@ -1,25 +1,7 @@
 import numpy as np
 import pytest
 
-from resim.train.tasks.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
-
-
-def _clips(n_eps, per):
-    return [RewardClip(key=f"e{e}@{c}", item_id=f"ep{e}", infraction_score=e / n_eps, hazard=e % 2 == 0)
-            for e in range(n_eps) for c in range(per)]
-
-
-def test_split_by_episode_never_splits_an_episode():
-    clips = _clips(20, 4)
-    tr, ho = split_by_episode(clips, 0.25, seed=3)
-    assert {c.item_id for c in tr}.isdisjoint({c.item_id for c in ho})
-    assert len(tr) + len(ho) == len(clips)
-    assert {c.hazard for c in ho} == {True, False}  # stratified: both classes held out
-    assert len({c.item_id for c in ho}) == 6  # 25% of each class of 10 episodes, rounded
-    tr2, ho2 = split_by_episode(list(reversed(clips)), 0.25, seed=3)
-    assert {c.item_id for c in ho2} == {c.item_id for c in ho}  # order-independent
-    _, ho3 = split_by_episode(clips, 0.25, seed=4)
-    assert {c.item_id for c in ho3} != {c.item_id for c in ho}
+from resim.train.tasks.reward.data import ClipError, collate, window_indices
 
 
 def test_window_indices(tiny_cfg):

@@ -7,7 +7,7 @@ import pytest
 
 from resim.config import from_dict
 from resim.train.tasks.reward.config import RewardTrainConfig
-from tests.support.reward_toy import toy_clips
+from tests.support.reward_toy import toy_clips, toy_split
 from resim.train.tasks.reward.train import SplitError, prepare_training, train_reward
 
 TINY_MODEL = {"num_frames": 4, "frame_step": 2, "head_dim": 32, "num_heads": 2, "mlp_hidden_dim": 32}
@@ -24,26 +24,27 @@ def _strict_json(path):
 
 
 def test_unsplittable_episodes_are_refused_before_training(monkeypatch):
-    """One hazardous + one clean episode: the stratified split holds nothing out. The error says why (it
-    used to say "need at least 2 episodes" with 2 episodes given), and no training step runs."""
+    """One episode: the dataset's split keeps it for training and holds nothing out. The error says why, before
+    any training step runs."""
     import resim.train.tasks.reward.train as train_mod
 
     monkeypatch.setattr(train_mod, "fit", lambda *a, **k: pytest.fail("trained before the split was checked"))
-    clips = toy_clips(2, 1, 8, seed=0)
-    assert sorted(c.hazard for c in clips) == [False, True]
-    with pytest.raises(SplitError, match=r"1 hazardous and 1 clean episode\(s\) \(need >= 2 of one class\)"):
-        train_reward(clips, _cfg())
+    clips = toy_clips(1, 3, 8, seed=0)
+    with pytest.raises(SplitError, match=r"no labelled clip \(3 usable\) of the 1 episode\(s\) it can use is on the "
+                                         r"held-out side of the split \(toy clips\)"):
+        train_reward(clips, _cfg(), toy_split(clips))
 
 
 def test_one_heldout_clip_still_writes_the_checkpoint_with_null_metrics(tmp_path):
     """3 episodes (2 hazardous, 1 clean) hold out one clip: Spearman and AUC are undefined. The run used to
     raise in spearman() after training and write no checkpoint; meta.json used to get a bare NaN."""
     clips = toy_clips(3, 1, 8, seed=0, hazard_threshold=0.9)
-    prepared = prepare_training(clips, _cfg())
+    split = toy_split(clips)
+    prepared = prepare_training(clips, _cfg(), split)
     assert len(prepared.held) == 1
     assert any("Spearman is undefined" in n for n in prepared.notes)
     assert any("hazard AUC is undefined" in n for n in prepared.notes)
-    r = train_reward(clips, _cfg(), tmp_path, prepared=prepared)
+    r = train_reward(clips, _cfg(), split, tmp_path, prepared=prepared)
     assert r["n_heldout"] == 1 and np.isnan(r["metrics"]["spearman"]) and np.isfinite(r["metrics"]["mae"])
     assert (tmp_path / "final" / "model.safetensors").is_file()
     meta = _strict_json(tmp_path / "final" / "meta.json")

@@ -51,3 +51,10 @@ def toy_clips(num_episodes: int, clips_per_episode: int, clip_frames: int, h: in
             clips.append(RewardClip(key=f"toy{e:03d}@{start}", item_id=f"toy/{e:03d}", infraction_score=float(s),
                                     hazard=bool(s < hazard_threshold), frames=frames[start:start + clip_frames]))
     return clips
+
+
+def toy_split(clips, **cfg):
+    """The dataset split (resim.shards.split) of in-memory clips, all of one source."""
+    from resim.shards import split
+
+    return split.of_episodes({c.item_id: ("carla", c.hazard) for c in clips}, split.SplitConfig(**cfg), "toy clips")

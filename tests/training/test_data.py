@@ -335,3 +335,25 @@ def test_shuffle_commands_draws_each_clips_command_from_its_key_alone(world_data
     other = {k: int(c) for b in StreamLoader(_cfg(world_dataset, shuffle_commands=True, seed=1), verbose=False)
              for k, c in zip(b.keys, b.command)}
     assert other != seen
+
+
+def test_the_held_out_episodes_are_never_streamed(world_dataset):
+    """data.split: train (the default) leaves the held-out side of the dataset's split.json out, whole shards and
+    single clips alike; all streams every episode; the loader says which side it read."""
+    from resim.shards import split
+
+    s = split.write(world_dataset, split.SplitConfig(heldout_fraction=0.3, min_heldout_episodes=2))
+    assert len(s.heldout) >= 2
+
+    def items(**kw):
+        loader = StreamLoader(_cfg(world_dataset, samples_per_epoch=120, **kw), verbose=False)
+        return loader, {m["item_id"] for _ in range(2) for b in loader for m in b.meta}
+
+    loader, seen = items()
+    assert seen == set(s.train)                              # every training episode, no held-out one
+    assert loader.split["side"] == "train" and loader.split["episodes_heldout"] == len(s.heldout)
+    assert loader.split["origin"] == str(world_dataset / "split.json")
+    _, seen = items(split="all")
+    assert seen == set(s.train) | set(s.heldout)
+    with pytest.raises(ConfigError, match="split: 'heldout' is not one of"):
+        _cfg(world_dataset, split="heldout")                 # training never streams the held-out side

@@ -22,7 +22,8 @@ def _args(ds, out):
     return ["train", "world", "--preset", "tiny", "--shards", str(ds), "--out", str(out), "--steps", "8",
             "--checkpoint-every", "3", "--set", "data.num_workers=2", "--set", "trainer.progress_bar=false",
             "--set", "trainer.tensorboard=false", "--set", "trainer.loss_curve_png=false",
-            "--set", "trainer.save_final_weights=false", "--set", "trainer.ema_decay=0.9"]
+            "--set", "trainer.save_final_weights=false", "--set", "trainer.ema_decay=0.9",
+            "--set", "data.split=all"]   # every sample: the stream's buckets hold pending samples at step 3
 
 
 def _losses(run):

@@ -73,12 +73,7 @@ class RewardModelConfig:
 
 @dataclass
 class RewardDataConfig:
-    # Which clips carry labels: only those with an infraction score (CARLA-like / synthetic outcomes).
-    heldout_fraction: float = 0.25
-    split_seed: int = 0
+    # Which clips carry labels: only those with an infraction score (CARLA-like / synthetic outcomes); which are
+    # held out: the dataset's split (resim.shards.split), not a setting of the run.
     # Where a window is cut from a longer clip: "end" = the last window (the imagined future).
     clip_window: Literal["end", "start"] = "end"
-
-    def __post_init__(self):
-        if not 0.0 < self.heldout_fraction < 1.0:  # false for nan too
-            raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")

@@ -40,7 +40,9 @@ from resim.models.exported import ExportNotFoundError, load_exported
 from resim.models.idm import IDMConfig, InverseDynamicsModel, idm_preset, num_parameters, receptive_note
 from resim.sample.outputs import decode_latents
 from resim.shards.reader import iter_samples
+from resim.shards import split as dataset_split
 from resim.shards.safejson import write_json
+from resim.shards.split import DatasetSplit
 from resim.shipped import shipped_model
 from resim.train import smallfit
 from resim.train.config import OptimConfig, RunConfig, SmallTrainConfig
@@ -57,8 +59,6 @@ class IDMTrainConfig(SmallTrainConfig):
     # AdamW with a warmup, then cosine to 5 %, clipping at 1
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=2e-3, weight_decay=0.01, warmup_steps=20,
                                                                    schedule="cosine", min_lr_ratio=0.05))
-    heldout_fraction: float = 0.25
-    split_seed: int = 0
     # augmentation: mirror clips left-right (video flipped along W; trajectory y -> -y, yaw -> -yaw). Ego motion
     # is mirror-symmetric, so a mirrored clip is another valid clip (doubles the distinct training clips).
     hflip_prob: float = 0.5
@@ -77,14 +77,9 @@ class IDMTrainConfig(SmallTrainConfig):
     # training split has fewer than `min_episodes_for_validation` episodes.
     val_fraction: float = 0.15
     min_episodes_for_validation: int = 6
-    # never fewer held-out episodes than this (when the dataset has more than this many): small datasets
-    # (the demo's) otherwise hold out one episode, sometimes of a single clip
-    min_heldout_episodes: int = 1
 
     def __post_init__(self):
         super().__post_init__()
-        if not 0.0 < self.heldout_fraction < 1.0:
-            raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if not 0.0 <= self.hflip_prob <= 1.0:
             raise ConfigError(f"hflip_prob must be in [0, 1], got {self.hflip_prob}")
         if not 0.0 <= self.decoded_prob <= 1.0:
@@ -93,8 +88,6 @@ class IDMTrainConfig(SmallTrainConfig):
             raise ConfigError(f"decoded_vae={self.decoded_vae!r}: no such folder or shipped model (configs/models/NAME)")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ConfigError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
-        if self.min_heldout_episodes < 1:
-            raise ConfigError("min_heldout_episodes must be >= 1")
 
     def model_cfg(self) -> IDMConfig:
         return idm_preset(self.preset, **self.overrides)
@@ -326,10 +319,12 @@ class IDMData:
     held: list[TrajClip]
     skipped: list[dict]   # [{"key", "reason"}]: clips the model's window does not fit
     counts: dict          # {"samples", "without_trajectory"} when read from shards
+    split: DatasetSplit   # the dataset's own (resim.shards.split)
 
 
 def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[TrajClip] | None = None) -> IDMData:
-    """Read (unless ``clips`` are given) and check the clips, split by episode, and with ``decoded_vae`` decode
+    """Read (unless ``clips`` are given) and check the clips, split them by the dataset's split (``root``'s
+    split.json: ``resim.shards.split``), and with ``decoded_vae`` decode
     every usable clip's latents (:func:`attach_decoded`; the slow part, after every check has passed).
     ``FileNotFoundError`` when ``root`` does not exist, :class:`IDMDataError` naming the reason when no split can
     be made or a clip has no latents to decode."""
@@ -347,15 +342,15 @@ def prepare_idm_data(root: str | Path, tcfg: IDMTrainConfig, clips: Sequence[Tra
         if counts.get("samples"):
             raise IDMDataError(f"{root}: none of its {counts['samples']} samples has a trajectory (traj.npy)")
         raise IDMDataError(f"{root}: no samples (no committed shards: DIR/shards/*.tar with DIR/index/*.json)")
+    split = dataset_split.read(root)
     try:
-        train, held = smallfit.split_by_episode(usable, tcfg.heldout_fraction, tcfg.split_seed,
-                                                min_heldout=tcfg.min_heldout_episodes)
-    except ValueError as e:   # the split's only error: fewer than 2 episodes
+        train, held = smallfit.split_clips(usable, split, "clip with a trajectory")
+    except ValueError as e:   # a side of the split without a usable clip
         raise IDMDataError(f"{root}: {e}") from None
     if tcfg.decoded_vae is not None:   # held-out clips too: the report reads the IDM on both kinds of frames
         attach_decoded(usable, tcfg.decoded_vae, mcfg.input_hw,
                        log=lambda m: print(f"[idm] {m}", file=sys.stderr, flush=True))
-    return IDMData(train, held, skipped, counts)
+    return IDMData(train, held, skipped, counts, split)
 
 
 def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path, progress: bool = False,
@@ -372,7 +367,7 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
     fit_clips, val = train, []
     if tcfg.val_fraction > 0 and n_train_eps >= tcfg.min_episodes_for_validation:
         # a second seeded split, inside the training episodes only
-        fit_clips, val = smallfit.split_by_episode(train, tcfg.val_fraction, tcfg.split_seed + 1)
+        fit_clips, val = smallfit.split_by_episode(train, tcfg.val_fraction, tcfg.seed + 1)
         validation = (f"{len({c.item_id for c in val})} of the {n_train_eps} training episodes "
                       f"({len(val)} clips), best epoch kept")
     else:
@@ -397,8 +392,7 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
                      "episodes_train": len({c.item_id for c in train}),
                      "episodes_heldout": len({c.item_id for c in held}),
                      "heldout_items": sorted({c.item_id for c in held}),
-                     "train_items": sorted({c.item_id for c in train}), "split": "by episode (item_id), seeded hash",
-                     "split_seed": tcfg.split_seed, "min_heldout_episodes": tcfg.min_heldout_episodes,
+                     "train_items": sorted({c.item_id for c in train}), "split": data.split.record("heldout"),
                      "validation": validation, "clips_fit": len(fit_clips), "clips_validation": len(val),
                      "augmentation": f"left-right mirror with p={tcfg.hflip_prob} (y, yaw negated)" + (
                          f"; the shard latents decoded by {tcfg.decoded_vae} with p={tcfg.decoded_prob}"
@@ -427,12 +421,11 @@ def run_idm_training(root: str | Path, tcfg: IDMTrainConfig, out_dir: str | Path
     (out / "train_config.json").write_text(json.dumps({"preset": tcfg.preset, "overrides": tcfg.overrides,
                                                         "epochs": tcfg.epochs, "lr": tcfg.optim.lr,
                                                         "batch_size_per_gpu": tcfg.batch_size_per_gpu,
-                                                        "seed": tcfg.seed, "split_seed": tcfg.split_seed,
+                                                        "seed": tcfg.seed, "split": data.split.summary(),
                                                         "hflip_prob": tcfg.hflip_prob,
                                                         "decoded_vae": tcfg.decoded_vae,
                                                         "decoded_prob": tcfg.decoded_prob,
-                                                        "val_fraction": tcfg.val_fraction,
-                                                        "min_heldout_episodes": tcfg.min_heldout_episodes},
+                                                        "val_fraction": tcfg.val_fraction},
                                                        indent=1))
     res["_model"] = model
     return res

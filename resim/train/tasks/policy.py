@@ -24,6 +24,8 @@ import torch
 from resim.config import ConfigError, to_dict
 from resim.models.exported import ExportNotFoundError, load_exported
 from resim.models.policy.model import DrivingPolicy, PolicyConfig, command_index, policy_preset
+from resim.shards import split as dataset_split
+from resim.shards.errors import ShardReadError
 from resim.shards.reader import iter_samples
 from resim.shards.safejson import write_json
 from resim.shards.schema import COMMANDS
@@ -45,14 +47,10 @@ class PolicyTrainConfig(SmallTrainConfig):
     # AdamW with a warmup, then cosine to 5 %, clipping at 1
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=2e-3, weight_decay=0.01, warmup_steps=20,
                                                                    schedule="cosine", min_lr_ratio=0.05))
-    heldout_fraction: float = 0.2
-    split_seed: int = 0
     hflip_prob: float = 0.5
 
     def __post_init__(self):
         super().__post_init__()
-        if not 0.0 < self.heldout_fraction < 1.0:
-            raise ConfigError(f"heldout_fraction must be in (0, 1), got {self.heldout_fraction}")
         if not 0.0 <= self.hflip_prob <= 1.0:
             raise ConfigError(f"hflip_prob must be in [0, 1], got {self.hflip_prob}")
 
@@ -151,7 +149,8 @@ def run_config(tcfg: PolicyTrainConfig, steps: int, progress: bool = False) -> R
 
 def run_policy_training(roots: Sequence[str | Path], tcfg: PolicyTrainConfig, out_dir: str | Path,
                         progress: bool = False, clips: Sequence[PolicyClip] | None = None) -> dict:
-    """Read, split by episode, train, evaluate on the held-out episodes, write the report."""
+    """Read, split by the datasets' own split (``resim.shards.split``), train, evaluate on the held-out episodes,
+    write the report."""
     mcfg = tcfg.model_cfg()
     counts: dict = {}
     if clips is None:
@@ -159,7 +158,11 @@ def run_policy_training(roots: Sequence[str | Path], tcfg: PolicyTrainConfig, ou
     if len({c.item_id for c in clips}) < 2:
         raise PolicyDataError(f"{', '.join(map(str, roots))}: {len(clips)} usable expert clips in "
                               f"{len({c.item_id for c in clips})} episode(s) ({counts}); need clips of >= 2 episodes")
-    train, held = smallfit.split_by_episode(clips, tcfg.heldout_fraction, tcfg.split_seed)
+    try:
+        split = dataset_split.read_all(roots)
+        train, held = smallfit.split_clips(clips, split, "expert clip")
+    except (ShardReadError, ValueError) as e:
+        raise PolicyDataError(f"{', '.join(map(str, roots))}: {e}") from None
     torch.manual_seed(tcfg.seed)
     model = DrivingPolicy(mcfg)
     data = smallfit.EpochBatches(train, tcfg.batch_size_per_gpu, tcfg.seed, collate,
@@ -174,8 +177,8 @@ def run_policy_training(roots: Sequence[str | Path], tcfg: PolicyTrainConfig, ou
         "protocol": {"datasets": [str(r) for r in roots], "clips_train": len(train), "clips_heldout": len(held),
                      "episodes_train": len({c.item_id for c in train}),
                      "episodes_heldout": len({c.item_id for c in held}),
-                     "heldout_items": sorted({c.item_id for c in held}), "split": "by episode (item_id), seeded hash",
-                     "split_seed": tcfg.split_seed, "commands_train": {n: sum(c.command == i for c in train)
+                     "heldout_items": sorted({c.item_id for c in held}), "split": split.record("heldout"),
+                     "commands_train": {n: sum(c.command == i for c in train)
                                                                         for i, n in enumerate(COMMANDS)},
                      "augmentation": f"left-right mirror with p={tcfg.hflip_prob} (y, yaw negated, turns swapped)",
                      "constant_velocity": "straight ahead at |waypoint_1| / 0.5 s (oracle initial speed)",

@@ -30,7 +30,6 @@ def add_train_parser(sub) -> None:
     t.add_argument("--epochs", type=int, default=30, help="passes over the training clips (default 30)")
     t.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (AdamW, warmup + cosine)")
     t.add_argument("--seed", type=int, default=0, help="initialisation and shuffling seed")
-    t.add_argument("--split-seed", type=int, default=0, help="seed of the held-out episode split")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(func=_cmd_train)
 
@@ -46,7 +45,7 @@ def _cmd_train(args) -> int:
         return 2
     try:
         tcfg = from_dict(PolicyTrainConfig, {"preset": args.preset, "epochs": args.epochs, "seed": args.seed,
-                                             "split_seed": args.split_seed, "optim": {"lr": args.lr}})
+                                             "optim": {"lr": args.lr}})
         tcfg.model_cfg()
     except ConfigError as e:
         print(f"{prog}: config error: {e}", file=sys.stderr)

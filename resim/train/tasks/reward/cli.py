@@ -187,9 +187,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"{prog}: error: {src} has no clip with an infraction score", file=sys.stderr)
         return 1
     # the split and the backbone are checked before anything is written or trained
+    from resim.shards import split as dataset_split
+
     try:
-        prepared = prepare_training(clips, cfg)
-    except SplitError as e:
+        split = dataset_split.read(args.shards)
+        prepared = prepare_training(clips, cfg, split)
+    except (SplitError, ShardReadError) as e:
         print(f"{prog}: error: {src}: {e}", file=sys.stderr)
         return 1
     except BackboneError as e:
@@ -203,7 +206,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"note: --overwrite: removed {', '.join(removed)} of the reward run in {out}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     rconfig.save(cfg, out / "config.yaml")
-    r = train_reward(clips, cfg, out, progress=not args.no_progress, prepared=prepared)
+    r = train_reward(clips, cfg, split, out, progress=not args.no_progress, prepared=prepared)
     m = r["metrics"]
     print(f"trained on {r['n_train']} clips, held out {r['n_heldout']} clips of {len(r['heldout_items'])} episodes "
           f"({'stored features' if r['used_features'] else 'backbone on pixels'})")

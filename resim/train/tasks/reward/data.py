@@ -69,14 +69,6 @@ def window_indices(num_clip_frames: int, cfg: RewardModelConfig, where: str = "e
     return start + cfg.frame_step * np.arange(cfg.num_frames)
 
 
-def split_by_episode(clips: Sequence[RewardClip], heldout_fraction: float, seed: int = 0
-                     ) -> tuple[list[RewardClip], list[RewardClip]]:
-    """(train, held-out): whole episodes go to one side (``resim.train.smallfit.split_by_episode``), stratified
-    by the episode's hazard flag (hazardous when any of its clips is), so both sides hold hazardous and clean
-    episodes when there are >= 2 of each; a class with fewer than 2 episodes is held out from not at all."""
-    return smallfit.split_by_episode(clips, heldout_fraction, seed, stratum=lambda c: bool(c.hazard))
-
-
 def collate(clips: Sequence[RewardClip], cfg: RewardModelConfig, use_features: bool, where: str = "end"
             ) -> dict[str, Any]:
     """Batch for ``Video2Reward.loss``: ``{"infraction_score" (B,), "hazard" (B,), "keys", and

@@ -24,9 +24,10 @@ from resim.models.reward.checkpoint import save_checkpoint, write_json
 from resim.models.reward.config import RewardModelConfig
 from resim.train.tasks.reward.config import RewardTrainConfig
 from resim.models.reward.model import Video2Reward
+from resim.shards.split import DatasetSplit
 from resim.train import smallfit
 from resim.train.config import OptimConfig, RunConfig
-from resim.train.tasks.reward.data import ClipError, RewardClip, collate, split_by_episode, window_indices
+from resim.train.tasks.reward.data import ClipError, RewardClip, collate, window_indices
 from resim.train.tasks.reward.features import add_clip_features
 from resim.train.tasks.reward.metrics import reward_metrics
 
@@ -97,26 +98,22 @@ class PreparedRun:
     skipped: list[dict]
     model: Video2Reward
     notes: list[str]        # held-out metrics that will be undefined (nan), said before training
+    split: DatasetSplit     # the dataset's, which decided the two sides
 
 
-def prepare_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> PreparedRun:
+def prepare_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig, split: DatasetSplit) -> PreparedRun:
     """Everything of a run that can fail on bad input, done before training: the model (its backbone
-    folder), usable clips, the split by episode. Raises :class:`SplitError` (no held-out or no training
+    folder), usable clips, their sides of the dataset's ``split`` (``resim.shards.split``: by episode, stratified
+    by source and hazard). Raises :class:`SplitError` (no held-out or no training
     episode), ``resim.models.reward.backbone.BackboneError`` (backbone folder)."""
     # the model first: a bad backbone folder is a config error whatever the data
     torch.manual_seed(cfg.seed)
     model = Video2Reward(cfg.model)
     clips, skipped = usable_clips([c for c in clips if c.infraction_score is not None], cfg)
-    train, held = split_by_episode(clips, cfg.data.heldout_fraction, cfg.data.split_seed)
-    if not train or not held:
-        eps: dict[str, bool] = {}
-        for c in clips:
-            eps[c.item_id] = eps.get(c.item_id, False) or bool(c.hazard)
-        n_h = sum(eps.values())
-        raise SplitError(
-            f"cannot split {len(clips)} usable labelled clips into train and held-out episodes: the split is "
-            f"stratified by hazard and holds out episodes only from a class with at least 2 episodes; got "
-            f"{n_h} hazardous and {len(eps) - n_h} clean episode(s) (need >= 2 of one class)")
+    try:
+        train, held = smallfit.split_clips(clips, split, f"labelled clip ({len(clips)} usable)")
+    except ValueError as e:
+        raise SplitError(str(e)) from None
     notes = []
     if len(held) < 2:
         notes.append(f"the held-out set has {len(held)} clip: Spearman is undefined (nan); "
@@ -124,14 +121,15 @@ def prepare_training(clips: Sequence[RewardClip], cfg: RewardTrainConfig) -> Pre
     if len({bool(c.hazard) for c in held}) < 2:
         notes.append("the held-out set holds only " + ("hazardous" if held[0].hazard else "clean")
                      + " episodes: hazard AUC is undefined (nan)")
-    return PreparedRun(train, held, skipped, model, notes)
+    return PreparedRun(train, held, skipped, model, notes, split)
 
 
-def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: str | Path | None = None,
-                 progress: bool = False, prepared: PreparedRun | None = None) -> dict:
-    """Split by episode, train, evaluate on held-out episodes; write outputs when ``out_dir`` is given.
+def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, split: DatasetSplit,
+                 out_dir: str | Path | None = None, progress: bool = False, prepared: PreparedRun | None = None) -> dict:
+    """Split by the dataset's ``split``, train, evaluate on held-out episodes; write outputs when ``out_dir`` is
+    given.
 
-    ``prepared``: the result of :func:`prepare_training` on the same clips and config (callers that check
+    ``prepared``: the result of :func:`prepare_training` on the same clips, config and split (callers that check
     the input first, e.g. the CLI, pass it on instead of repeating the work).
 
     Returns {"metrics": held-out metrics, "train_metrics", "history", "used_features", "n_train",
@@ -139,7 +137,7 @@ def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
     one clip, AUC of one class) are nan, listed in "notes", and null in meta.json.
     """
     if prepared is None:
-        prepared = prepare_training(clips, cfg)
+        prepared = prepare_training(clips, cfg, split)
     train, held, skipped, model = prepared.train, prepared.held, prepared.skipped, prepared.model
     use_features = False
     if cfg.use_stored_features and cfg.model.freeze_backbone:
@@ -160,13 +158,13 @@ def train_reward(clips: Sequence[RewardClip], cfg: RewardTrainConfig, out_dir: s
                                    np.array([c.hazard for c in train]))
     result = {"metrics": metrics, "train_metrics": train_metrics, "history": history, "samples_per_s": fitted["samples_per_s"],
               "used_features": use_features, "n_train": len(train), "n_heldout": len(held),
-              "heldout_items": sorted({c.item_id for c in held}), "model": model,
+              "heldout_items": sorted({c.item_id for c in held}), "split": split.record("heldout"), "model": model,
               "skipped": skipped, "heldout_pred": pred_h, "heldout_true": true_h, "heldout_hazard": haz_h,
               "notes": list(prepared.notes)}
     if out_dir is not None:
         out = Path(out_dir)
         save_checkpoint(model, out, cfg, {"heldout_metrics": metrics, "train_metrics": train_metrics,
-                                          "heldout_items": result["heldout_items"],
+                                          "heldout_items": result["heldout_items"], "split": result["split"],
                                           "used_stored_features": use_features, "skipped_clips": skipped,
                                           "notes": result["notes"]},
                         run_cfg=run_config(cfg, fitted["steps"]))   # final/config.yaml: the trainer's run config
