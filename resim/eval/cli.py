@@ -433,14 +433,15 @@ def _runner(args):
     return runner, meta
 
 
-def _clips(args, items, need_trajectory: bool = True, round_robin_limit: bool = True):
-    """The clips of --shards (held-out ``items``); --limit takes them round-robin over episodes unless
-    ``round_robin_limit`` is False (the caller then applies it, e.g. balanced over commands)."""
+def _clips(args, items, need_trajectory: bool = True, round_robin_limit: bool = True, fits=None):
+    """The clips of --shards (held-out ``items``; ``fits``: those a reader such as the IDM can read); --limit
+    takes them round-robin over episodes unless ``round_robin_limit`` is False (the caller then applies it, e.g.
+    balanced over commands)."""
     from resim.eval.worldeval import eval_clips_from_dataset
 
     try:
         clips = eval_clips_from_dataset(args.shards, items=items, limit=args.limit if round_robin_limit else None,
-                                        need_trajectory=need_trajectory)
+                                        need_trajectory=need_trajectory, fits=fits)
     except (FileNotFoundError, ShardReadError) as e:
         raise SystemExit(f"resim eval: --shards: {e}") from None
     if not clips:
@@ -558,15 +559,15 @@ def _bounds_line(b: dict) -> str:
 def _cmd_control(args) -> int:
     from resim.eval.report import format_protocol
     from resim.train.metrics import plot_bars
-    from resim.eval.worldeval import check_idm_window, control_eval, non_expert_pairs
+    from resim.eval.worldeval import check_idm_window, control_eval, idm_fits, non_expert_pairs
 
 
     # inputs first: clips, their non-expert pairs and the IDM's window are checked before any rollout
     if not _device(args, "control"):
         return 2
     items = _eval_items(args)
-    clips = _clips(args, items)
     idm, idm_info = _load_idm(args.idm, args.device)
+    clips = _clips(args, items, fits=idm_fits(idm))
     try:
         non_expert_pairs(clips, args.seed)
         check_idm_window(idm, clips)
@@ -796,7 +797,7 @@ def _cmd_vae(args) -> int:
 def _cmd_planning(args) -> int:
     from resim.eval.report import format_protocol
     from resim.train.metrics import plot_bars
-    from resim.eval.worldeval import PlanningEvalConfig, check_idm_window, planning_eval
+    from resim.eval.worldeval import PlanningEvalConfig, check_idm_window, idm_fits, planning_eval
 
 
     # inputs first: clips and the IDM's / planner's windows are checked before any rollout
@@ -810,7 +811,7 @@ def _cmd_planning(args) -> int:
               "planner must see history frames only (train it with `resim train idm --window history`)",
               file=sys.stderr)
         return 2
-    clips = _clips(args, _eval_items(args))
+    clips = _clips(args, _eval_items(args), fits=idm_fits(*[m for m in (idm, planner) if m is not None]))
     try:
         check_idm_window(idm, clips)
         if planner is not None:

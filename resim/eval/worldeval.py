@@ -62,9 +62,12 @@ class EvalClip:
 
 
 def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = None, limit: int | None = None,
-                            need_trajectory: bool = True) -> list[EvalClip]:
+                            need_trajectory: bool = True, fits: Callable[[EvalClip], bool] | None = None
+                            ) -> list[EvalClip]:
     """Clips of ``root`` (only those of episodes ``items`` when given; at most ``limit``, spread over the
-    episodes by :func:`spread_over_episodes`; ``None``: all)."""
+    episodes by :func:`spread_over_episodes`; ``None``: all). ``fits``: keep the clips a reader can read (e.g.
+    :func:`idm_fits`: an IDM's frame window) before the most common geometry is chosen, unless none fits (the
+    caller's own check then names the reason)."""
     # `limit is not None`, not `if limit`: a limit of 0 must not mean "all clips"
     if limit is not None and limit < 1:
         raise ValueError(f"limit must be >= 1 (or None for all clips), got {limit}")
@@ -84,6 +87,8 @@ def eval_clips_from_dataset(root: str | Path, *, items: Sequence[str] | None = N
                             int(m["num_history_frames"]), float(m["fps_hz"]), bool(m.get("vae_placeholder")),
                             temporal_compression_of(int(m["num_frames"]), len(lat))))
     out.sort(key=lambda c: c.key)
+    if fits is not None:
+        out = [c for c in out if fits(c)] or out
     out = _one_geometry(out)
     return spread_over_episodes(out, limit) if limit is not None else out
 
@@ -286,6 +291,19 @@ def non_expert_pairs(clips: Sequence[EvalClip], seed: int = 0) -> list[int]:
     if not clips:
         raise ValueError("no held-out clips with a trajectory")
     return [_other_clip_index(clips, i, seed) for i in range(len(clips))]
+
+
+def idm_fits(*idms: Any) -> Callable[[EvalClip], bool]:
+    """Whether each of ``idms`` (an IDM, the VO planner) can read a clip: its frame window fits the clip's
+    history and length (a dataset may mix 10-Hz clips with 2-Hz NAVSIM ones)."""
+    def fits(c: EvalClip) -> bool:
+        try:
+            for m in idms:
+                m.cfg.frame_indices(c.num_history_frames, len(c.frames))
+        except ValueError:
+            return False
+        return True
+    return fits
 
 
 def check_idm_window(idm: Any, clips: Sequence[EvalClip], what: str = "IDM") -> None:

@@ -393,3 +393,19 @@ def test_end_point_slopes_tell_followed_from_ignored():
     s = end_point_slopes(ignored, given)
     assert s["forward_slope"] == pytest.approx(0.0) and s["lateral_slope"] == pytest.approx(0.0)
     assert end_point_slopes(ignored, ignored)["forward_slope"] is None     # nothing to regress on
+
+
+def test_the_clips_an_idm_can_read_win_over_the_most_common_geometry(tmp_path):
+    """A dataset mixing 10-Hz clips with more 2-Hz NAVSIM ones (the demo's): the IDM's evaluations take the clips
+    its window fits, not the most common geometry; with no reader, the most common geometry."""
+    from resim.eval.worldeval import eval_clips_from_dataset, idm_fits
+    from resim.models.idm import InverseDynamicsModel, idm_preset
+    from tests.support.training import navsim_spec, write_world_dataset
+
+    root = write_world_dataset(tmp_path / "mixed", num_samples=12, sources=("navsim", "synthetic"),
+                               specs={"navsim": navsim_spec()})
+    idm = InverseDynamicsModel(idm_preset("tiny"))
+    assert {c.fps_hz for c in eval_clips_from_dataset(root)} == {2.0}              # 8 NAVSIM clips of 12
+    read = eval_clips_from_dataset(root, fits=idm_fits(idm))
+    assert {c.fps_hz for c in read} == {10.0} and len(read) == 4
+    assert {c.fps_hz for c in eval_clips_from_dataset(root, fits=lambda c: False)} == {2.0}   # none fits: unchanged
