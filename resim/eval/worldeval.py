@@ -279,7 +279,7 @@ def _other_clip_index(clips: Sequence[EvalClip], i: int, seed: int) -> int:
         eps = sorted({c.item_id for c in clips})
         raise ValueError(f"non-expert trajectories come from another episode, but the {len(clips)} clip(s) "
                          f"evaluated are all of episode {eps[0]!r}: evaluate more clips (a larger --limit, "
-                         "--all-clips, or an IDM run holding out more episodes: --min-heldout-episodes 2)")
+                         "--all-clips, or a split holding out more: `resim shards split DIR --min-heldout-episodes 2`)")
     return min(cands, key=lambda j: hashlib.sha256(f"{seed}\0{clips[i].key}\0{clips[j].key}".encode()).hexdigest())
 
 

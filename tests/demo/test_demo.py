@@ -47,7 +47,7 @@ def _finite(v) -> bool:
 
 def _check_evaluation(out: Path, page: str) -> None:
     """Issue 10's done-when on the demo's trained world model: the IDM, `resim eval control` and `resim eval
-    quality` wrote JSON + PNG with real numbers, on clips of the episodes the IDM held out."""
+    quality` wrote JSON + PNG with real numbers, on clips of the episodes the IDM held out (the shards' split)."""
     ev = out / "eval"
     for png in ("idm/idm_report.png", "control/control.png", "quality/quality.png"):
         assert (ev / png).stat().st_size > 1000, png
@@ -62,7 +62,8 @@ def _check_evaluation(out: Path, page: str) -> None:
 
     ctl = json.loads((ev / "control/control.json").read_text())
     assert ctl["protocol"]["clips"] == 2 and ctl["protocol"]["episodes"] == 2
-    assert ctl["protocol"]["heldout_from"].endswith("eval/idm")
+    assert ctl["protocol"]["split"]["side"] == "heldout"          # the episodes the IDM held out: one split
+    assert ctl["protocol"]["split"]["heldout_sha256_16"] == idm["protocol"]["split"]["heldout_sha256_16"]
     for k in ("expert", "non_expert", "idm_on_recorded_video", "idm_on_recorded_through_vae", "expert_vs_not_given",
               "recorded_video_vs_not_given"):
         assert _finite(ctl[k]["trajectory_difference_m"]) and _finite(ctl[k]["trajectory_difference_final_m"])
