@@ -82,7 +82,7 @@ SPLIT_FLAGS: dict[str, str] = {
     "--heldout-fraction": "--heldout-fraction F", "--min-heldout-episodes": "--min-heldout-episodes N",
     "--split-seed": "--seed S", "--heldout-from": None,
 }
-SPLIT_FLAG_COMMANDS = (("train", "idm"), ("train", "policy"), ("eval",), ("simulate",))
+SPLIT_FLAG_COMMANDS = (("train", "idm"), ("train", "policy"), ("eval",))
 
 
 def retired_flag(argv: list[str]) -> str | None:

@@ -25,7 +25,6 @@ from resim.shards.errors import ShardReadError
 from resim.shards.manifest import read_manifest
 
 SPLIT_FILE = "split.json"
-SIDES = ("train", "heldout")
 
 
 @dataclass
@@ -90,12 +89,6 @@ class DatasetSplit:
         raise ShardReadError(f"episode {item_id!r} is in neither side of the split ({self.origin}): the dataset "
                              "changed after its split was written; rerun `resim shards split DIR`")
 
-    def keep(self, item_ids, side: str) -> list[bool]:
-        """For each item id, whether it is on ``side`` ('train', 'heldout' or 'all')."""
-        if side not in (*SIDES, "all"):
-            raise ValueError(f"split side must be train, heldout or all, got {side!r}")
-        return [True if side == "all" else self.side(i) == side for i in item_ids]
-
     def summary(self) -> dict:
         """Where the split comes from, its config, its sizes and a digest of the held-out list."""
         digest = hashlib.sha256("\n".join(sorted(self.heldout)).encode()).hexdigest()[:16]
@@ -122,9 +115,9 @@ def read_all(roots) -> DatasetSplit:
                         "; ".join(p.origin for p in parts))
 
 
-def _episodes(root: Path) -> dict[str, tuple[str, bool | None]]:
-    """item_id -> (source, hazard flag): true if any clip of it is hazardous, false if any is not, else none."""
-    t = read_manifest(root)
+def _episodes(t) -> dict[str, tuple[str, bool | None]]:
+    """item_id -> (source, hazard flag) of manifest table ``t``: hazard true if any clip of the episode is
+    hazardous, false if any is not, else none."""
     out: dict[str, tuple[str, bool | None]] = {}
     for item, src, hz in zip(t["item_id"].to_pylist(), t["source"].to_pylist(), t["hazard"].to_pylist()):
         prev = out.get(item, (src, None))[1]
@@ -138,8 +131,9 @@ def of_episodes(episodes: dict[str, tuple], cfg: SplitConfig, origin: str) -> Da
     return DatasetSplit(cfg, frozenset(held), frozenset(set(episodes) - held), frozenset(topped), origin)
 
 
-def compute(root: str | Path, cfg: SplitConfig, origin: str) -> DatasetSplit:
-    return of_episodes(_episodes(Path(root)), cfg, origin)
+def compute(root: str | Path, cfg: SplitConfig, origin: str, manifest=None) -> DatasetSplit:
+    """The split of ``root``'s committed episodes (``manifest``: its ``read_manifest`` table, if already read)."""
+    return of_episodes(_episodes(read_manifest(root) if manifest is None else manifest), cfg, origin)
 
 
 def write(root: str | Path, cfg: SplitConfig) -> DatasetSplit:
@@ -154,15 +148,16 @@ def write(root: str | Path, cfg: SplitConfig) -> DatasetSplit:
     return s
 
 
-def read(root: str | Path) -> DatasetSplit:
+def read(root: str | Path, manifest=None) -> DatasetSplit:
     """The split of dataset ``root``: its ``split.json``; without one (a dataset older than the split), the
     default split computed from the manifest (``origin`` says so; callers show it in their summary). A ``split.json`` that does not list every
-    episode of the manifest, or that is malformed, is a ``ShardReadError`` naming the file."""
+    episode of the manifest, or that is malformed, is a ``ShardReadError`` naming the file. ``manifest``: the
+    dataset's ``read_manifest`` table, where the caller has it already."""
     root = Path(root)
     path = root / SPLIT_FILE
     if not path.is_file():
-        return compute(root, SplitConfig(), f"the default split, computed on read (no {path}: `resim shards split "
-                                            f"{root}` writes it)")
+        origin = f"the default split, computed on read (no {path}: `resim shards split {root}` writes it)"
+        return compute(root, SplitConfig(), origin, manifest=manifest)
     try:
         body = json.loads(path.read_text())
         cfg = from_dict(SplitConfig, body["config"], prefix="split.")
@@ -170,7 +165,7 @@ def read(root: str | Path) -> DatasetSplit:
         topped = frozenset(body.get("topped_up", []))
     except (OSError, ValueError, KeyError, TypeError, ConfigError) as e:
         raise ShardReadError(f"{path}: not a split file ({e}); `resim shards split {root}` rewrites it") from None
-    missing = set(_episodes(root)) - held - train
+    missing = set(_episodes(read_manifest(root) if manifest is None else manifest)) - held - train
     if missing:
         raise ShardReadError(f"{path}: {len(missing)} episode(s) of the manifest are in neither side (e.g. "
                              f"{sorted(missing)[0]!r}): the dataset grew after its split was written; rerun "

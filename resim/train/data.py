@@ -214,8 +214,8 @@ class _EpochStream(IterableDataset):
 def _train_side(root: Path, paths: list[str], counts: list[dict[str, int]]):
     """(shard paths, per-shard source counts, held-out sample keys, the split's record) of the train side of
     ``root``'s split: shards wholly held out are left out, and the others' counts lose their held-out samples."""
-    split = dataset_split.read(root)
     t = read_manifest(root)
+    split = dataset_split.read(root, manifest=t)
     held_keys, held_n = set(), {}
     for key, shard, src, item in zip(t["key"].to_pylist(), t["shard"].to_pylist(), t["source"].to_pylist(),
                                      t["item_id"].to_pylist()):
