@@ -1,7 +1,7 @@
 """Report Video2Reward runs trained on several held-out splits of one world (docs/reward.md).
 
 Reads the folders written by ``resim train reward`` (final/meta.json, heldout_predictions.json; one
-folder per ``data.split_seed``) and prints a markdown table of every split (n, MAE, Spearman,
+folder per split of the dataset, ``resim shards split DIR --seed S`` before each run) and prints a markdown table of every split (n, MAE, Spearman,
 hazard AUC, train MAE), the held-out error per kind of synthetic episode (the kind is read from
 the `resim synth` route name, e.g. ``SynthExplorerStop_...``), and writes one predicted-vs-true
 plot with a panel per split.
@@ -20,16 +20,14 @@ import numpy as np
 
 
 def load_run(d: Path) -> dict:
-    import yaml
-
     meta_p = d / "final" / "meta.json"   # runs written before the shared export layout: d / "meta.json"
     meta = json.loads((meta_p if meta_p.is_file() else d / "meta.json").read_text())
     for split in ("heldout_metrics", "train_metrics"):   # meta.json writes an undefined metric as null
         m = meta.get(split) or {}
         meta[split] = {k: float("nan") if v is None else v for k, v in m.items()}
     preds = json.loads((d / "heldout_predictions.json").read_text())
-    cfg = yaml.safe_load((d / "config.yaml").read_text())
-    return {"dir": d, "meta": meta, "preds": preds, "split": cfg["data"]["split_seed"]}
+    # the dataset's split the run read (meta.json "split", docs/reward.md "Data and split")
+    return {"dir": d, "meta": meta, "preds": preds, "split": meta["split"]["seed"]}
 
 
 def kind_of(item_id: str) -> str:
@@ -43,7 +41,7 @@ def main(argv=None) -> int:
     ap.add_argument("--png", default=None, help="write the per-split predicted-vs-true plot here")
     args = ap.parse_args(argv)
     runs = [load_run(Path(r)) for r in args.runs]
-    print("| split_seed | held-out n | MAE | Spearman | hazard AUC | train MAE |")
+    print("| split seed | held-out n | MAE | Spearman | hazard AUC | train MAE |")
     print("|---|---|---|---|---|---|")
     for r in runs:
         h, t = r["meta"]["heldout_metrics"], r["meta"]["train_metrics"]
@@ -78,7 +76,7 @@ def main(argv=None) -> int:
             ax.set_xlim(0, 1.05)
             ax.set_ylim(0, 1.05)
             h = r["meta"]["heldout_metrics"]
-            ax.set_title(f"split_seed {r['split']}: MAE {h['mae']:.3f}\nSpearman {h['spearman']:.3f}  "
+            ax.set_title(f"split seed {r['split']}: MAE {h['mae']:.3f}\nSpearman {h['spearman']:.3f}  "
                          f"AUC {h['hazard_auc']:.3f}  (n={h['n']})", fontsize=8)
             ax.set_xlabel("true infraction score", fontsize=8)
         axes[0][0].set_ylabel("predicted (held-out episodes)", fontsize=8)
