@@ -1,11 +1,11 @@
-"""Keep a long world-model run across machines: its EMA weights as one bf16 file at one path, with its progress.
+"""Keep a long world-model run across machines: its EMA weights as one file at one path, with its progress.
 
 A session may end on a machine that does not come back, with every uncommitted file. So at the end of each session
-the run's EMA weights are committed as ``lab/runs/<name>/ema.bf16.safetensors`` (overwritten each time: one file,
-~10 MB, not a folder of checkpoints) beside ``progress.json``: steps, CPU-hours spent (wall x threads, summed over
-the segments), the loss curve per 500 steps and the dev readings. Where the machine survives, the run resumes
+the run's EMA weights are committed as ``lab/runs/<name>/ema.safetensors`` (overwritten each time: one file,
+~9 MB in float32: the weights the readings are made with, not a folder of checkpoints) beside ``progress.json``:
+steps, CPU-hours spent (wall x threads, summed over the segments), the loss curve per 500 steps and the dev readings. Where the machine survives, the run resumes
 exactly from its own checkpoint (``--resume``); where it does not, from this file
-(``--set model.init_weights=lab/runs/<name>/ema.bf16.safetensors``; the optimiser restarts, the step count goes on
+(``--set model.init_weights=lab/runs/<name>/ema.safetensors``; the optimiser restarts, the step count goes on
 from ``progress.json``).
 
   python lab/milestone.py save RUN --name synth-world [--threads 2] [--segment-wall-s S] [--diag sizing.jsonl]
@@ -18,8 +18,6 @@ import json
 import shutil
 from pathlib import Path
 
-import torch
-from safetensors.torch import load_file, save_file
 
 ROOT = Path(__file__).resolve().parent / "runs"
 
@@ -30,9 +28,8 @@ def save(run: Path, name: str, threads: float, segment_wall_s: float | None, dia
     dst.mkdir(parents=True, exist_ok=True)
     final = run / "final"
     src = final / "ema.safetensors" if (final / "ema.safetensors").is_file() else final / "model.safetensors"
-    state = {k: v.to(torch.bfloat16) if v.is_floating_point() else v for k, v in load_file(str(src)).items()}
-    save_file(state, str(dst / "ema.bf16.safetensors.tmp"))
-    (dst / "ema.bf16.safetensors.tmp").replace(dst / "ema.bf16.safetensors")   # never a half-written file
+    shutil.copyfile(src, dst / "ema.safetensors.tmp")
+    (dst / "ema.safetensors.tmp").replace(dst / "ema.safetensors")   # never a half-written file
     shutil.copyfile(run / "config.yaml", dst / "config.yaml")
     if (final / "data_encode.yaml").is_file():
         shutil.copyfile(final / "data_encode.yaml", dst / "data_encode.yaml")
@@ -62,7 +59,7 @@ def save(run: Path, name: str, threads: float, segment_wall_s: float | None, dia
     # the CPU the run's processes really used (lab/size_world.py measures it from their rusage), where recorded;
     # else wall x threads
     measured = readings[-1].get("cpu_min") if readings else None
-    prog = {"name": name, "run": str(run.resolve()), "weights": src.name + " of the run, cast to bf16",
+    prog = {"name": name, "run": str(run.resolve()), "weights": src.name + " of the run",
             "step": offset + metrics[-1]["step"], "step_offset": offset,
             "cpu_hours": round(before + (measured / 60 if measured is not None else wall * threads / 3600), 2),
             "cpu_hours_from": "rusage of the training processes" if measured is not None else "wall x threads",
