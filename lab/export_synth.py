@@ -1,6 +1,7 @@
 """Install trained synthetic-world models as the shipped folders ``configs/models/synth-vae`` and ``synth-world``.
 
     python -m lab.export_synth --vae RUN_VAE/final/vae --world RUN_WORLD --out configs/models
+    python -m lab.export_synth --world lab/runs/synth-world --out DIR     # a milestone folder (lab/milestone.py)
 
 * ``synth-vae/``: the VAE run's exported diffusers folder (``config.json`` + ``diffusion_pytorch_model.safetensors``),
   loaded by ``AutoencoderKLCogVideoX.from_pretrained`` / ``resim.media.encoders.VideoVAE`` as CogVideoX-2B's is.
@@ -29,8 +30,10 @@ def install_vae(vae_dir: Path, out: Path) -> Path:
     return dst
 
 
-def install_world(run: Path, out: Path) -> Path:
-    final = run / "final"
+def install_world(run: Path, out: Path, vae_name: str = SYNTH_VAE) -> Path:
+    """``run``: a run folder (``config.yaml``, ``final/``) or a milestone folder of lab/milestone.py (``config.yaml``,
+    ``ema.safetensors``, ``data_encode.yaml`` side by side)."""
+    final = run / "final" if (run / "final").is_dir() else run
     dst = out / SYNTH_WORLD
     dst.mkdir(parents=True, exist_ok=True)
     weights = final / "ema.safetensors" if (final / "ema.safetensors").is_file() else final / "model.safetensors"
@@ -44,7 +47,7 @@ def install_world(run: Path, out: Path) -> Path:
     (dst / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     data = yaml.safe_load((final / "data_encode.yaml").read_text())
     enc = data["encode"]
-    enc.update({"vae": SYNTH_VAE, "text_encoder": enc.get("text_encoder") or PLACEHOLDER_T5})
+    enc.update({"vae": vae_name, "text_encoder": enc.get("text_encoder") or PLACEHOLDER_T5})
     clip = {"clip": data["clip"]} if data.get("clip") else {}
     (dst / "data_encode.yaml").write_text(yaml.safe_dump({"encode": enc, **clip}, sort_keys=False))
     return dst
@@ -53,13 +56,15 @@ def install_world(run: Path, out: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--vae", type=Path, help="a `resim train vae` run's final/vae folder")
-    p.add_argument("--world", type=Path, help="a `resim train world` run folder")
+    p.add_argument("--world", type=Path, help="a `resim train world` run folder, or a lab/milestone.py folder")
+    p.add_argument("--vae-name", default=SYNTH_VAE, help="the VAE the world's data_encode.yaml names (default "
+                   "synth-vae): the shipped name of the VAE its data was encoded with")
     p.add_argument("--out", type=Path, default=Path("configs/models"))
     a = p.parse_args(argv)
     if a.vae:
         print(f"installed {install_vae(a.vae, a.out)}")
     if a.world:
-        print(f"installed {install_world(a.world, a.out)}")
+        print(f"installed {install_world(a.world, a.out, a.vae_name)}")
     return 0
 
 
