@@ -339,6 +339,19 @@ def loop_guidance(args: Any, world_command: bool) -> None:
         st.rollout = with_guidance_start(st.rollout, start)
 
 
+def extra_policy_names(taken: Sequence[str], runs: Sequence[str]) -> list[str]:
+    """The report names of the ``--also`` policy runs: each folder's name, or the path as given where that name is
+    already a row's (a graded policy's label, e.g. a run folder called ``policy``, or another run's folder name), so
+    no row silently replaces another. ``ValueError`` for a run given twice."""
+    names: list[str] = []
+    for i, r in enumerate(runs):
+        name = Path(r).name if Path(r).name not in {*taken, *names} else str(r)
+        if name in {*taken, *names} or str(r) in map(str, runs[:i]):
+            raise ValueError(f"--also {r}: given twice")
+        names.append(name)
+    return names
+
+
 def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]:
     """``resim eval closed-loop``: parsed ``args``; ``make_runner(args) -> (WorldRollouts, meta)`` builds the
     world model, its VAE and prompts (None: the true world only). Returns (report, text)."""
@@ -346,7 +359,8 @@ def run_closed_loop(args: Any, make_runner: Callable | None) -> tuple[dict, str]
         run = args.settings.section("closed_loop")
         cfg = ClosedLoopConfig(seed=run.state_seed, states=run.states, seconds=args.seconds)
         pixel, pinfo = load_policy(args.policy, args.device)
-        extra = {Path(r).name: load_policy(r, args.device)[0] for r in args.also}
+        names = extra_policy_names([VARIANTS[v] for v in run.variants], args.also)
+        extra = {n: load_policy(r, args.device)[0] for n, r in zip(names, args.also)}
         idm, _ = load_idm(args.idm, args.device)
         reward = load_reward(args.reward, args.device) if args.reward else None
     except (ValueError, FileNotFoundError) as e:

@@ -11,8 +11,8 @@ import torch
 from resim.config import from_dict
 from resim.eval.drive import itinerary
 from resim.eval.idm_proxy import idm_path, path_score
-from resim.eval.policy_ranking import (ClosedLoopConfig, ReplayPlans, closed_loop_eval, rank_agreement, reward_score,
-                                       starting_states)
+from resim.eval.policy_ranking import (ClosedLoopConfig, ReplayPlans, closed_loop_eval, extra_policy_names,
+                                       rank_agreement, reward_score, starting_states)
 from resim.eval.policy_ranking_report import format_closed_loop
 from resim.eval.simulate_policy import reward_over_time
 from resim.media.encoders import VideoVAE
@@ -73,6 +73,16 @@ def test_a_path_on_the_map_scores_the_expert_100_and_a_drift_less():
     drift = ego + np.c_[0 * ego[:, 0], np.linspace(0, 8, len(ego)), 0 * ego[:, 0]]   # 8 m to the left by the end
     bad = path_score(st.world, start, drift, progress)
     assert bad["inside"] < 0.8 and bad["score"] < good["score"]
+
+
+def test_a_policy_run_named_like_a_row_gets_its_own_row():
+    # a run folder called "policy" beside the graded "policy" row once replaced that row's policy, silently
+    taken = ["policy", "constant velocity"]
+    assert extra_policy_names(taken, ["runs/policy-1-epoch"]) == ["policy-1-epoch"]
+    assert extra_policy_names(taken, ["runs/policy", "runs/b/twin", "runs/c/twin"]) == ["runs/policy", "twin",
+                                                                                         "runs/c/twin"]
+    with pytest.raises(ValueError, match="given twice"):
+        extra_policy_names(taken, ["runs/twin", "runs/twin"])
 
 
 def test_rank_agreement():
