@@ -3,8 +3,8 @@
 A session may end on a machine that does not come back, with every uncommitted file. So at the end of each session
 the run's EMA weights are committed as ``lab/runs/<name>/ema.safetensors`` (overwritten each time: one file,
 ~9 MB in float32: the weights the readings are made with, not a folder of checkpoints) beside ``progress.json``:
-steps, CPU-hours spent (wall x threads, summed over the segments), the loss curve per 500 steps and the dev readings. Where the machine survives, the run resumes
-exactly from its own checkpoint (``--resume``); where it does not, from this file
+steps, CPU-hours spent (wall x threads, summed over the segments), the loss curve per 500 steps and the dev readings.
+Where the machine survives, the run resumes exactly from its own checkpoint (``--resume``); where it does not, from this file
 (``--set model.init_weights=lab/runs/<name>/ema.safetensors``; the optimiser restarts, the step count goes on
 from ``progress.json``).
 
@@ -17,7 +17,6 @@ import argparse
 import json
 import shutil
 from pathlib import Path
-
 
 ROOT = Path(__file__).resolve().parent / "runs"
 

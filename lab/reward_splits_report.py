@@ -1,8 +1,8 @@
 """Report Video2Reward runs trained on several held-out splits of one world (docs/reward.md).
 
 Reads the folders written by ``resim train reward`` (final/meta.json, heldout_predictions.json; one
-folder per split of the dataset, ``resim shards split DIR --seed S`` before each run) and prints a markdown table of every split (n, MAE, Spearman,
-hazard AUC, train MAE), the held-out error per kind of synthetic episode (the kind is read from
+folder per split of the dataset, ``resim shards split DIR --seed S`` before each run) and prints a markdown
+table of every split (n, MAE, Spearman, hazard AUC, train MAE), the held-out error per kind of synthetic episode (the kind is read from
 the `resim synth` route name, e.g. ``SynthExplorerStop_...``), and writes one predicted-vs-true
 plot with a panel per split.
 

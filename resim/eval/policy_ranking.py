@@ -345,9 +345,12 @@ def extra_policy_names(taken: Sequence[str], runs: Sequence[str]) -> list[str]:
     no row silently replaces another. ``ValueError`` for a run given twice."""
     names: list[str] = []
     for i, r in enumerate(runs):
-        name = Path(r).name if Path(r).name not in {*taken, *names} else str(r)
-        if name in {*taken, *names} or str(r) in map(str, runs[:i]):
+        if str(r) in map(str, runs[:i]):
             raise ValueError(f"--also {r}: given twice")
+        rows = {*taken, *names}
+        name = Path(r).name if Path(r).name not in rows else str(r)
+        if name in rows:
+            raise ValueError(f"--also {r}: a row of that name exists already; give its path another way (./{r})")
         names.append(name)
     return names
 

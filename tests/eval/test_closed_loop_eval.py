@@ -83,6 +83,8 @@ def test_a_policy_run_named_like_a_row_gets_its_own_row():
                                                                                          "runs/c/twin"]
     with pytest.raises(ValueError, match="given twice"):
         extra_policy_names(taken, ["runs/twin", "runs/twin"])
+    with pytest.raises(ValueError, match="exists already"):   # a folder "policy" in the working dir
+        extra_policy_names(taken, ["policy"])
 
 
 def test_rank_agreement():
